@@ -1,0 +1,1 @@
+"""Sub-commands of run_trainer.py that need only hope_models."""

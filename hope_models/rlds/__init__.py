@@ -1,0 +1,1 @@
+"""Reading, validating and writing Continuon RLDS episodes in every layout the producers write."""

@@ -1,0 +1,47 @@
+#!/usr/bin/env python3
+"""HOPE Seed Trainer command line: a thin dispatcher over hope_models, daemon, workers and webapp.
+
+Each sub-command lives in its own module with `add_arguments(parser)` and `run(args) -> int`;
+modules are imported only when their command runs, so `status` never pays for torch.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# command name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "validate": ("hope_models.cli.validate", "check RLDS episodes (train or cloud profile)"),
+    "ingest": ("hope_models.cli.ingest", "copy episodes into a canonical dataset dir"),
+    "export": ("hope_models.cli.export", "write the Pi runtime's cloud upload package"),
+    "dataset": ("hope_models.cli.dataset", "build the feature spec and cache of a dataset and summarise it"),
+    "demo": ("hope_models.cli.demo", "run the end-to-end job on generated episodes"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="run_trainer.py", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (module_name, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module_name)
+        # Arguments are declared by the module itself; import is cheap for the data commands,
+        # and heavy modules keep their imports inside run().
+        importlib.import_module(module_name).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
