@@ -1,0 +1,201 @@
+"""Ingest: bring episodes from any layout into one canonical dataset dir, once.
+
+Each episode is validated with the train profile; rejected ones are not written, only listed in
+the dataset manifest with their reasons. The manifest (<dataset>/manifest.json) records every
+episode's content hash, which is what makes ingest idempotent: the same input finds its hash and
+writes nothing, and a different episode whose id is taken gets the deterministic suffix
+`-<first 8 hex of its content hash>`. The manifest holds no timestamps, so a re-run with the same
+input leaves it byte-identical (and untouched on disk).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+from .episode import Episode
+from .validate import exception_entry, read_reports, report_entries, unique_paths
+from .write_episode_dir import (PreparedEpisode, prepare_episode, remove_stale_tmp_dirs,
+                                safe_episode_id, write_prepared)
+
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "hope-rlds-dataset"
+
+
+class IngestError(Exception):
+    """The dataset dir cannot be ingested into (e.g. its manifest is not ours or is corrupt)."""
+
+
+@dataclass
+class Manifest:
+    episodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # by episode id
+    rejected: dict[str, dict[str, Any]] = field(default_factory=dict)  # by source
+    skipped: dict[str, dict[str, Any]] = field(default_factory=dict)  # by source
+
+    def __post_init__(self) -> None:
+        self._by_hash = {e["content_sha256"]: eid for eid, e in self.episodes.items()}
+
+    def id_of(self, content_sha256: str) -> str | None:
+        return self._by_hash.get(content_sha256)
+
+    def add(self, record: dict[str, Any]) -> None:
+        self.episodes[record["episode_id"]] = record
+        self._by_hash.setdefault(record["content_sha256"], record["episode_id"])
+
+    def to_json(self) -> dict[str, Any]:
+        episodes = [self.episodes[k] for k in sorted(self.episodes)]
+        return {
+            "format": MANIFEST_FORMAT,
+            "counts": {
+                "episodes": len(episodes),
+                "steps": sum(e["steps"] for e in episodes),
+                "imagined": sum(1 for e in episodes if e["imagined"]),
+                "rejected": len(self.rejected),
+                "skipped": len(self.skipped),
+            },
+            "episodes": episodes,
+            "rejected": [self.rejected[k] for k in sorted(self.rejected)],
+            "skipped": [self.skipped[k] for k in sorted(self.skipped)],
+        }
+
+    def text(self) -> str:
+        return json.dumps(self.to_json(), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+
+
+def load_manifest(dataset_dir: Path) -> Manifest:
+    path = dataset_dir / MANIFEST
+    if not path.exists():
+        return Manifest()
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+        if raw.get("format") != MANIFEST_FORMAT:
+            raise ValueError(f"format is {raw.get('format')!r}, expected {MANIFEST_FORMAT!r}")
+        # An episode dir deleted by hand is no longer in the dataset.
+        return Manifest(
+            episodes={e["episode_id"]: e for e in raw["episodes"]
+                      if (dataset_dir / e["episode_id"]).is_dir()},
+            rejected={e["source"]: e for e in raw["rejected"]},
+            skipped={e["source"]: e for e in raw["skipped"]},
+        )
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise IngestError(f"{path}: not a dataset manifest this tool can update: {exc}") from None
+
+
+def write_manifest(dataset_dir: Path, manifest: Manifest) -> bool:
+    """Writes only when the text changed, so a re-run leaves even the mtime alone."""
+    path = dataset_dir / MANIFEST
+    text = manifest.text()
+    if path.exists() and path.read_text(encoding="utf-8") == text:
+        return False
+    tmp = dataset_dir / f".{MANIFEST}.tmp"
+    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return True
+
+
+def _holds(existing_dir: Path, prepared: PreparedEpisode) -> bool:
+    """Whether a dir that is not in the manifest (a run that crashed before writing the manifest)
+    already holds this content."""
+    for report in read_reports(existing_dir):
+        for ep in report.episodes:
+            if prepare_episode(ep).content_sha256 == prepared.content_sha256:
+                return True
+    return False
+
+
+def _place(ep: Episode, prepared: PreparedEpisode, dataset_dir: Path,
+           manifest: Manifest) -> tuple[str, bool]:
+    """The id this episode gets and whether it still has to be written."""
+    known = manifest.id_of(prepared.content_sha256)
+    if known is not None:
+        return known, False
+    base = safe_episode_id(ep.episode_id)
+    digest = prepared.content_sha256
+    for candidate in (base, f"{base}-{digest[:8]}", f"{base}-{digest[:16]}", f"{base}-{digest}"):
+        if candidate in manifest.episodes:
+            continue  # taken by a different content (same content was found by hash above)
+        target = dataset_dir / candidate
+        if not target.exists():
+            return candidate, True
+        if target.is_dir() and _holds(target, prepared):
+            return candidate, False
+    raise IngestError(f"{ep.source}: no free episode id for {ep.episode_id!r} in {dataset_dir}")
+
+
+def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
+                    manifest: Manifest) -> dict[str, Any]:
+    prepared = prepare_episode(ep)
+    episode_id, needs_write = _place(ep, prepared, dataset_dir, manifest)
+    if needs_write:
+        write_prepared(prepared, dataset_dir, episode_id)
+        action = "written"
+    else:
+        known = manifest.episodes.get(episode_id)
+        original_id = known.get("source_episode_id", episode_id) if known else ep.episode_id
+        # "duplicate": this content is already in the dataset, ingested under another id
+        action = "unchanged" if original_id == ep.episode_id else "duplicate"
+    if episode_id not in manifest.episodes:
+        record = {"episode_id": episode_id, "source": ep.source, "steps": len(ep.steps),
+                  "content_sha256": prepared.content_sha256, "imagined": ep.is_imagined}
+        if episode_id != ep.episode_id:
+            record["source_episode_id"] = ep.episode_id
+        manifest.add(record)
+    manifest.rejected.pop(ep.source, None)
+    manifest.skipped.pop(ep.source, None)
+    return dict(entry, episode_id=episode_id, action=action)
+
+
+def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathLike,
+                 **reader_options: Any) -> dict[str, Any]:
+    """Ingests every episode under `paths` into `dataset_dir`; returns what happened to each.
+
+    Raises FileNotFoundError for a missing input path and IngestError for an unusable dataset dir."""
+    sources = [Path(os.path.abspath(p)) for p in unique_paths(paths)]
+    for source in sources:
+        if not source.exists():
+            raise FileNotFoundError(f"{source}: no such file or directory")
+    dataset = Path(os.path.abspath(dataset_dir))
+    if dataset.exists() and not dataset.is_dir():
+        raise IngestError(f"{dataset}: exists and is not a directory")
+    dataset.mkdir(parents=True, exist_ok=True)
+    remove_stale_tmp_dirs(dataset)
+    manifest = load_manifest(dataset)
+
+    results: list[dict[str, Any]] = []
+    for source in sources:
+        for report in read_reports(source, **reader_options):
+            entries = report_entries(report, "train")
+            if not report.episodes:
+                for entry in entries:
+                    results.append(_record_unwritten(entry, manifest))
+                continue
+            for ep, entry in zip(report.episodes, entries):
+                if entry["status"] == "rejected":
+                    results.append(_record_unwritten(entry, manifest))
+                    continue
+                try:
+                    results.append(_ingest_episode(ep, entry, dataset, manifest))
+                except (OSError, ValueError, TypeError) as exc:  # unwritable content or disk
+                    results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id),
+                                                     manifest))
+    manifest_written = write_manifest(dataset, manifest)
+    summary = {action: sum(1 for r in results if r["action"] == action)
+               for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
+    summary["ok"] = summary["rejected"] == 0
+    summary["manifest_written"] = manifest_written
+    return {"dataset": str(dataset), "episodes": results, "summary": summary}
+
+
+def _record_unwritten(entry: dict[str, Any], manifest: Manifest) -> dict[str, Any]:
+    if entry["status"] == "skipped":
+        reason = (entry["warnings"] or [entry["source"] + ": skipped"])[0]
+        manifest.skipped[entry["source"]] = {"source": entry["source"], "reason": reason}
+        return dict(entry, action="skipped")
+    manifest.rejected[entry["source"]] = {"source": entry["source"], "episode_id": entry["episode_id"],
+                                          "reasons": entry["errors"]}
+    return dict(entry, action="rejected")

@@ -1,0 +1,141 @@
+"""Reading JSON and JSONL text the way Continuon producers actually write it.
+
+Producers write UTF-8 with or without a BOM, CRLF or LF line ends, blank lines between steps,
+bare `NaN`/`Infinity` tokens (Python's json module emits them) and epoch-nanosecond integers
+above 2^53. Python's json parser already maps the bare tokens to float nan/inf and keeps
+integers exact, so the work here is decoding, line splitting, size guards and turning every
+failure into a Problem that names the file and line instead of raising.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .episode import ERROR, WARNING, Problem
+
+DEFAULT_MAX_FILE_BYTES = 512 << 20
+DEFAULT_MAX_LINE_BYTES = 64 << 20
+
+
+@dataclass(frozen=True)
+class ReadLimits:
+    """Size guards: a file or line above these is refused with a problem naming the limit."""
+
+    max_file_bytes: int = DEFAULT_MAX_FILE_BYTES
+    max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+
+
+class TextReadError(Exception):
+    """A file could not be read as text at all (too big, not UTF-8, I/O error)."""
+
+
+def _human_bytes(n: int) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} bytes"  # pragma: no cover
+
+
+def read_bytes(path: str | os.PathLike, limits: ReadLimits) -> bytes:
+    """Read a whole file, refusing it before reading when it is above max_file_bytes."""
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        if size > limits.max_file_bytes:
+            raise TextReadError(
+                f"file is {_human_bytes(size)}, above the limit max_file_bytes={limits.max_file_bytes} "
+                f"({_human_bytes(limits.max_file_bytes)}); raise the limit to read it")
+        return p.read_bytes()
+    except OSError as exc:
+        raise TextReadError(f"cannot read file: {exc.strerror or exc}") from None
+
+
+def decode_text(data: bytes) -> str:
+    """UTF-8 with or without BOM; invalid UTF-8 names the byte offset."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise TextReadError(f"not UTF-8 text: invalid byte at offset {exc.start}") from None
+
+
+def read_text(path: str | os.PathLike, limits: ReadLimits) -> str:
+    return decode_text(read_bytes(path, limits))
+
+
+def _json_error_text(exc: json.JSONDecodeError) -> str:
+    return f"not valid JSON: {exc.msg} (line {exc.lineno} column {exc.colno})"
+
+
+def parse_json_document(text: str) -> Any:
+    """Parse one JSON document; raises TextReadError with the parser's position on failure."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise TextReadError(_json_error_text(exc)) from None
+    except RecursionError:
+        raise TextReadError("not usable JSON: nested too deeply") from None
+
+
+@dataclass
+class JsonlLine:
+    line_no: int  # 1-based line number in the file, for messages
+    obj: dict[str, Any]
+
+
+@dataclass
+class JsonlResult:
+    lines: list[JsonlLine] = field(default_factory=list)
+    problems: list[Problem] = field(default_factory=list)
+    lost: int = 0  # non-blank lines that could not be used (bad JSON, not an object, too long)
+
+
+def parse_jsonl(text: str, source: str, limits: ReadLimits) -> JsonlResult:
+    """One JSON object per line. A bad line in the middle is an error for that line (the
+    others still read); a bad LAST line is taken as a write cut short by a crash and dropped
+    with a warning, because that is what an interrupted recorder leaves behind."""
+    result = JsonlResult()
+    # split("\n") rather than splitlines(): JSON strings may legally hold U+2028 and friends,
+    # which splitlines() would treat as line breaks.
+    raw_lines = text.split("\n")
+    last_content = len(raw_lines) - 1
+    while last_content >= 0 and not raw_lines[last_content].strip():
+        last_content -= 1
+    max_chars = limits.max_line_bytes
+    loads = json.loads
+    for i, line in enumerate(raw_lines):
+        if not line or line.isspace():
+            continue
+        line_no = i + 1
+        is_last = i == last_content
+        # A str's UTF-8 size is between len and 4*len; only encode when it could be over.
+        if len(line) * 4 > max_chars and len(line.encode("utf-8")) > max_chars:
+            result.problems.append(Problem(
+                ERROR, source, f"line {line_no} is {len(line.encode('utf-8'))} bytes, above the limit "
+                f"max_line_bytes={limits.max_line_bytes}; line skipped"))
+            result.lost += 1
+            continue
+        try:
+            obj = loads(line)
+        except (json.JSONDecodeError, RecursionError) as exc:
+            why = _json_error_text(exc) if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+            if is_last:
+                result.problems.append(Problem(
+                    WARNING, source, f"last line {line_no} is truncated or unparseable ({why}); "
+                    f"dropped ({len(line)} characters)"))
+            else:
+                result.problems.append(Problem(
+                    ERROR, source, f"line {line_no}: {why}; line skipped"))
+            result.lost += 1
+            continue
+        if not isinstance(obj, dict):
+            result.problems.append(Problem(
+                ERROR, source, f"line {line_no}: expected a JSON object per line, found "
+                f"{type(obj).__name__}; line skipped"))
+            result.lost += 1
+            continue
+        result.lines.append(JsonlLine(line_no, obj))
+    return result

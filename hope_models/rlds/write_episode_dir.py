@@ -1,0 +1,265 @@
+"""Writing one episode as a canonical dir: <dataset>/<episode_id>/metadata.json, steps/000000.jsonl, blobs/.
+
+The dir is built under a temporary name in the dataset dir and renamed into place, so a reader
+(or a crash) never sees half an episode. Relative blob files the steps reference are copied into
+`blobs/` and their URIs rewritten to `blobs/<path>`; URIs with a scheme stay opaque.
+
+The content hash covers what is written (metadata but its id, steps, blob bytes), so the same
+input always hashes the same and ingest can tell "already here" from "a different episode with
+the same id".
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import posixpath
+import re
+import shutil
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from .episode import SCHEMA_VERSION, Episode
+
+STEPS_FILE = "steps/000000.jsonl"
+BLOBS_DIR = "blobs"
+TMP_PREFIX = ".tmp-"
+_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+:")  # two letters at least: not a drive letter
+_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+# -- blob references ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BlobRef:
+    step: int
+    field: str  # dotted path of the URI, e.g. "observation.media.rgb.uri"
+    uri: str
+    status: str  # "ok", "missing", "escapes", "unresolvable" (relative, no blob root), "opaque"
+    path: Path | None = None  # the local file it names, when it names one
+    rel: str | None = None  # normalised path relative to the blob root (relative URIs only)
+
+
+def _is_uri_key(key: str) -> bool:
+    return key == "uri" or key.endswith("_uri")
+
+
+def _uri_fields(value: Any, path: str) -> Iterator[tuple[str, str]]:
+    if isinstance(value, dict):
+        for key, sub in value.items():
+            sub_path = f"{path}.{key}"
+            if isinstance(sub, str) and _is_uri_key(str(key)) and sub:
+                yield sub_path, sub
+            else:
+                yield from _uri_fields(sub, sub_path)
+    elif isinstance(value, list) and not set(map(type, value)).isdisjoint((dict, list)):
+        for i, sub in enumerate(value):  # only lists that hold objects can hold URIs
+            if isinstance(sub, (dict, list)):
+                yield from _uri_fields(sub, f"{path}[{i}]")
+
+
+def _resolve(uri: str, blob_root: str | None) -> tuple[str, Path | None, str | None]:
+    if uri.startswith("file://"):
+        local = Path(uri[len("file://"):])
+        return ("ok" if local.is_file() else "missing"), local, None
+    if _SCHEME.match(uri):
+        return "opaque", None, None
+    if os.path.isabs(uri):
+        local = Path(uri)
+        return ("ok" if local.is_file() else "missing"), local, None
+    rel = posixpath.normpath(uri.replace("\\", "/"))
+    if rel == ".." or rel.startswith("../"):
+        return "escapes", None, rel
+    if blob_root is None:
+        return "unresolvable", None, rel
+    root = Path(blob_root)
+    local = root / rel
+    # A symlink inside the episode dir can still point anywhere; only the real path counts.
+    if not os.path.realpath(local).startswith(os.path.realpath(root) + os.sep):
+        return "escapes", local, rel
+    return ("ok" if local.is_file() else "missing"), local, rel
+
+
+def blob_refs(ep: Episode) -> list[BlobRef]:
+    """Every blob URI in the steps, checked once per distinct URI (at its first step)."""
+    refs: list[BlobRef] = []
+    seen: set[str] = set()
+    for i, step in enumerate(ep.steps):
+        for part, value in (("observation", step.observation), ("action", step.action),
+                            ("step_metadata", step.step_metadata)):
+            for field_path, uri in _uri_fields(value, part):
+                if uri in seen:
+                    continue
+                seen.add(uri)
+                status, path, rel = _resolve(uri, ep.blob_root)
+                refs.append(BlobRef(i, field_path, uri, status, path, rel))
+    return refs
+
+
+def _rewrite_uris(value: Any, mapping: dict[str, str]) -> Any:
+    if isinstance(value, dict):
+        return {k: (mapping.get(v, v) if isinstance(v, str) and _is_uri_key(str(k))
+                    else _rewrite_uris(v, mapping)) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rewrite_uris(v, mapping) for v in value]
+    return value
+
+
+# -- the content as written ---------------------------------------------------------------------
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def canonical_metadata(ep: Episode, episode_id: str | None = None) -> dict[str, Any]:
+    meta = copy.deepcopy(ep.metadata)
+    meta["schema_version"] = SCHEMA_VERSION
+    meta["episode_id"] = episode_id or ep.episode_id
+    provenance = meta.get("provenance")
+    if not isinstance(provenance, dict):
+        provenance = {} if provenance is None else {"notes": str(provenance)}
+        meta["provenance"] = provenance
+    provenance.setdefault("origin", f"import:{ep.layout}")
+    if ep.steps_lost:
+        provenance["steps_lost"] = ep.steps_lost  # a gap the timestamps alone do not explain
+    return meta
+
+
+@dataclass
+class PreparedEpisode:
+    """An episode turned into the exact JSON and files that will be written."""
+
+    episode_id: str
+    metadata: dict[str, Any]
+    steps: list[dict[str, Any]]
+    blobs: dict[str, Path] = field(default_factory=dict)  # "blobs/x.npy" -> source file
+    blob_sha256: dict[str, str] = field(default_factory=dict)
+    content_sha256: str = ""
+    _steps_text: str | None = field(default=None, repr=False)
+
+    def metadata_text(self, episode_id: str | None = None) -> str:
+        meta = dict(self.metadata, episode_id=episode_id or self.episode_id)
+        return json.dumps(meta, indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+
+    def steps_text(self) -> str:
+        # Serialised once: it is both hashed and written, and large episodes take a while.
+        if self._steps_text is None:
+            self._steps_text = "".join(
+                json.dumps(s, ensure_ascii=False, allow_nan=False, separators=(",", ":")) + "\n"
+                for s in self.steps)
+        return self._steps_text
+
+
+def prepare_episode(ep: Episode, as_id: str | None = None) -> PreparedEpisode:
+    """`as_id` is the id the written metadata will carry (default: the episode's own)."""
+    episode_id = as_id or ep.episode_id
+    blobs: dict[str, Path] = {}
+    mapping: dict[str, str] = {}
+    for ref in blob_refs(ep):
+        if ref.status != "ok" or ref.rel is None or ref.path is None:
+            continue  # absolute, opaque, missing or escaping blobs are left as they are
+        dest = ref.rel if ref.rel.startswith(BLOBS_DIR + "/") else f"{BLOBS_DIR}/{ref.rel}"
+        blobs[dest] = ref.path
+        if dest != ref.uri:
+            mapping[ref.uri] = dest
+    steps = []
+    for i, step in enumerate(ep.steps):
+        obj = step.to_json_obj(i)
+        if mapping:
+            for part in ("observation", "action", "step_metadata"):
+                obj[part] = _rewrite_uris(obj[part], mapping)
+        steps.append(obj)
+    prepared = PreparedEpisode(episode_id, canonical_metadata(ep, episode_id), steps, blobs)
+    prepared.blob_sha256 = {name: file_sha256(path) for name, path in sorted(blobs.items())}
+    # The id is left out of the hash: it names the content, and an episode written under a
+    # suffixed id (or re-ingested from a dataset dir) must still be recognised as the same.
+    digest = hashlib.sha256()
+    anonymous = {k: v for k, v in prepared.metadata.items() if k != "episode_id"}
+    digest.update(json.dumps(anonymous, indent=2, ensure_ascii=False, allow_nan=False).encode("utf-8"))
+    digest.update(prepared.steps_text().encode("utf-8"))
+    digest.update(json.dumps(prepared.blob_sha256, sort_keys=True).encode("utf-8"))
+    prepared.content_sha256 = digest.hexdigest()
+    return prepared
+
+
+# -- ids and atomic writing ---------------------------------------------------------------------
+
+def safe_episode_id(episode_id: str) -> str:
+    """A dir name that cannot escape the dataset dir; ids that need changing get a hash of the
+    original so two different ids never collapse into the same name."""
+    if _SAFE_ID.match(episode_id) and episode_id not in (".", ".."):
+        return episode_id
+    cleaned = re.sub(r"[^A-Za-z0-9._-]", "_", episode_id).lstrip("._-")[:100] or "episode"
+    return f"{cleaned}-{hashlib.sha256(episode_id.encode('utf-8')).hexdigest()[:8]}"
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_text(path: Path, text: str) -> None:
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_prepared(prepared: PreparedEpisode, dataset_dir: str | os.PathLike,
+                   episode_id: str | None = None) -> Path:
+    dataset = Path(dataset_dir)
+    final_id = safe_episode_id(episode_id or prepared.episode_id)
+    final = dataset / final_id
+    if final.exists():
+        raise FileExistsError(f"{final}: episode dir already exists")
+    dataset.mkdir(parents=True, exist_ok=True)
+    tmp = dataset / f"{TMP_PREFIX}{final_id}-{uuid.uuid4().hex[:8]}"
+    try:
+        (tmp / "steps").mkdir(parents=True)
+        _write_text(tmp / "metadata.json", prepared.metadata_text(final_id))
+        _write_text(tmp / STEPS_FILE, prepared.steps_text())
+        for name, source in prepared.blobs.items():
+            dest = tmp / name
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, dest)
+            _fsync_path(dest)
+            if file_sha256(dest) != prepared.blob_sha256[name]:
+                raise OSError(f"{source}: blob changed while it was being copied")
+        for sub in sorted({p for p in tmp.rglob("*") if p.is_dir()} | {tmp}, reverse=True):
+            _fsync_path(sub)
+        os.rename(tmp, final)
+        _fsync_path(dataset)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def write_episode_dir(episode: Episode, dataset_dir: str | os.PathLike,
+                      episode_id: str | None = None) -> Path:
+    """Writes `episode` as <dataset_dir>/<episode_id>/ and returns that dir.
+
+    Raises FileExistsError when the dir exists (ingest decides what a clash means), and
+    ValueError for content JSON cannot hold (NaN/Inf: validate first)."""
+    return write_prepared(prepare_episode(episode), dataset_dir, episode_id)
+
+
+def remove_stale_tmp_dirs(dataset_dir: Path) -> list[Path]:
+    """Leftovers of a write that crashed before its rename; they never hold a complete episode."""
+    removed = []
+    if dataset_dir.is_dir():
+        for entry in dataset_dir.iterdir():
+            if entry.name.startswith(TMP_PREFIX) and entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+                removed.append(entry)
+    return removed
