@@ -97,8 +97,10 @@ class Episode:
 
     @property
     def is_imagined(self) -> bool:
-        origin = str(self.metadata.get("provenance", {}).get("origin", ""))
-        return origin.startswith("imagined:") or "continuon.imagined" in self.metadata.get("tags", [])
+        provenance = self.metadata.get("provenance")
+        origin = str(provenance.get("origin", "")) if isinstance(provenance, dict) else ""
+        tags = self.metadata.get("tags")
+        return origin.startswith("imagined:") or (isinstance(tags, list) and "continuon.imagined" in tags)
 
     @property
     def duration_s(self) -> float:

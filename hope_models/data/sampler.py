@@ -1,0 +1,189 @@
+"""Batches of anchor steps that a restarted job draws exactly as an uninterrupted one would.
+
+Batch b is a pure function of (seed, b): each pool (real, imagined) is walked through per-epoch
+permutations from `default_rng([seed, split, pool, epoch])`, and the number of imagined anchors
+before batch b is floor(b * batch_size * ratio) in exact fractions. So the sampler's whole
+position is its cursor, and `state_dict()`/`load_state_dict()` carry it in a checkpoint.
+
+Each pool is an int32 array of its eligible step indices plus one shuffled copy per epoch, 8 bytes
+per step in all; the sampler never touches the dataset itself.
+
+The validation split is by episode: an episode is in it when the hash of its id falls under
+`val_fraction`, so adding episodes never moves existing ones between splits.
+"""
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from fractions import Fraction
+
+import numpy as np
+
+from hope_models.data.cache import DatasetCache
+
+STATE_FORMAT = "hope.anchor_sampler/1"
+SPLITS = {"train": 0, "val": 1, "all": 2}
+_EPS = 1e-6
+
+
+def is_validation_episode(episode_id: str, val_fraction: float) -> bool:
+    h = int.from_bytes(hashlib.sha256(episode_id.encode("utf-8")).digest()[:8], "big")
+    return h / 2**64 < val_fraction
+
+
+def split_episodes(cache: DatasetCache, split: str, val_fraction: float) -> np.ndarray:
+    """Indices of the cache's episodes in the split."""
+    if split not in SPLITS:
+        raise ValueError(f"split={split!r} is not one of {', '.join(SPLITS)}")
+    if split == "all":
+        return np.arange(cache.n_episodes)
+    val = np.array([is_validation_episode(e, val_fraction) for e in cache.episode_ids], dtype=bool)
+    return np.flatnonzero(val if split == "val" else ~val)
+
+
+class _Pool:
+    """Eligible anchor steps, walked through one shuffled copy per epoch."""
+
+    def __init__(self, starts: np.ndarray, lengths: np.ndarray, seed_key: list[int], shuffle: bool):
+        keep = lengths > 0
+        total = int(lengths[keep].sum())
+        # int32 halves the memory; caches beyond 2^31 steps are far past what a Pi holds
+        dtype = np.int32 if int(starts.max(initial=0)) + total < 2**31 else np.int64
+        self.steps = np.concatenate([np.arange(s, s + n, dtype=dtype) for s, n in zip(starts[keep], lengths[keep])]
+                                    or [np.empty(0, dtype=dtype)])
+        self.size = total
+        self.seed_key = seed_key
+        self.shuffle = shuffle
+        self._epochs: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def _order(self, epoch: int) -> np.ndarray:
+        if not self.shuffle:
+            return self.steps
+        if epoch in self._epochs:
+            return self._epochs[epoch]
+        order = self.steps.copy()
+        np.random.default_rng([*self.seed_key, epoch]).shuffle(order)
+        self._epochs[epoch] = order
+        while len(self._epochs) > 2:  # a batch spans at most two epochs
+            self._epochs.popitem(last=False)
+        return order
+
+    def take(self, first: int, count: int) -> np.ndarray:
+        """Step indices at pool positions first .. first+count-1 of the endless epoch sequence."""
+        epoch, within = divmod(first, self.size) if self.size else (0, 0)
+        if within + count <= self.size:  # the usual case: a slice of one epoch's order
+            return self._order(epoch)[within:within + count]
+        out = np.empty(count, dtype=np.int64)
+        done = 0
+        while done < count:
+            epoch, within = divmod(first + done, self.size)
+            n = min(count - done, self.size - within)
+            out[done:done + n] = self._order(epoch)[within:within + n]
+            done += n
+        return out
+
+
+class AnchorSampler:
+    def __init__(self, cache: DatasetCache, batch_size: int, seed: int = 0, imagined_ratio: float = 0.0,
+                 split: str = "train", val_fraction: float = 0.1, min_history_s: float = 0.0,
+                 horizon_s: float = 0.0, shuffle: bool = True):
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size={batch_size!r} must be a positive integer")
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed={seed!r} must be a non-negative integer")
+        if not 0.0 <= imagined_ratio <= 1.0:
+            raise ValueError(f"imagined_ratio={imagined_ratio!r} must be within [0, 1]")
+        if not 0.0 <= val_fraction < 1.0:
+            raise ValueError(f"val_fraction={val_fraction!r} must be within [0, 1)")
+        if min_history_s < 0 or horizon_s < 0:
+            raise ValueError("min_history_s and horizon_s must be >= 0")
+        self.cache = cache
+        self.batch_size = batch_size
+        self.seed = seed
+        self.ratio = Fraction(str(imagined_ratio))
+        self._ratio_num, self._ratio_den = self.ratio.numerator, self.ratio.denominator
+        self.split = split
+        self.val_fraction = float(val_fraction)
+        self.min_history_s = float(min_history_s)
+        self.horizon_s = float(horizon_s)
+        self.shuffle = shuffle
+        self.cursor = 0
+        episodes = split_episodes(cache, split, self.val_fraction)
+        starts, lengths = self._eligible(episodes)
+        flags = cache.imagined[episodes]
+        key = [seed, SPLITS[split]]
+        self.real = _Pool(starts[~flags], lengths[~flags], key + [0], shuffle)
+        self.imagined = _Pool(starts[flags], lengths[flags], key + [1], shuffle)
+        n_imag_eps = int(flags.sum())
+        where = f"the {split} split of {cache.path.name} ({len(episodes)} episodes, {n_imag_eps} imagined)"
+        if self.ratio > 0 and self.imagined.size == 0:
+            raise ValueError(f"imagined_ratio={imagined_ratio} asks for imagined episodes, but {where} has no "
+                             "imagined anchors")
+        if self.ratio < 1 and self.real.size == 0:
+            raise ValueError(f"imagined_ratio={imagined_ratio} needs real episodes, but {where} has no real anchors")
+
+    def _eligible(self, episodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = self.cache
+        starts = c.starts[episodes].astype(np.int64)
+        ends = c.offsets[episodes + 1].astype(np.int64)
+        if self.min_history_s == 0 and self.horizon_s == 0:
+            return starts, ends - starts
+        first, last = starts.copy(), ends.copy()
+        for i, (s, e) in enumerate(zip(starts, ends)):
+            t = c.t[s:e]  # binary search only: touches a few pages, not the whole episode
+            first[i] = s + np.searchsorted(t, self.min_history_s - _EPS, side="left")
+            last[i] = s + np.searchsorted(t, t[-1] - self.horizon_s + _EPS, side="right")
+        return first, np.maximum(last - first, 0)
+
+    # -- drawing --------------------------------------------------------------------------------
+    def _imagined_before(self, b: int) -> int:
+        return b * self.batch_size * self._ratio_num // self._ratio_den  # floor, exact
+
+    def batch(self, b: int) -> np.ndarray:
+        """Anchor step indices of batch b, ascending (windows read memory forwards that way)."""
+        if b < 0:
+            raise ValueError(f"batch index {b} must be >= 0")
+        im0, im1 = self._imagined_before(b), self._imagined_before(b + 1)
+        real0 = b * self.batch_size - im0
+        n_im = im1 - im0
+        real = self.real.take(real0, self.batch_size - n_im)
+        parts = [real] if n_im == 0 else [real, self.imagined.take(im0, n_im)]
+        out = np.concatenate(parts).astype(np.int64)
+        out.sort()
+        return out
+
+    def next_batch(self) -> np.ndarray:
+        out = self.batch(self.cursor)
+        self.cursor += 1
+        return out
+
+    def __iter__(self):
+        while True:
+            yield self.next_batch()
+
+    @property
+    def anchors_per_epoch(self) -> int:
+        """Anchors the sampler draws from: real ones unless the ratio is 1, imagined ones if it is > 0."""
+        return (self.real.size if self.ratio < 1 else 0) + (self.imagined.size if self.ratio > 0 else 0)
+
+    # -- resume ---------------------------------------------------------------------------------
+    def _config(self) -> dict:
+        return {"seed": self.seed, "batch_size": self.batch_size, "imagined_ratio": str(self.ratio),
+                "split": self.split, "val_fraction": self.val_fraction, "min_history_s": self.min_history_s,
+                "horizon_s": self.horizon_s, "shuffle": self.shuffle,
+                "pool_sizes": [self.real.size, self.imagined.size], "cache_fingerprint": self.cache.fingerprint}
+
+    def state_dict(self) -> dict:
+        return {"format": STATE_FORMAT, "cursor": self.cursor, **self._config()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+            raise ValueError(f"not a sampler state (format {STATE_FORMAT!r} expected)")
+        for key, value in self._config().items():
+            if state.get(key) != value:
+                raise ValueError(f"sampler state does not match this sampler: {key} was {state.get(key)!r}, "
+                                 f"now {value!r}")
+        cursor = state.get("cursor")
+        if isinstance(cursor, bool) or not isinstance(cursor, int) or cursor < 0:
+            raise ValueError(f"sampler state has an invalid cursor {cursor!r}")
+        self.cursor = cursor

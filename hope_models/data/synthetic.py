@@ -1,0 +1,177 @@
+#!/usr/bin/env python3
+"""Synthetic canonical RLDS datasets: episode dirs exactly as ingest writes them.
+
+Used by the data-pipeline benchmark (bench/gen_dataset.py is its command line), the tests and the demo. The signals are
+learnable on purpose: joint positions are smooth sinusoids, velocities their derivative, and the
+action is a fixed (per seed) squashed linear function of the current state, so behaviour cloning
+on a generated dataset has something real to fit.
+
+Lines are formatted with one %-template per dataset instead of json.dumps per step, because the
+benchmark writes millions of steps and json.dumps is ~5x slower for float-heavy lines.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ORIGIN_REAL = "synthetic:gen_dataset"
+ORIGIN_IMAGINED = "imagined:gen_dataset"
+IMAGINED_TAG = "continuon.imagined"
+FRAME_SHAPE = (64, 64, 3)
+
+
+@dataclass
+class GeneratedDataset:
+    path: Path
+    episodes: int
+    steps: int
+    imagined_episodes: int
+    bytes_written: int
+    seconds: float
+
+
+def _step_template(n_pos: int, n_vel: int, act_dim: int, frames: bool) -> str:
+    floats = lambda n: ",".join(["%.6g"] * n)  # noqa: E731 - a tiny local formatter
+    image = ',"image_rgb":[%s]' if frames else ""
+    return (
+        '{"step_index":%d,"timestamp_ns":%d,"observation":{"robot_state":{"timestamp_nanos":%d,'
+        '"joint_positions":[' + floats(n_pos) + '],"joint_velocities":[' + floats(n_vel) + '],'
+        '"frame_id":"base_link"}' + image + '},"action":{"command":[' + floats(act_dim) + '],'
+        '"source":"human_teleop_xr"},"reward":%.6g,"is_terminal":%s,"step_metadata":{}}'
+    )
+
+
+def _episode_signals(rng: np.random.Generator, n: int, rate_hz: float, n_pos: int, n_vel: int,
+                     weights: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = np.arange(n) / rate_hz
+    m = max(n_pos, n_vel)  # one oscillator per joint; odd obs_dim gives one extra velocity
+    amp = rng.uniform(0.2, 1.0, m)
+    freq = rng.uniform(0.05, 0.5, m)
+    phase = rng.uniform(0, 2 * math.pi, m)
+    w = 2 * math.pi * freq
+    pos = (amp * np.sin(w * t[:, None] + phase))[:, :n_pos]
+    vel = (amp * w * np.cos(w * t[:, None] + phase))[:, :n_vel]
+    state = np.concatenate([pos, vel], axis=1)
+    act = np.tanh(state @ weights + bias) + rng.normal(0, 0.01, (n, weights.shape[1]))
+    return pos, vel, act
+
+
+def _frames_text(pos: np.ndarray) -> list[str]:
+    # A frame whose brightness pattern follows the first joint, so a tokenizer sees change.
+    h, w, c = FRAME_SHAPE
+    ramp = np.linspace(0.0, 1.0, h * w * c).reshape(FRAME_SHAPE)
+    out = []
+    for p in pos[:, 0]:
+        img = np.clip(0.5 + 0.5 * np.sin(ramp * 6.0 + float(p) * 3.0), 0.0, 1.0)
+        out.append(",".join(["%.3g"] * img.size) % tuple(img.ravel().tolist()))
+    return out
+
+
+def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20, act_dim: int = 6,
+                     rates_hz: tuple[float, ...] = (10, 20, 50), seed: int = 0,
+                     episode_seconds: tuple[float, float] = (30.0, 90.0), imagined_fraction: float = 0.0,
+                     frames: bool = False, start_unix_s: int = 1_767_225_600,
+                     id_prefix: str = "ep") -> GeneratedDataset:
+    """Write about n_steps_total steps (exactly, unless fewer than 2 are left over) as canonical dirs.
+
+    Observation = robot_state.joint_positions (obs_dim // 2) + joint_velocities (the rest);
+    action = action.command (act_dim). Rates cycle through rates_hz episode by episode; every
+    imagined episode (the last ~imagined_fraction of them) carries origin imagined:* and the tag.
+    """
+    if obs_dim < 2 or act_dim < 1 or n_steps_total < 2:
+        raise ValueError("generate_dataset needs obs_dim >= 2, act_dim >= 1 and n_steps_total >= 2")
+    if not 0.0 <= imagined_fraction <= 1.0:
+        raise ValueError(f"imagined_fraction={imagined_fraction} must be within [0, 1]")
+    started = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    n_pos = obs_dim // 2
+    n_vel = obs_dim - n_pos
+    weights = rng.normal(0, 0.5, (obs_dim, act_dim)) / math.sqrt(obs_dim)
+    bias = rng.normal(0, 0.1, act_dim)
+    template = _step_template(n_pos, n_vel, act_dim, frames)
+
+    lengths: list[tuple[int, float]] = []  # (steps, rate) per episode, planned before writing
+    remaining = n_steps_total
+    while remaining > 0:
+        rate = float(rates_hz[len(lengths) % len(rates_hz)])
+        n = max(2, int(rng.uniform(*episode_seconds) * rate))
+        n = min(n, remaining)
+        if n < 2:  # a 1-step leftover joins the previous episode rather than making a stub
+            lengths[-1] = (lengths[-1][0] + n, lengths[-1][1])
+            break
+        lengths.append((n, rate))
+        remaining -= n
+    n_imagined = int(round(imagined_fraction * len(lengths)))
+
+    total_bytes = 0
+    clock_ns = start_unix_s * 10**9
+    for i, (n, rate) in enumerate(lengths):
+        imagined = i >= len(lengths) - n_imagined
+        episode_id = f"{'imag' if imagined else id_prefix}_{i:05d}_{int(rate)}hz"
+        ep_dir = out / episode_id
+        (ep_dir / "steps").mkdir(parents=True, exist_ok=True)
+        pos, vel, act = _episode_signals(rng, n, rate, n_pos, n_vel, weights, bias)
+        period_ns = int(round(1e9 / rate))
+        ts = clock_ns + np.arange(n, dtype=np.int64) * period_ns
+        reward = -np.abs(act).mean(axis=1)
+        images = _frames_text(pos) if frames else None
+        pos_l, vel_l, act_l, ts_l, rew_l = pos.tolist(), vel.tolist(), act.tolist(), ts.tolist(), reward.tolist()
+        lines = []
+        for s in range(n):
+            values = [s, ts_l[s], ts_l[s], *pos_l[s], *vel_l[s]]
+            if images is not None:
+                values.append(images[s])
+            values += [*act_l[s], rew_l[s], "true" if s == n - 1 else "false"]
+            lines.append(template % tuple(values))
+        text = "\n".join(lines) + "\n"
+        (ep_dir / "steps" / "000000.jsonl").write_text(text, encoding="utf-8")
+        tags = ["synthetic", f"{int(rate)}hz"] + ([IMAGINED_TAG] if imagined else [])
+        metadata = {
+            "schema_version": "1.1",
+            "episode_id": episode_id,
+            "xr_mode": "trainer",
+            "control_role": "human_teleop",
+            "environment_id": "synthetic",
+            "robot_model": "synthetic_arm",
+            "tags": tags,
+            "software": {"xr_app": "gen_dataset", "continuonbrain_os": "gen_dataset", "glove_firmware": "absent"},
+            "start_time_unix_ms": clock_ns // 10**6,
+            "duration_ms": (n - 1) * period_ns // 10**6,
+            "provenance": {"origin": ORIGIN_IMAGINED if imagined else ORIGIN_REAL,
+                           "notes": f"seed={seed} rate_hz={rate}"},
+        }
+        meta_text = json.dumps(metadata, indent=1)
+        (ep_dir / "metadata.json").write_text(meta_text, encoding="utf-8")
+        total_bytes += len(text) + len(meta_text)
+        clock_ns = int(ts[-1]) + 5 * 10**9  # next recording starts a few seconds later
+    return GeneratedDataset(out, len(lengths), sum(n for n, _ in lengths), n_imagined, total_bytes,
+                            time.perf_counter() - started)
+
+
+def write_episode(dataset_dir: str | Path, episode_id: str, steps: list[dict], *,
+                  origin: str = "synthetic:handmade", tags: list[str] | tuple[str, ...] = (),
+                  metadata: dict | None = None) -> Path:
+    """One canonical episode dir from full step dicts (observation, action, timestamp_ns, ...).
+
+    For tests that need exact, hand-chosen values; step_index and defaults are filled in.
+    """
+    ep_dir = Path(dataset_dir) / episode_id
+    (ep_dir / "steps").mkdir(parents=True, exist_ok=True)
+    lines = []
+    for i, step in enumerate(steps):
+        obj = {"step_index": i, "reward": 0.0, "is_terminal": i == len(steps) - 1, "step_metadata": {}, **step}
+        lines.append(json.dumps(obj))
+    (ep_dir / "steps" / "000000.jsonl").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    meta = {"schema_version": "1.1", "episode_id": episode_id, "xr_mode": "trainer",
+            "control_role": "human_teleop", "environment_id": "synthetic", "tags": list(tags),
+            "software": {"xr_app": "gen_dataset", "continuonbrain_os": "gen_dataset", "glove_firmware": "absent"},
+            "provenance": {"origin": origin}, **(metadata or {})}
+    (ep_dir / "metadata.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
+    return ep_dir

@@ -1,0 +1,41 @@
+"""`run_trainer.py demo` as a new user runs it: a real subprocess, its own HOPE_HOME."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _demo(home: Path, *extra: str) -> dict:
+    env = dict(os.environ, HOPE_HOME=str(home))
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "4000", "--json", *extra],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    return json.loads(proc.stdout)
+
+
+def test_demo_end_to_end_then_rerun_changes_nothing(tmp_path):
+    first = _demo(tmp_path)
+    assert first["ok"] is True
+    assert first["out"] == str(tmp_path / "demo")
+    # the messy sources: one NaN file rejected, one metadata-only dir skipped, the rest in
+    assert first["validate"]["rejected"] == 1 and first["validate"]["skipped"] == 1
+    assert first["ingest_first"]["written"] == first["dataset"]["episodes"]
+    assert first["ingest_second"]["written"] == 0
+    assert first["dataset"]["obs_dim"] == 20 and first["dataset"]["act_dim"] == 6
+    assert set(first["dataset"]["rates"]) == {"10 Hz", "20 Hz", "50 Hz"}
+    assert first["sampler_resume_identical"] is True
+
+    again = _demo(tmp_path)
+    assert again["ingest_first"]["written"] == 0  # the episodes from the first run are all there
+    assert again["dataset"]["fingerprint"] == first["dataset"]["fingerprint"]
+
+
+def test_demo_refuses_a_too_small_dataset(tmp_path):
+    env = dict(os.environ, HOPE_HOME=str(tmp_path))
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "10"],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert proc.returncode == 2
+    assert "--steps" in proc.stderr

@@ -1,0 +1,106 @@
+"""The resumable anchor sampler: exact resume, imagined ratio, validation split by episode."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hope_models.data.cache import load_or_build
+from hope_models.data.sampler import AnchorSampler, is_validation_episode, split_episodes
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+from hope_models.data import synthetic as gen  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory):
+    """40 episodes, a quarter of them imagined (origin imagined:*, tag continuon.imagined)."""
+    ds = tmp_path_factory.mktemp("mixed")
+    gen.generate_dataset(ds, 6000, obs_dim=4, act_dim=2, seed=2, episode_seconds=(2, 6), imagined_fraction=0.25)
+    cache, _ = load_or_build(ds, tmp_path_factory.mktemp("cache"))
+    return cache
+
+
+def test_restored_sampler_draws_exactly_the_batches_it_would_have_drawn(mixed):
+    full = AnchorSampler(mixed, 64, seed=11, imagined_ratio=0.25)
+    ten = [full.next_batch() for _ in range(10)]
+    first = AnchorSampler(mixed, 64, seed=11, imagined_ratio=0.25)
+    for _ in range(4):
+        first.next_batch()
+    state = json.loads(json.dumps(first.state_dict()))  # as it travels in a checkpoint
+    resumed = AnchorSampler(mixed, 64, seed=11, imagined_ratio=0.25)
+    resumed.load_state_dict(state)
+    for b in range(4, 10):
+        np.testing.assert_array_equal(resumed.next_batch(), ten[b])
+    other_seed = AnchorSampler(mixed, 64, seed=12, imagined_ratio=0.25)
+    assert not np.array_equal(other_seed.batch(0), ten[0])
+
+
+def test_a_state_from_another_configuration_is_refused(mixed):
+    state = AnchorSampler(mixed, 64, seed=1).state_dict()
+    with pytest.raises(ValueError, match="seed was 1, now 2"):
+        AnchorSampler(mixed, 64, seed=2).load_state_dict(state)
+    with pytest.raises(ValueError, match="batch_size was 64, now 32"):
+        AnchorSampler(mixed, 32, seed=1).load_state_dict(state)
+
+
+def test_one_epoch_visits_every_eligible_anchor_once(mixed):
+    s = AnchorSampler(mixed, 64, seed=0, split="all")  # imagined_ratio 0: real episodes only
+    real = np.flatnonzero(~mixed.imagined[mixed.episode_of(np.arange(mixed.n_steps))])
+    n = len(real)
+    assert s.anchors_per_epoch == n
+    drawn = [s.next_batch() for _ in range(-(-n // 64))]
+    assert all(np.all(np.diff(b) >= 0) for b in drawn)  # each batch ascending
+    within_epoch = np.concatenate(drawn[:-1])  # the last batch reaches into the next epoch
+    assert len(np.unique(within_epoch)) == len(within_epoch)
+    assert np.array_equal(np.unique(np.concatenate(drawn)), real)
+
+
+def test_imagined_share_of_every_batch_follows_the_ratio(mixed):
+    imagined_steps = mixed.imagined[mixed.episode_of(np.arange(mixed.n_steps))]
+    assert 0 < imagined_steps.sum() < mixed.n_steps
+    quarter = AnchorSampler(mixed, 64, seed=4, imagined_ratio=0.25)
+    assert all(imagined_steps[quarter.next_batch()].sum() == 16 for _ in range(30))
+    tenth = AnchorSampler(mixed, 64, seed=4, imagined_ratio=0.1)
+    counts = [int(imagined_steps[tenth.next_batch()].sum()) for _ in range(100)]
+    assert sum(counts) == 640 and set(counts) <= {6, 7}  # 6.4 per batch on average, exactly
+    real_only = AnchorSampler(mixed, 64, seed=4)
+    assert all(imagined_steps[real_only.next_batch()].sum() == 0 for _ in range(30))
+    only_imagined = AnchorSampler(mixed, 64, seed=4, imagined_ratio=1.0)
+    assert imagined_steps[only_imagined.next_batch()].all()
+
+
+def test_asking_for_imagined_data_that_does_not_exist_is_an_error(tmp_path):
+    ds = tmp_path / "ds"
+    gen.generate_dataset(ds, 500, obs_dim=2, act_dim=1, episode_seconds=(2, 4))
+    cache, _ = load_or_build(ds, tmp_path / "c")
+    with pytest.raises(ValueError, match=r"imagined_ratio=0.2 asks for imagined episodes, but the train split .* "
+                                         r"0 imagined"):
+        AnchorSampler(cache, 8, imagined_ratio=0.2)
+    with pytest.raises(ValueError, match="imagined_ratio"):
+        AnchorSampler(cache, 8, imagined_ratio=1.5)
+
+
+def test_validation_split_is_by_episode_and_deterministic(mixed):
+    train = set(split_episodes(mixed, "train", 0.2).tolist())
+    val = set(split_episodes(mixed, "val", 0.2).tolist())
+    assert train and val and not train & val and train | val == set(range(mixed.n_episodes))
+    assert val == {e for e, eid in enumerate(mixed.episode_ids) if is_validation_episode(eid, 0.2)}
+    s = AnchorSampler(mixed, 32, seed=0, split="val", val_fraction=0.2)
+    eps = set(mixed.episode_of(np.concatenate([s.next_batch() for _ in range(20)])).tolist())
+    assert eps <= val
+    # membership depends on the id alone, so adding episodes never moves existing ones
+    assert is_validation_episode("ep_00003_10hz", 0.2) == is_validation_episode("ep_00003_10hz", 0.2)
+    assert sum(is_validation_episode(f"episode-{i}", 0.2) for i in range(2000)) == pytest.approx(400, abs=60)
+
+
+def test_min_history_and_horizon_restrict_anchors(mixed):
+    s = AnchorSampler(mixed, 64, seed=0, split="all", min_history_s=1.0, horizon_s=0.5)
+    a = np.concatenate([s.next_batch() for _ in range(40)])
+    ep = mixed.episode_of(a)
+    assert (mixed.t[a] >= 1.0 - 1e-9).all()
+    assert (mixed.t[a] <= mixed.durations[ep] - 0.5 + 1e-9).all()
