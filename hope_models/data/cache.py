@@ -38,6 +38,7 @@ from hope_models.data.features import (
     episode_signature, field_matrix, group_matrix, infer_spec, spec_from_request,
 )
 from hope_models.data.source import iter_sources, read_source
+from hope_models.durable import fsync_path
 
 CACHE_FORMAT = "hope.dataset_cache/4"
 # Spec inference reads an even sample of sources beyond this many: choosing fields is a vote that a
@@ -414,7 +415,7 @@ def build_cache(dataset: Path, root: Path, key: str, data_fp: str, request: Spec
                 shutil.rmtree(tmp, ignore_errors=True)
             else:
                 raise
-        _fsync_dir(root)
+        fsync_path(root)
         return final
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -509,11 +510,3 @@ def _save_npy(path: Path, arr: np.ndarray) -> None:
         np.save(f, arr, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

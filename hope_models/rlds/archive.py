@@ -8,7 +8,6 @@ checksum in upload_manifest.json matched, so a refused package leaves nothing be
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import posixpath
@@ -18,6 +17,7 @@ import tarfile
 import uuid
 from pathlib import Path, PurePosixPath
 
+from ..durable import file_sha256
 from .export_cloud import EPISODE_FILE, UPLOAD_MANIFEST
 
 MAX_MEMBERS = 100_000
@@ -97,12 +97,7 @@ def _extract_file(tar: tarfile.TarFile, member: tarfile.TarInfo, dest: Path) -> 
             out.write(chunk)
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
+
 
 
 def verify_package_dir(episode_dir: Path, label: str | None = None) -> dict:
@@ -131,7 +126,7 @@ def verify_package_dir(episode_dir: Path, label: str | None = None) -> dict:
         if name not in present:
             raise ArchiveError(f"{label}: {name}: listed in file_checksums but missing")
         path = episode_dir / name
-        actual = _sha256(path)
+        actual = file_sha256(path)
         if actual != expected:
             raise ArchiveError(f"{label}: {name}: sha256 {actual} does not match the manifest's {expected}")
         total += path.stat().st_size

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+from ..durable import file_sha256, fsync_path
 from .episode import SCHEMA_VERSION, Episode
 
 STEPS_FILE = "steps/000000.jsonl"
@@ -110,12 +111,7 @@ def _rewrite_uris(value: Any, mapping: dict[str, str]) -> Any:
 
 # -- the content as written ---------------------------------------------------------------------
 
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
+
 
 
 def canonical_metadata(ep: Episode, episode_id: str | None = None) -> dict[str, Any]:
@@ -200,12 +196,7 @@ def safe_episode_id(episode_id: str) -> str:
     return f"{cleaned}-{hashlib.sha256(episode_id.encode('utf-8')).hexdigest()[:8]}"
 
 
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -232,13 +223,13 @@ def write_prepared(prepared: PreparedEpisode, dataset_dir: str | os.PathLike,
             dest = tmp / name
             dest.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(source, dest)
-            _fsync_path(dest)
+            fsync_path(dest)
             if file_sha256(dest) != prepared.blob_sha256[name]:
                 raise OSError(f"{source}: blob changed while it was being copied")
         for sub in sorted({p for p in tmp.rglob("*") if p.is_dir()} | {tmp}, reverse=True):
-            _fsync_path(sub)
+            fsync_path(sub)
         os.rename(tmp, final)
-        _fsync_path(dataset)
+        fsync_path(dataset)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
