@@ -24,10 +24,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--imagined-fraction", type=float, default=0.0)
     p.add_argument("--frames", action="store_true", help="add observation.image_rgb (64x64x3 floats)")
+    p.add_argument("--frame-blobs", action="store_true",
+                   help="write each step's frame as blobs/step_NNNNNN_rgb.npy, referenced by observation.media.rgb")
     a = p.parse_args(argv)
     rates = tuple(float(r) for r in a.rates.split(","))
     g = generate_dataset(a.out_dir, a.steps, a.obs_dim, a.act_dim, rates, a.seed,
-                         imagined_fraction=a.imagined_fraction, frames=a.frames)
+                         imagined_fraction=a.imagined_fraction, frames=a.frames,
+                         frame_blobs=a.frame_blobs)
     print(f"{g.path}: {g.episodes} episodes ({g.imagined_episodes} imagined), {g.steps} steps, "
           f"{g.bytes_written / 1e6:.1f} MB in {g.seconds:.1f} s")
     return 0

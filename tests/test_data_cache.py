@@ -132,7 +132,7 @@ def test_cache_inside_the_dataset_dir_does_not_change_the_fingerprint(dataset):
 
 
 def test_no_pickle_in_the_data_modules():
-    for name in ("features", "cache", "windows", "sampler", "source", "summary"):
+    for name in ("features", "frames", "cache", "windows", "sampler", "source", "summary", "synthetic"):
         text = (REPO / "hope_models" / "data" / f"{name}.py").read_text()
         assert "import pickle" not in text and "allow_pickle=True" not in text, name
         for line in text.splitlines():

@@ -15,7 +15,8 @@ Layout of <cache_root>/<key>/:
     steps.bin float32 [N, D_obs + D_act]  observation then action columns of each step; `obs`
                           and `act` are column views of it, so a window is one gather, not two
     t.bin    float64 [N]  seconds since the episode's first step
-    frames.bin uint8 [N, H, W, 3]  only when the spec has a frame feature
+    frames.bin uint8 [N, H, W, 3]  only when the spec has a frame feature (inline floats or .npy
+                          frame blobs, loaded step by step during the build; see frames.py)
     offsets.npy int64 [E+1]   imagined.npy bool [E]
 """
 from __future__ import annotations
@@ -35,12 +36,13 @@ import numpy as np
 
 from hope_models.data.features import (
     EpisodeMismatch, EpisodeSignature, FeatureSpec, FeatureSpecError, RunningStats, SpecRequest,
-    episode_signature, field_matrix, group_matrix, infer_spec, spec_from_request,
+    blob_frames, episode_signature, field_matrix, group_matrix, infer_spec, spec_from_request,
 )
+from hope_models.data.frames import BlobFrameError, floats_to_uint8
 from hope_models.data.source import iter_sources, read_source
 from hope_models.durable import fsync_path
 
-CACHE_FORMAT = "hope.dataset_cache/4"
+CACHE_FORMAT = "hope.dataset_cache/5"  # 5: frame blobs (inference may now choose a frame it did not before)
 # Spec inference reads an even sample of sources beyond this many: choosing fields is a vote that a
 # few hundred episodes settle, and the build pass then checks every step of every episode anyway.
 INFER_MAX_SOURCES = 200
@@ -331,7 +333,7 @@ def infer_dataset_spec(dataset: Path, request: SpecRequest, skip: Path | None = 
         for report in read_source(src):
             for ep in report.episodes:
                 if not ep.errors and ep.steps:
-                    signatures.append(episode_signature(ep.episode_id, ep.steps))
+                    signatures.append(episode_signature(ep.episode_id, ep.steps, ep.blob_root))
     try:
         spec = infer_spec(signatures, request)
     except FeatureSpecError as exc:
@@ -379,12 +381,14 @@ def _episode_rows(ep, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray, np.nda
     obs = group_matrix(steps, spec.observation).astype(np.float32)
     act = group_matrix(steps, spec.action).astype(np.float32)
     frames = None
-    if spec.frame is not None:
+    if spec.frame is not None and spec.frame.source == "blob":
+        frames = blob_frames(steps, spec.frame, ep.blob_root)  # last: the cheap checks fail first
+    elif spec.frame is not None:
         raw = field_matrix(steps, spec.frame, np.float32)
-        lo, hi = float(raw.min()), float(raw.max())
-        if lo < 0.0 or hi > 1.0:
-            raise EpisodeMismatch(f"image values span [{lo:g}, {hi:g}], expected [0, 1]", None, spec.frame.path)
-        frames = np.rint(raw * 255.0).astype(np.uint8).reshape((len(steps), *spec.frame.shape))
+        try:
+            frames = floats_to_uint8(raw).reshape((len(steps), *spec.frame.shape))
+        except BlobFrameError as exc:
+            raise EpisodeMismatch(str(exc), None, spec.frame.path) from None
     return t, obs, act, frames
 
 

@@ -12,8 +12,14 @@ Spec JSON (the same shape is the override file, saved in the cache and in checkp
      "observation": {"fields": [{"path": "observation.robot_state.joint_positions", "size": 6}, ...],
                      "mean": [...], "std": [...]},
      "action": {"fields": [{"path": "action.command", "size": 6}], "mean": [...], "std": [...]},
-     "frame": {"path": "observation.image_rgb", "shape": [64, 64, 3]} or null,
+     "frame": {"path": "observation.image_rgb", "shape": [64, 64, 3], "source": "inline"} or null,
      "std_floor": 0.001}
+
+The frame is either inline (`source` "inline", the default when absent: a flat list of floats in
+[0, 1] such as the vlm sample's `image_rgb`) or a blob (`source` "blob": `path` names an
+observation object whose `uri` is a .npy file holding the frame, e.g. `observation.media.rgb`;
+see frames.py). Inference prefers an inline `image_rgb`; without one it picks a .npy frame
+reference that (nearly) every episode has and whose first file loads as a [64, 64, 3] frame.
 
 In an override, a field may be a bare path string (size taken from the data), any group or the
 frame may be left out (inferred), and mean/std may be left out (computed when the cache is built).
@@ -30,9 +36,14 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.data.frames import (
+    BlobFrameError, frame_blob_refs, frame_blob_uri, load_frame_blob, resolve_blob_uri,
+)
+
 SPEC_FORMAT = "hope.feature_spec/1"
 FRAME_FIELD = "image_rgb"
 FRAME_SHAPE = (64, 64, 3)
+FRAME_SOURCES = ("inline", "blob")  # image floats in the step / a .npy file the step references
 DEFAULT_STD_FLOOR = 1e-3
 DEFAULT_COVERAGE = 0.9  # "nearly every episode": a field missing from >10% of episodes is dropped
 MAX_VECTOR = 4096  # longer flat lists are media (a frame, a waveform), not state
@@ -116,12 +127,16 @@ class FeatureGroup:
 
 @dataclass
 class FrameFeature:
-    path: str
+    path: str  # inline: the float list; blob: the reference object (its `uri` names the file)
     shape: tuple[int, int, int] = FRAME_SHAPE
+    source: str = "inline"  # one of FRAME_SOURCES
 
     @property
     def size(self) -> int:
         return math.prod(self.shape)
+
+    def to_json_obj(self) -> dict[str, Any]:
+        return {"path": self.path, "shape": list(self.shape), "source": self.source}
 
 
 @dataclass
@@ -152,7 +167,7 @@ class FeatureSpec:
             "format": SPEC_FORMAT,
             "observation": group(self.observation),
             "action": group(self.action),
-            "frame": None if self.frame is None else {"path": self.frame.path, "shape": list(self.frame.shape)},
+            "frame": None if self.frame is None else self.frame.to_json_obj(),
             "std_floor": self.std_floor,
         }
         if with_notes:
@@ -247,7 +262,8 @@ class SpecRequest:
         def group(g: PartialGroup | None):
             return None if g is None else {"fields": [[f.path, f.size] for f in g.fields], "mean": g.mean, "std": g.std}
         return json.dumps({"observation": group(self.observation), "action": group(self.action),
-                           "frame": None if self.frame is None else [self.frame.path, list(self.frame.shape)],
+                           "frame": None if self.frame is None else [self.frame.path, list(self.frame.shape),
+                                                                     self.frame.source],
                            "frame_given": self.frame_given, "std_floor": self.std_floor,
                            "coverage": DEFAULT_COVERAGE}, sort_keys=True)
 
@@ -308,12 +324,20 @@ def _parse_frame(obj: Any, where: str) -> FrameFeature | None:
     if isinstance(obj, str):
         obj = {"path": obj}
     if not isinstance(obj, dict) or not isinstance(obj.get("path"), str):
-        raise FeatureSpecError(f"{where}: must be null, a path string or {{'path', 'shape'}}")
+        raise FeatureSpecError(f"{where}: must be null, a path string or {{'path', 'shape', 'source'}}")
+    unknown = set(obj) - {"path", "shape", "source"}
+    if unknown:
+        raise FeatureSpecError(f"{where}: unknown keys {sorted(unknown)}")
+    if not obj["path"].startswith("observation."):
+        raise FeatureSpecError(f"{where}: path {obj['path']!r} must start with 'observation.'")
     shape = obj.get("shape", list(FRAME_SHAPE))
     if (not isinstance(shape, list) or len(shape) != 3
             or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in shape) or shape[2] != 3):
         raise FeatureSpecError(f"{where}: shape must be [height, width, 3], got {shape!r}")
-    return FrameFeature(obj["path"], (shape[0], shape[1], shape[2]))
+    source = obj.get("source", "inline")  # absent in specs written before frame blobs existed
+    if source not in FRAME_SOURCES:
+        raise FeatureSpecError(f"{where}: source must be one of {', '.join(FRAME_SOURCES)}, got {source!r}")
+    return FrameFeature(obj["path"], (shape[0], shape[1], shape[2]), source)
 
 
 # -- inference -----------------------------------------------------------------------------------
@@ -324,14 +348,30 @@ class EpisodeSignature:
 
     episode_id: str
     leaves: dict[str, int]
+    # .npy frame references present at the first and last step -> "ok" when the first step's file
+    # loads as a FRAME_SHAPE frame, else why not
+    frame_blobs: dict[str, str] = field(default_factory=dict)
 
 
-def episode_signature(episode_id: str, steps: list) -> EpisodeSignature:
+def episode_signature(episode_id: str, steps: list, blob_root: str | None = None,
+                      check_frame_blobs: bool = True) -> EpisodeSignature:
     # First and last step only: the cache build then checks every step of the selected fields
     # and excludes (with the step named) an episode where one goes missing or changes length.
     first = step_signature(steps[0].observation, steps[0].action)
     last = step_signature(steps[-1].observation, steps[-1].action)
-    return EpisodeSignature(episode_id, {p: n for p, n in first.items() if last.get(p) == n})
+    sig = EpisodeSignature(episode_id, {p: n for p, n in first.items() if last.get(p) == n})
+    if check_frame_blobs:
+        refs = frame_blob_refs(steps[0].observation, shape=FRAME_SHAPE)
+        later = frame_blob_refs(steps[-1].observation, shape=FRAME_SHAPE)
+        for path, uri in refs.items():
+            if path not in later:
+                continue
+            try:
+                load_frame_blob(resolve_blob_uri(uri, blob_root), FRAME_SHAPE, uri)
+                sig.frame_blobs[path] = "ok"
+            except BlobFrameError as exc:
+                sig.frame_blobs[path] = str(exc)
+    return sig
 
 
 def _select(counts: dict[str, Counter], n_episodes: int, paths: list[str], coverage: float,
@@ -414,7 +454,39 @@ def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None =
             else:
                 notes.append(f"{p}: no frame feature ({size} values in {c} of {n} episodes; needs "
                              f"{math.prod(FRAME_SHAPE)} in {need})")
+        blob = _infer_blob_frame(signatures, need, notes, inline=frame)
+        frame = frame or blob
     return FeatureSpec(observation, action, frame, request.std_floor, notes)
+
+
+def _infer_blob_frame(signatures: list[EpisodeSignature], need: int, notes: list[str],
+                      inline: FrameFeature | None) -> FrameFeature | None:
+    """The .npy frame reference usable in at least `need` episodes (an rgb-named one first)."""
+    n = len(signatures)
+    seen: Counter = Counter()
+    ok: Counter = Counter()
+    why: dict[str, str] = {}
+    for sig in signatures:
+        for path, status in sig.frame_blobs.items():
+            seen[path] += 1
+            if status == "ok":
+                ok[path] += 1
+            else:
+                why.setdefault(path, f"{sig.episode_id}: {status}")
+    usable = sorted((p for p in seen if ok[p] >= need),
+                    key=lambda p: ("rgb" not in p.rsplit(".", 1)[-1].lower(), -ok[p], p))
+    chosen = None if inline is not None or not usable else usable[0]
+    for path in sorted(seen):
+        if path == chosen:
+            continue
+        if path in usable:
+            other = inline.path if inline is not None else chosen
+            notes.append(f"{path}: frame blobs not used, {other} is the frame feature")
+        else:
+            example = f"; e.g. {why[path]}" if path in why else ""
+            notes.append(f"{path}: no frame feature (a loadable {list(FRAME_SHAPE)} .npy frame in {ok[path]} of "
+                         f"{n} episodes; needs {need}{example})")
+    return None if chosen is None else FrameFeature(chosen, FRAME_SHAPE, "blob")
 
 
 def spec_from_request(request: SpecRequest) -> FeatureSpec:
@@ -475,6 +547,9 @@ def field_matrix(steps: list, f: FeatureField | FrameFeature, dtype=np.float64) 
     for i, v in enumerate(values):  # slow path: name the first step that does not fit
         if v is _MISSING or v is None:
             raise EpisodeMismatch("missing", i, f.path)
+        if isinstance(v, dict) and "uri" in v:
+            raise EpisodeMismatch("is a blob reference, not numbers (a frame file needs \"source\": \"blob\" "
+                                  "in the spec's frame)", i, f.path)
         if _is_number(v):
             n = 1
         elif isinstance(v, list) and all(_is_number(x) for x in v):
@@ -484,6 +559,33 @@ def field_matrix(steps: list, f: FeatureField | FrameFeature, dtype=np.float64) 
         if n != size:
             raise EpisodeMismatch(f"has {n} values, the spec needs {size}", i, f.path)
     raise EpisodeMismatch("values do not form a numeric matrix", None, f.path)
+
+
+def blob_frames(steps: list, frame: FrameFeature, blob_root: str | None) -> np.ndarray:
+    """Every step's frame file loaded into uint8 [n, H, W, 3], or EpisodeMismatch naming the step,
+    the field and the file. Never a placeholder image: one bad or missing file fails the episode."""
+    root, *rest = frame.path.split(".")
+    parts = tuple(rest)
+    attr = "observation" if root == "observation" else "action"
+    out = np.empty((len(steps), *frame.shape), dtype=np.uint8)
+    prev_uri = None
+    for i, s in enumerate(steps):
+        v = _get(getattr(s, attr), parts)
+        if v is _MISSING or v is None:
+            raise EpisodeMismatch("missing", i, frame.path)
+        uri = frame_blob_uri(v)
+        where = f"{frame.path}.uri" if isinstance(v, dict) else frame.path
+        if uri is None:
+            raise EpisodeMismatch(f"not a blob reference (needs a 'uri' string, got {type(v).__name__})", i, where)
+        if uri == prev_uri:  # a slower camera: consecutive steps share a frame
+            out[i] = out[i - 1]
+            continue
+        try:
+            out[i] = load_frame_blob(resolve_blob_uri(uri, blob_root), frame.shape, uri)
+        except BlobFrameError as exc:
+            raise EpisodeMismatch(str(exc), i, where) from None
+        prev_uri = uri
+    return out
 
 
 def group_matrix(steps: list, group: FeatureGroup) -> np.ndarray:

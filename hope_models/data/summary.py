@@ -54,7 +54,7 @@ def summarise_dataset(dataset_dir: str | Path, cache_root: str | Path, spec_path
         "act_dim": spec.act_dim,
         "observation_fields": [{"path": f.path, "size": f.size} for f in spec.observation.fields],
         "action_fields": [{"path": f.path, "size": f.size} for f in spec.action.fields],
-        "frame": None if spec.frame is None else {"path": spec.frame.path, "shape": list(spec.frame.shape)},
+        "frame": None if spec.frame is None else spec.frame.to_json_obj(),
         "spec_notes": spec.notes,
         "split": {"val_fraction": val_fraction, "train_episodes": cache.n_episodes - n_val, "val_episodes": n_val},
         "excluded": cache.manifest["excluded"],
@@ -75,7 +75,8 @@ def format_summary(s: dict[str, Any]) -> str:
         f"/ max {d['max']:.2f} s",
         f"observation  {s['obs_dim']} dims: {fields(s['observation_fields'])}",
         f"action       {s['act_dim']} dims: {fields(s['action_fields'])}",
-        f"frame        " + ("none" if s["frame"] is None else f"{s['frame']['path']} {s['frame']['shape']}"),
+        f"frame        " + ("none" if s["frame"] is None else f"{s['frame']['path']} {s['frame']['shape']}"
+                            + (" (.npy frame blobs)" if s["frame"].get("source") == "blob" else "")),
         f"cache        {s['cache_path']} ({'reused' if s['reused'] else 'built'}"
         + ("" if s["reused"] else f" in {s['build_seconds']:.1f} s") + f"; access {s['access_mode']})",
         f"fingerprint  {s['fingerprint']} (data {s['data_fingerprint'][:16]}..., hashed in "

@@ -35,9 +35,16 @@ class GeneratedDataset:
     seconds: float
 
 
-def _step_template(n_pos: int, n_vel: int, act_dim: int, frames: bool) -> str:
+FRAME_BLOB_URI = "blobs/step_%06d_rgb.npy"  # relative to the episode dir, as ingest writes blobs
+
+
+def _step_template(n_pos: int, n_vel: int, act_dim: int, frames: bool, frame_blobs: bool = False) -> str:
     floats = lambda n: ",".join(["%.6g"] * n)  # noqa: E731 - a tiny local formatter
     image = ',"image_rgb":[%s]' if frames else ""
+    if frame_blobs:  # the reference our sim recorder writes: observation.media.rgb
+        h, w, _ = FRAME_SHAPE
+        image += (',"media":{"rgb":{"uri":"' + FRAME_BLOB_URI + f'","width":{w},"height":{h},'
+                  '"format":"npy_uint8_hwc"}}')
     return (
         '{"step_index":%d,"timestamp_ns":%d,"observation":{"robot_state":{"timestamp_nanos":%d,'
         '"joint_positions":[' + floats(n_pos) + '],"joint_velocities":[' + floats(n_vel) + '],'
@@ -61,27 +68,40 @@ def _episode_signals(rng: np.random.Generator, n: int, rate_hz: float, n_pos: in
     return pos, vel, act
 
 
-def _frames_text(pos: np.ndarray) -> list[str]:
+def _frame_images(pos: np.ndarray) -> list[np.ndarray]:
     # A frame whose brightness pattern follows the first joint, so a tokenizer sees change.
     h, w, c = FRAME_SHAPE
     ramp = np.linspace(0.0, 1.0, h * w * c).reshape(FRAME_SHAPE)
-    out = []
-    for p in pos[:, 0]:
-        img = np.clip(0.5 + 0.5 * np.sin(ramp * 6.0 + float(p) * 3.0), 0.0, 1.0)
-        out.append(",".join(["%.3g"] * img.size) % tuple(img.ravel().tolist()))
-    return out
+    return [np.clip(0.5 + 0.5 * np.sin(ramp * 6.0 + float(p) * 3.0), 0.0, 1.0) for p in pos[:, 0]]
+
+
+def _frames_text(images: list[np.ndarray]) -> list[str]:
+    return [",".join(["%.3g"] * img.size) % tuple(img.ravel().tolist()) for img in images]
+
+
+def write_frame_blobs(ep_dir: Path, images: list[np.ndarray]) -> int:
+    """Step s's frame as <ep_dir>/blobs/step_<s>_rgb.npy, uint8 [64, 64, 3]; returns bytes written."""
+    (ep_dir / "blobs").mkdir(parents=True, exist_ok=True)
+    total = 0
+    for s, img in enumerate(images):
+        path = ep_dir / (FRAME_BLOB_URI % s)
+        np.save(path, np.rint(img * 255.0).astype(np.uint8), allow_pickle=False)
+        total += path.stat().st_size
+    return total
 
 
 def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20, act_dim: int = 6,
                      rates_hz: tuple[float, ...] = (10, 20, 50), seed: int = 0,
                      episode_seconds: tuple[float, float] = (30.0, 90.0), imagined_fraction: float = 0.0,
                      frames: bool = False, start_unix_s: int = 1_767_225_600,
-                     id_prefix: str = "ep") -> GeneratedDataset:
+                     id_prefix: str = "ep", frame_blobs: bool = False) -> GeneratedDataset:
     """Write about n_steps_total steps (exactly, unless fewer than 2 are left over) as canonical dirs.
 
     Observation = robot_state.joint_positions (obs_dim // 2) + joint_velocities (the rest);
     action = action.command (act_dim). Rates cycle through rates_hz episode by episode; every
     imagined episode (the last ~imagined_fraction of them) carries origin imagined:* and the tag.
+    frames adds observation.image_rgb (12288 floats in [0, 1]); frame_blobs writes each step's
+    frame as blobs/step_NNNNNN_rgb.npy (uint8 [64, 64, 3]) referenced by observation.media.rgb.
     """
     if obs_dim < 2 or act_dim < 1 or n_steps_total < 2:
         raise ValueError("generate_dataset needs obs_dim >= 2, act_dim >= 1 and n_steps_total >= 2")
@@ -95,7 +115,7 @@ def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20,
     n_vel = obs_dim - n_pos
     weights = rng.normal(0, 0.5, (obs_dim, act_dim)) / math.sqrt(obs_dim)
     bias = rng.normal(0, 0.1, act_dim)
-    template = _step_template(n_pos, n_vel, act_dim, frames)
+    template = _step_template(n_pos, n_vel, act_dim, frames, frame_blobs)
 
     lengths: list[tuple[int, float]] = []  # (steps, rate) per episode, planned before writing
     remaining = n_steps_total
@@ -121,13 +141,18 @@ def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20,
         period_ns = int(round(1e9 / rate))
         ts = clock_ns + np.arange(n, dtype=np.int64) * period_ns
         reward = -np.abs(act).mean(axis=1)
-        images = _frames_text(pos) if frames else None
+        images = _frame_images(pos) if (frames or frame_blobs) else None
+        image_text = _frames_text(images) if frames else None
+        if frame_blobs:
+            total_bytes += write_frame_blobs(ep_dir, images)
         pos_l, vel_l, act_l, ts_l, rew_l = pos.tolist(), vel.tolist(), act.tolist(), ts.tolist(), reward.tolist()
         lines = []
         for s in range(n):
             values = [s, ts_l[s], ts_l[s], *pos_l[s], *vel_l[s]]
-            if images is not None:
-                values.append(images[s])
+            if image_text is not None:
+                values.append(image_text[s])
+            if frame_blobs:
+                values.append(s)
             values += [*act_l[s], rew_l[s], "true" if s == n - 1 else "false"]
             lines.append(template % tuple(values))
         text = "\n".join(lines) + "\n"
