@@ -1,0 +1,1 @@
+"""One training loop for every HOPE component: resumable, guarded, logged."""
