@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("hope_models.cli.ingest", "copy episodes into a canonical dataset dir"),
     "export": ("hope_models.cli.export", "write the Pi runtime's cloud upload package"),
     "dataset": ("hope_models.cli.dataset", "build the feature spec and cache of a dataset and summarise it"),
+    "train": ("hope_models.cli.train", "train one component (or a sequence) in the foreground, resumable"),
     "demo": ("hope_models.cli.demo", "run the end-to-end job on generated episodes"),
 }
 

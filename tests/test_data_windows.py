@@ -196,3 +196,33 @@ def test_frames_are_windowed_with_the_mask(tmp_path):
     assert w.frames.shape == (2, 5, 64, 64, 3) and w.frames.dtype == np.uint8
     assert (w.frames[0, :4] == 0).all() and np.array_equal(w.frames[1, 0], cache.frames[0])
     assert np.array_equal(w.frames[1, 4], cache.frames[4])
+
+
+def test_future_frames_are_the_frames_held_at_anchor_plus_horizon_masked_like_future_obs(tmp_path):
+    ds = tmp_path / "ds"
+    gen.generate_dataset(ds, 150, obs_dim=2, act_dim=1, rates_hz=(50,), episode_seconds=(2.0, 2.0), frames=True)
+    cache, _ = load_or_build(ds, tmp_path / "c")
+    assert cache.frames is not None and len(cache.offsets) >= 3  # two episodes: 100 + 50 steps
+    spec = window_spec("fast", horizons_s=(0.1, 0.5))
+    anchors = [10, 90, 100]  # ep0 at 0.2 s; ep0 at 1.8 s (0.5 s ahead is past its 1.98 s end); ep1's first step
+    w = make_windows(cache, anchors, spec, frames=True)
+    assert w.future_frames.shape == (3, 2, 64, 64, 3) and w.future_frames.dtype == np.uint8
+    assert w.future_mask.tolist() == [[True, True], [True, False], [True, True]]
+    for b, rows in enumerate([(15, 35), (95, None), (105, 125)]):  # 50 Hz: 0.1 s = 5 steps, 0.5 s = 25
+        for h, row in enumerate(rows):
+            if row is None:
+                assert (w.future_frames[b, h] == 0).all()
+            else:
+                np.testing.assert_array_equal(w.future_frames[b, h], cache.frames[row])
+    assert not np.array_equal(cache.frames[15], cache.frames[35])  # the frames differ, so the rows are checked
+    # the same held rows as future_obs
+    np.testing.assert_array_equal(make_windows(cache, anchors, spec, normalize=False).future_obs[0, :, 0],
+                                  cache.obs[[15, 35], 0])
+    # only when frames are asked for, and the loader's slices carry them
+    assert make_windows(cache, anchors, spec).future_frames is None
+    loader = WindowLoader(cache, AnchorSampler(cache, 4, seed=0, split="all", horizon_s=0.5), spec, chunk=3,
+                          frames=True)
+    for _ in range(4):
+        got = next(loader)
+        ref = make_windows(cache, got.anchors, spec, frames=True)
+        np.testing.assert_array_equal(got.future_frames, ref.future_frames)

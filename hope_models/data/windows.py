@@ -7,7 +7,8 @@ All of it is vectorised over a batch of anchors (no per-anchor Python in "mmap" 
 
 Scales (issue 2): fast 50-100 ms (default 100 ms, K=5: a 20 ms grid, the control period), mid
 1-10 s (default 2 s, K=20), strategic 60-600 s (default 60 s, K=60). Optional future targets for
-the latent dynamics of mid_loop: the held values at anchor time + each horizon.
+the latent dynamics of mid_loop: the held values at anchor time + each horizon (and the held
+frames, when frames are asked for).
 """
 from __future__ import annotations
 
@@ -89,6 +90,8 @@ class WindowBatch:
     future_obs: np.ndarray | None = None  # [B, H, D_obs] held values at anchor + horizon
     future_act: np.ndarray | None = None  # [B, H, A]
     future_mask: np.ndarray | None = None  # [B, H] bool, False past the episode's last step
+    future_frames: np.ndarray | None = None  # [B, H, H_img, W_img, 3] uint8 frames held at anchor + horizon,
+    #                                          when frames are asked for; 0 where future_mask is False
 
 
 def _count_at_or_before(tb: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -145,12 +148,12 @@ def make_windows(cache: DatasetCache, anchors, spec: WindowSpec, *, normalize: b
         if not full:
             batch.frames[~mask] = 0
     if spec.horizons_s:
-        _add_futures(cache, batch, spec, tb[:, -1], normalize)
+        _add_futures(cache, batch, spec, tb[:, -1], normalize, frames)
     return batch
 
 
 def _add_futures(cache: DatasetCache, batch: WindowBatch, spec: WindowSpec, ta: np.ndarray,
-                 normalize: bool) -> None:
+                 normalize: bool, frames: bool = False) -> None:
     a, ep = batch.anchors, batch.episodes
     horizons = np.asarray(spec.horizons_s)
     n = cache.block_rows(float(horizons.max()), forward=True)
@@ -164,6 +167,10 @@ def _add_futures(cache: DatasetCache, batch: WindowBatch, spec: WindowSpec, ta: 
         fx[~fmask] = 0.0
     d = cache.spec.obs_dim
     batch.future_obs, batch.future_act, batch.future_mask = fx[..., :d], fx[..., d:], fmask
+    if frames:
+        batch.future_frames = cache.frame_rows(j)
+        if not fmask.all():
+            batch.future_frames[~fmask] = 0
 
 
 class WindowLoader:
@@ -207,5 +214,6 @@ class WindowLoader:
                 None if big.frames is None else big.frames[sl],
                 None if big.future_obs is None else big.future_obs[sl],
                 None if big.future_act is None else big.future_act[sl],
-                None if big.future_mask is None else big.future_mask[sl]))
+                None if big.future_mask is None else big.future_mask[sl],
+                None if big.future_frames is None else big.future_frames[sl]))
             lo = hi

@@ -1,0 +1,260 @@
+"""`run_trainer.py train`: train one component in the foreground, or a sequence of them.
+
+    run_trainer.py train --component fast_loop --data DS --run-dir R --steps 2000 --seed 0 [--json]
+    run_trainer.py train --sequential vqvae,fast_loop,mid_loop --data DS --run-dir R --steps 2000
+
+Re-running the same command after a kill, a pause or Ctrl-C continues from the last good
+checkpoint (see docs/training.md). Exit codes: contract.OUTCOME_EXIT_CODES (0 completed, 1 failed,
+3 paused for memory, 4 paused, 5 cancelled), 2 for usage errors (bad arguments, a missing or
+unusable dataset, a run dir holding another job, a model that cannot fit the memory budget).
+The sequential parent never imports torch: each component trains in a child process.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from typing import Any
+
+from hope_models.train.contract import COMPONENTS, ControlCommand
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{v} must be >= 0")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"{text} must be a positive number")
+    return v
+
+
+def _json_object(text: str) -> dict:
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"not valid JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object, e.g. '{\"d_model\": 64}'")
+    return obj
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--component", choices=COMPONENTS, help="the component to train")
+    what.add_argument("--sequential", metavar="LIST",
+                      help="comma-separated components trained one after the other, each in its own process "
+                           "(e.g. vqvae,fast_loop,mid_loop); each gets RUN_DIR/<component>")
+    parser.add_argument("--data", required=True, metavar="PATH", help="RLDS dataset dir, episode dir or episode file")
+    parser.add_argument("--run-dir", required=True, metavar="DIR", help="checkpoints and metrics go here; "
+                        "re-running with the same dir resumes")
+    parser.add_argument("--steps", required=True, type=_positive_int, help="total optimizer steps")
+    parser.add_argument("--seed", type=_non_negative_int, default=0)
+    parser.add_argument("--batch-size", type=_positive_int, default=64)
+    parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate (default 1e-3)")
+    parser.add_argument("--warmup", type=_non_negative_int, default=100,
+                        help="warmup steps, at most a tenth of --steps (default 100)")
+    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: min(4, cores))")
+    parser.add_argument("--checkpoint-every", type=_positive_int, default=500, metavar="N",
+                        help="checkpoint every N steps (default 500)")
+    parser.add_argument("--checkpoint-seconds", type=_positive_float, default=300.0, metavar="T",
+                        help="and every T seconds (default 300)")
+    parser.add_argument("--keep", type=_positive_int, default=3, metavar="K", help="keep the last K checkpoints")
+    parser.add_argument("--log-every", type=_positive_int, default=10, metavar="N", help="metrics every N steps")
+    parser.add_argument("--memory-budget-mb", type=_positive_float, default=None,
+                        help="the job's memory budget (default: settings, 3072)")
+    parser.add_argument("--thermal-zone", metavar="PATH", default=None,
+                        help="thermal zone file to watch (default: settings, /sys/class/thermal/thermal_zone0/temp)")
+    parser.add_argument("--vqvae", metavar="DIR", default=None,
+                        help="a trained VQ-VAE (checkpoint dir or run dir) whose codes fast_loop/mid_loop read")
+    parser.add_argument("--cache-dir", metavar="DIR", default=None, help="dataset cache root (default: $HOPE_HOME/cache)")
+    parser.add_argument("--spec", metavar="FILE", default=None, help="feature spec JSON overriding the inferred one")
+    parser.add_argument("--imagined-ratio", type=float, default=0.0, help="share of imagined episodes in a batch")
+    parser.add_argument("--model-config", type=_json_object, default=None, metavar="JSON",
+                        help="model config overrides, e.g. '{\"d_model\": 64}'")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hope_models.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings()
+    except SettingsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.sequential:
+        from hope_models.train.sequential import run_sequential  # torch-free: children train
+        return run_sequential(args, settings)
+    return _run_one(args, settings)
+
+
+# -- one component, in this process ---------------------------------------------------------------
+
+class SignalControl:
+    """Ctrl-C / SIGTERM ask the loop to checkpoint and stop as paused (re-run to resume); a second
+    one aborts at once (the last checkpoint still stands)."""
+
+    def __init__(self):
+        self.desired = "run"
+        self._previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def _handle(self, signum, frame):
+        if self.desired != "run":
+            raise KeyboardInterrupt
+        self.desired = "pause"
+        print("\nstopping: checkpointing after this step (again to abort now)", file=sys.stderr, flush=True)
+
+    def poll(self, step: int) -> ControlCommand:
+        return ControlCommand(desired=self.desired)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class ConsoleEvents:
+    """Progress on stderr (one line rewritten on a terminal, a line every few seconds otherwise),
+    warnings and thermal changes as lines of their own."""
+
+    def __init__(self, component: str):
+        self.component = component
+        self.tty = sys.stderr.isatty()
+        self.min_gap_s = 0.2 if self.tty else 5.0
+        self._last = 0.0
+        self._open_line = False
+
+    def _line(self, text: str) -> None:
+        if self._open_line:
+            sys.stderr.write("\n")
+            self._open_line = False
+        print(text, file=sys.stderr, flush=True)
+
+    def __call__(self, kind: str, payload: dict) -> None:
+        if kind == "progress":
+            now = time.monotonic()
+            last = payload["step"] >= payload["total"]
+            if now - self._last < self.min_gap_s and not last:
+                return
+            self._last = now
+            eta = payload.get("eta_s")
+            text = (f"{self.component} step {payload['step']}/{payload['total']}  loss {payload['loss']:.4g}  "
+                    f"{payload['steps_per_s']:.1f} steps/s  ETA {_duration(eta)}  RSS {payload['rss_mb']:.0f} MB")
+            if self.tty:
+                sys.stderr.write("\r" + text.ljust(100))
+                sys.stderr.flush()
+                self._open_line = True
+            else:
+                print(text, file=sys.stderr, flush=True)
+        elif kind == "log":
+            level = payload.get("level", "info")
+            self._line(payload["message"] if level == "info" else f"{level}: {payload['message']}")
+        elif kind == "throttle":
+            temp = payload.get("temp_c")
+            where = f" at {temp:.1f} C" if isinstance(temp, (int, float)) else ""
+            self._line(f"thermal: {payload.get('event', 'level')} {payload.get('level')}{where}: "
+                       f"{payload.get('reason', '')}")
+        elif kind == "resume":
+            self._line(f"resuming from step {payload['step']} ({payload['path']})")
+
+    def finish(self) -> None:
+        if self._open_line:
+            sys.stderr.write("\n")
+            self._open_line = False
+
+
+def _duration(seconds: Any) -> str:
+    if not isinstance(seconds, (int, float)) or not math.isfinite(seconds):
+        return "?"
+    s = int(seconds)
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def config_from_args(args: argparse.Namespace, settings, component: str, run_dir: str):
+    from hope_models.train.loop import TrainConfig
+
+    kw: dict[str, Any] = {}
+    if args.threads is not None:
+        kw["threads"] = args.threads
+    return TrainConfig(
+        component=component, data=args.data, run_dir=run_dir, steps=args.steps, seed=args.seed,
+        batch_size=args.batch_size, lr=args.lr, warmup=args.warmup,
+        checkpoint_every_steps=args.checkpoint_every, checkpoint_every_s=args.checkpoint_seconds,
+        keep_last=args.keep, log_every=args.log_every,
+        memory_budget_mb=float(args.memory_budget_mb or settings.memory_budget_mb),
+        thermal_zone=args.thermal_zone or settings.thermal_zone_path, vcgencmd=settings.vcgencmd_path,
+        thermal_soft_c=settings.thermal_soft_c, thermal_hard_c=settings.thermal_hard_c,
+        thermal_resume_c=settings.thermal_resume_c, vqvae_dir=args.vqvae,
+        cache_dir=str(args.cache_dir or settings.cache_dir), spec_path=args.spec,
+        imagined_ratio=args.imagined_ratio, model_config=dict(args.model_config or {}), **kw)
+
+
+def _run_one(args: argparse.Namespace, settings) -> int:
+    from hope_models.train.loop import TrainSetupError, train
+
+    events = ConsoleEvents(args.component)
+    control = SignalControl()
+    try:
+        cfg = config_from_args(args, settings, args.component, args.run_dir)
+        result = train(cfg, control, events)
+    except TrainSetupError as exc:
+        events.finish()
+        if args.json:
+            print(json.dumps({"component": args.component, "outcome": "error", "message": str(exc)}))
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        control.restore()
+    events.finish()
+    if args.json:
+        print(json.dumps(result.cli_json()))
+        if result.outcome != "completed":
+            print(f"{result.outcome}: {result.message}", file=sys.stderr)
+    else:
+        print(format_result(result, cfg.memory_budget_mb))
+    return result.exit_code
+
+
+def format_result(result, budget_mb: float) -> str:
+    def f(v):
+        return "-" if v is None else f"{v:.4g}"
+
+    resumed = f", resumed from step {result.resumed_from}" if result.resumed_from is not None else ""
+    lines = [f"{result.outcome}: {result.component} at step {result.steps}/{result.total_steps}{resumed}",
+             f"  loss {f(result.first_loss)} -> {f(result.final_loss)}"]
+    s = result.summary or {}
+    if s.get("ratio") is not None:
+        lines[-1] += (f"  (mean of the first 10 steps {f(s['first10_mean'])}, last 10 {f(s['last10_mean'])}, "
+                      f"ratio {s['ratio']:.3f}, slope {s['slope']:.3g}/step)")
+    if s.get("val"):
+        lines.append("  validation: " + ", ".join(f"{k} {f(v)}" for k, v in sorted(s["val"].items())))
+    lines.append(f"  checkpoint {result.checkpoint or '-'}")
+    lines.append(f"  peak RSS {result.peak_rss_mb:.0f} MB of the {budget_mb:.0f} MB budget")
+    if result.outcome != "completed":
+        lines.append(f"  {result.message}")
+    return "\n".join(lines)

@@ -1,0 +1,158 @@
+"""Fast Loop: the reflex policy. The last K grid points of observations (and their codes) -> the action.
+
+    obs [B, K, obs_dim] --Linear--+                                  per point (no mixing in time)
+    codes [B, K] (frozen VQ-VAE, optional) --Embed--+--> x = e + GatedMLP(LN(e))
+                                                           |
+                  u = LN(x) * mask --> WindowSSM (the ONLY mixing in time: exactly the last K points)
+                                                           |
+                  z = x + y ;  z = z + GatedMLP(LN(z)) ;  action = Linear(LN(z))   per point, last point
+
+Trained by behaviour cloning: MSE between the predicted and the recorded action at the anchor
+(both normalised by the dataset's feature spec). Only observations are inputs: the window's
+actions are not, so the anchor's own action (the target, act[:, -1]) can never leak in.
+
+Window-exact by construction. Training sees K-point windows (100 ms, K=5 on the 20 ms grid, zero
+state at the window's start), while the robot steps the policy once per control tick for as long
+as it runs. So the recurrent form must compute the same function of the last K observations at
+every tick, forever. Everything except the one SSM layer is pointwise (a function of the current
+grid point only), and that layer, a WindowSSM, keeps exactly its last K inputs (a ring buffer and
+a subtracted a^K term, see ssm.py). A stack of several SSM layers with nonlinearities between them
+cannot be truncated this way (the second layer's inputs already carry history from before the
+window), which is why there is one wide diagonal layer between a pointwise encoder and head.
+
+Two forms, one function:
+- forward(obs, mask, frames): the whole window at once (training, validation) -> the last point's
+  action. actions(...) gives the action at every point of a longer sequence, each from the K
+  points ending there.
+- init_state(batch) / step(obs_t, state, frame_t): one control tick, O(1) work and memory per
+  tick whatever the run length. After any number of ticks the action equals forward() over the
+  last K observations (tested within 1e-5 over 2000 ticks). Call init_state() at an episode's
+  start: its first K-1 ticks then equal forward() on windows whose points before the episode
+  start are masked and zero-filled, exactly as make_windows builds them.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from hope_models.models.ssm import GatedMLP, WindowSSM, WindowState, count_params
+from hope_models.models.vqvae import VQVAE
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FastLoopConfig:
+    obs_dim: int = 0
+    act_dim: int = 0
+    window_k: int = 5  # grid points the policy sees: the training window's K (set from the window spec)
+    d_model: int = 128
+    d_state: int = 256  # one SSM layer, so a wide state
+    mlp_ratio: int = 2  # encoder / head gated MLP hidden width = mlp_ratio * d_model
+    min_timescale: float = 1.0  # grid steps (20 ms each in the default window)
+    max_timescale: float = 16.0
+    n_codes: int = 0  # codebook size of the frozen VQ-VAE whose codes are inputs; 0 = none
+
+    def validate(self) -> None:
+        if self.obs_dim < 1 or self.act_dim < 1:
+            raise ValueError(f"obs_dim={self.obs_dim} and act_dim={self.act_dim} must be >= 1")
+        if self.window_k < 1:
+            raise ValueError(f"window_k={self.window_k} must be >= 1")
+        if self.d_model < 1 or self.d_state < 1 or self.mlp_ratio < 1:
+            raise ValueError("d_model, d_state and mlp_ratio must be >= 1")
+
+
+class FastLoop(nn.Module):
+    def __init__(self, cfg: FastLoopConfig, vqvae: VQVAE | None = None):
+        super().__init__()
+        cfg.validate()
+        if (vqvae is None) != (cfg.n_codes == 0):
+            raise ValueError(f"n_codes={cfg.n_codes} needs a VQ-VAE with that many codes (and 0 without one)")
+        if vqvae is not None and vqvae.cfg.n_codes != cfg.n_codes:
+            raise ValueError(f"n_codes={cfg.n_codes} but the VQ-VAE has {vqvae.cfg.n_codes} codes")
+        self.cfg = cfg
+        d, hidden = cfg.d_model, cfg.mlp_ratio * cfg.d_model
+        self.obs_in = nn.Linear(cfg.obs_dim, d)
+        self.code_in = nn.Embedding(cfg.n_codes, d) if vqvae is not None else None
+        self.enc_ln = nn.LayerNorm(d)
+        self.enc_mlp = GatedMLP(d, hidden)
+        self.ssm_ln = nn.LayerNorm(d)
+        self.ssm = WindowSSM(d, cfg.d_state, cfg.window_k, cfg.min_timescale, cfg.max_timescale)
+        self.head_ln = nn.LayerNorm(d)
+        self.head_mlp = GatedMLP(d, hidden)
+        self.out_ln = nn.LayerNorm(d)
+        self.out = nn.Linear(d, cfg.act_dim)
+        # The tokenizer rides along frozen: its weights are saved with ours (one self-contained
+        # checkpoint for inference), it gets no gradient, and encode() never changes its codebook.
+        self.vqvae = vqvae.requires_grad_(False) if vqvae is not None else None
+        log.info("%s", self.describe())
+
+    def describe(self) -> str:
+        frozen = 0 if self.vqvae is None else count_params(self.vqvae)
+        codes = "" if self.vqvae is None else f" + codes of a frozen VQ-VAE ({frozen / 1e6:.3f} M, not trained)"
+        return (f"FastLoop(obs {self.cfg.obs_dim}{' + codes' if self.vqvae is not None else ''} -> act "
+                f"{self.cfg.act_dim}, d_model {self.cfg.d_model}, one window-exact SSM layer (state "
+                f"{self.cfg.d_state}, K={self.cfg.window_k})): "
+                f"{count_params(self, trainable_only=True) / 1e6:.3f} M trainable parameters{codes}")
+
+    @property
+    def wants_frames(self) -> bool:
+        return self.vqvae is not None and self.vqvae.cfg.input == "frame"
+
+    def codes(self, obs: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor:
+        """Codes of each point: obs [..., obs_dim] or frames [..., H, W, 3] -> [...] long."""
+        if self.wants_frames:
+            if frames is None:
+                raise ValueError("this Fast Loop's VQ-VAE reads frames: pass frames")
+            lead = frames.shape[:-3]
+            return self.vqvae.encode(frames.reshape(-1, *frames.shape[-3:])).reshape(lead)
+        lead = obs.shape[:-1]
+        return self.vqvae.encode(obs.reshape(-1, obs.shape[-1])).reshape(lead)
+
+    # -- pointwise parts: functions of one grid point, so the same in both forms -----------------
+
+    def _encode(self, obs: torch.Tensor, frames: torch.Tensor | None) -> torch.Tensor:
+        e = self.obs_in(obs)
+        if self.vqvae is not None:
+            e = e + self.code_in(self.codes(obs, frames))
+        return e + self.enc_mlp(self.enc_ln(e))
+
+    def _head(self, z: torch.Tensor) -> torch.Tensor:
+        z = z + self.head_mlp(self.head_ln(z))
+        return self.out(self.out_ln(z))
+
+    # -- the two forms ---------------------------------------------------------------------------
+
+    def _trunk(self, obs: torch.Tensor, mask: torch.Tensor | None, frames: torch.Tensor | None) -> torch.Tensor:
+        x = self._encode(obs, frames)
+        u = self.ssm_ln(x)
+        if mask is not None:  # points before the episode's start add nothing to the state
+            u = u * mask[..., None].to(u.dtype)
+        y, _ = self.ssm(u)
+        return x + y
+
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
+                frames: torch.Tensor | None = None) -> torch.Tensor:
+        """obs [B, K, obs_dim], mask [B, K] (True = real point; the last must be real) -> action [B, act_dim].
+
+        A window longer than K gives the action of its last K points."""
+        return self._head(self._trunk(obs, mask, frames)[:, -1])
+
+    def actions(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
+                frames: torch.Tensor | None = None) -> torch.Tensor:
+        """obs [B, L, obs_dim] -> [B, L, act_dim]: at each point, the action of the K points ending there."""
+        return self._head(self._trunk(obs, mask, frames))
+
+    def init_state(self, batch: int) -> WindowState:
+        """A fresh state: the start of an episode (every earlier point masked)."""
+        return self.ssm.init_state(batch)
+
+    def step(self, obs_t: torch.Tensor, state: WindowState,
+             frame_t: torch.Tensor | None = None) -> tuple[torch.Tensor, WindowState]:
+        """One tick: obs_t [B, obs_dim] (normalised), state -> (action [B, act_dim] normalised, state)."""
+        x = self._encode(obs_t, frame_t)
+        y, state = self.ssm.step(self.ssm_ln(x), state)
+        return self._head(x + y), state

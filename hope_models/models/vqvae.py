@@ -1,0 +1,245 @@
+"""VQ-VAE: one observation frame (a 64x64 RGB image or a state vector) to one discrete code.
+
+    x -> encoder -> z_e [B, code_dim] -> nearest codebook row -> code [B] -> z_q -> decoder -> x_hat
+
+- Inputs: "frame" = uint8 images [B, H, W, 3] (H, W multiples of 16; 64x64 here), a small conv
+  encoder/decoder; "vector" = normalised observation vectors [B, obs_dim], an MLP encoder/decoder.
+- Loss = reconstruction MSE + beta * commitment MSE(z_e, sg(z_q)); gradients reach the encoder
+  through the straight-through estimator. The codebook itself gets no gradient: it is an
+  exponential moving average of the encoder outputs assigned to each code (decay ~0.99), with
+  Laplace-smoothed counts so a rarely used code never divides by ~0.
+- Data-driven init: the first training batch's encoder outputs become the codebook (a random
+  choice of them; with fewer outputs than codes, repeats get a little noise so all rows differ).
+- Dead-code restart: a code unused for `dead_after_steps` codebook updates is re-seeded from a
+  random current encoder output. All randomness comes from torch's global RNG, which the trainer
+  checkpoints, so a resumed run restarts the same codes with the same values.
+- Every piece of codebook state (rows, EMA counts and sums, unused-step counters, the init flag)
+  is a registered buffer: state_dict() / safetensors capture it, and resume is exact.
+
+encode(x) -> codes is pure (no statistics change), so a frozen VQ-VAE inside the Fast and Mid
+Loops can run in any train/eval mode. The model has no dropout or batch norm at all: train() and
+eval() compute the same function.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+log = logging.getLogger(__name__)
+
+INPUTS = ("vector", "frame")
+
+
+@dataclass
+class VQVAEConfig:
+    input: str = "vector"  # "vector" (obs_dim floats) or "frame" (frame_shape uint8 image)
+    obs_dim: int = 0  # vector input size (ignored for frames)
+    frame_shape: tuple[int, int, int] = (64, 64, 3)
+    n_codes: int = 128
+    code_dim: int = 32
+    hidden: int = 128  # MLP width (vector input)
+    channels: int = 32  # first conv width (frame input); then 2x, 2x, 2x
+    beta: float = 0.25  # commitment weight
+    ema_decay: float = 0.99
+    eps: float = 1e-5  # Laplace smoothing of the EMA counts
+    dead_after_steps: int = 20  # codebook updates without a single assignment before a restart
+
+    def validate(self) -> None:
+        if self.input not in INPUTS:
+            raise ValueError(f"input={self.input!r} must be one of {', '.join(INPUTS)}")
+        if self.input == "vector" and self.obs_dim < 1:
+            raise ValueError(f"obs_dim={self.obs_dim} must be >= 1 for a vector VQ-VAE")
+        if self.input == "frame":
+            h, w, c = self.frame_shape
+            if c != 3 or h % 16 or w % 16 or h < 16 or w < 16:
+                raise ValueError(f"frame_shape={self.frame_shape} must be [H, W, 3] with H, W multiples of 16")
+        if self.n_codes < 2 or self.code_dim < 1:
+            raise ValueError(f"n_codes={self.n_codes} must be >= 2 and code_dim={self.code_dim} >= 1")
+        if not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay={self.ema_decay} must be within (0, 1)")
+        if self.dead_after_steps < 1:
+            raise ValueError(f"dead_after_steps={self.dead_after_steps} must be >= 1")
+
+
+class VQOutput(NamedTuple):
+    recon: torch.Tensor  # decoder output, in the space of target()
+    z_e: torch.Tensor  # [B, code_dim] encoder outputs (with grad)
+    codes: torch.Tensor  # [B] long
+    recon_loss: torch.Tensor
+    commit_loss: torch.Tensor
+
+
+def _conv_encoder(cfg: VQVAEConfig) -> nn.Module:
+    h, w, _ = cfg.frame_shape
+    c = cfg.channels
+    return nn.Sequential(  # four stride-2 convs: 64x64 -> 4x4
+        nn.Conv2d(3, c, 4, 2, 1), nn.SiLU(),
+        nn.Conv2d(c, 2 * c, 4, 2, 1), nn.SiLU(),
+        nn.Conv2d(2 * c, 2 * c, 4, 2, 1), nn.SiLU(),
+        nn.Conv2d(2 * c, 2 * c, 4, 2, 1), nn.SiLU(),
+        nn.Flatten(), nn.Linear(2 * c * (h // 16) * (w // 16), cfg.code_dim),
+        nn.LayerNorm(cfg.code_dim, elementwise_affine=False),  # see VQVAE.__init__
+    )
+
+
+def _conv_decoder(cfg: VQVAEConfig) -> nn.Module:
+    h, w, _ = cfg.frame_shape
+    c = cfg.channels
+    return nn.Sequential(
+        nn.Linear(cfg.code_dim, 2 * c * (h // 16) * (w // 16)), nn.SiLU(),
+        nn.Unflatten(1, (2 * c, h // 16, w // 16)),
+        nn.ConvTranspose2d(2 * c, 2 * c, 4, 2, 1), nn.SiLU(),
+        nn.ConvTranspose2d(2 * c, 2 * c, 4, 2, 1), nn.SiLU(),
+        nn.ConvTranspose2d(2 * c, c, 4, 2, 1), nn.SiLU(),
+        nn.ConvTranspose2d(c, 3, 4, 2, 1),
+    )
+
+
+def _mlp(sizes: list[int]) -> nn.Module:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers.append(nn.SiLU())
+    return nn.Sequential(*layers)
+
+
+class VQVAE(nn.Module):
+    def __init__(self, cfg: VQVAEConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        if cfg.input == "frame":
+            self.encoder, self.decoder = _conv_encoder(cfg), _conv_decoder(cfg)
+        else:
+            self.encoder = nn.Sequential(_mlp([cfg.obs_dim, cfg.hidden, cfg.hidden, cfg.code_dim]),
+                                         nn.LayerNorm(cfg.code_dim, elementwise_affine=False))
+        # Both encoders end in a LayerNorm without parameters: z_e keeps a fixed scale. Without it
+        # the outputs grow early in training faster than the EMA codebook follows, and nearly
+        # everything lands on the few outermost codes (perplexity ~5 of 128 in our tests).
+            self.decoder = _mlp([cfg.code_dim, cfg.hidden, cfg.hidden, cfg.obs_dim])
+        k, d = cfg.n_codes, cfg.code_dim
+        self.register_buffer("codebook", torch.zeros(k, d))
+        self.register_buffer("ema_count", torch.zeros(k))  # EMA of assignments per code
+        self.register_buffer("ema_sum", torch.zeros(k, d))  # EMA of the encoder outputs assigned
+        self.register_buffer("unused_steps", torch.zeros(k, dtype=torch.int64))  # since used or restarted
+        self.register_buffer("idle_steps", torch.zeros(k, dtype=torch.int64))  # since really used (metric)
+        self.register_buffer("initialized", torch.zeros((), dtype=torch.int64))  # 0/1
+        self.register_buffer("restarts", torch.zeros((), dtype=torch.int64))  # dead codes re-seeded so far
+        log.info("%s", self.describe())
+
+    def describe(self) -> str:
+        n = sum(p.numel() for p in self.parameters())
+        what = (f"{self.cfg.frame_shape[0]}x{self.cfg.frame_shape[1]} frame" if self.cfg.input == "frame"
+                else f"{self.cfg.obs_dim}-d vector")
+        return (f"VQVAE({what} -> {self.cfg.n_codes} codes x {self.cfg.code_dim}): {n / 1e6:.3f} M parameters "
+                f"(+ {self.cfg.n_codes * self.cfg.code_dim} codebook values as EMA buffers)")
+
+    @property
+    def wants_frames(self) -> bool:
+        return self.cfg.input == "frame"
+
+    # -- inputs and targets ---------------------------------------------------------------------
+    def prepare(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw input -> encoder input: uint8 [B, H, W, 3] -> float [B, 3, H, W] in [0, 1]; vectors as is."""
+        if self.cfg.input == "frame":
+            if x.dim() != 4 or tuple(x.shape[1:]) != tuple(self.cfg.frame_shape):
+                shape = ", ".join(map(str, self.cfg.frame_shape))
+                raise ValueError(f"frames must be [B, {shape}] uint8, got {list(x.shape)}")
+            return x.permute(0, 3, 1, 2).to(torch.float32) / 255.0
+        if x.dim() != 2 or x.shape[1] != self.cfg.obs_dim:
+            raise ValueError(f"observations must be [B, {self.cfg.obs_dim}], got {list(x.shape)}")
+        return x.to(torch.float32)
+
+    # -- the quantiser --------------------------------------------------------------------------
+    def nearest(self, z: torch.Tensor) -> torch.Tensor:
+        """Index of the closest codebook row for each z [B, code_dim] (ties: the lowest index)."""
+        d = (z * z).sum(1, keepdim=True) - 2.0 * z @ self.codebook.t() + (self.codebook ** 2).sum(1)[None]
+        return d.argmin(dim=1)
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw frames or normalised vectors [B, ...] -> codes [B] (long). Never changes any state."""
+        return self.nearest(self.encoder(self.prepare(x)))
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """codes [B] -> reconstructions: [B, 3, H, W] in ~[0, 1] for frames, [B, obs_dim] for vectors."""
+        return self.decoder(self.codebook[codes])
+
+    def forward(self, x: torch.Tensor, *, init_codebook: bool = False) -> VQOutput:
+        """One training/validation pass. init_codebook=True seeds an uninitialised codebook from
+        this batch's encoder outputs first (the training path passes it; evaluation does not)."""
+        xin = self.prepare(x)
+        z_e = self.encoder(xin)
+        if init_codebook and not bool(self.initialized):
+            self._init_codebook(z_e.detach())
+        codes = self.nearest(z_e.detach())
+        z_q = self.codebook[codes]  # a gathered copy: later in-place codebook updates do not touch it
+        commit = F.mse_loss(z_e, z_q)
+        z_st = z_e + (z_q - z_e).detach()  # straight-through: decoder gradient flows to the encoder
+        recon = self.decoder(z_st)
+        return VQOutput(recon, z_e, codes, F.mse_loss(recon, xin), commit)
+
+    def loss_of(self, out: VQOutput) -> torch.Tensor:
+        return out.recon_loss + self.cfg.beta * out.commit_loss
+
+    # -- codebook maintenance (training only; call after the optimiser step) -------------------
+    @torch.no_grad()
+    def _init_codebook(self, z: torch.Tensor) -> None:
+        k = self.cfg.n_codes
+        if z.shape[0] >= k:
+            rows = z[torch.randperm(z.shape[0])[:k]]
+        else:  # too few outputs: repeat them, jittered so no two rows are identical
+            rows = z[torch.randint(0, z.shape[0], (k,))]
+            rows = rows + 0.01 * (z.std() + 1e-6) * torch.randn_like(rows)
+        self.codebook.copy_(rows)
+        self.ema_sum.copy_(rows)
+        self.ema_count.fill_(1.0)
+        self.unused_steps.zero_()
+        self.idle_steps.fill_(self.cfg.dead_after_steps)  # "in use" only once a code wins a point
+        self.initialized.fill_(1)
+
+    @torch.no_grad()
+    def update_codebook(self, z_e: torch.Tensor, codes: torch.Tensor) -> None:
+        """EMA step with one batch's encoder outputs and their codes."""
+        k, decay, eps = self.cfg.n_codes, self.cfg.ema_decay, self.cfg.eps
+        onehot = F.one_hot(codes, k).to(z_e.dtype)  # [B, K]; a matmul, not index_add: deterministic
+        counts = onehot.sum(0)
+        self.ema_count.mul_(decay).add_(counts, alpha=1 - decay)
+        self.ema_sum.mul_(decay).add_(onehot.t() @ z_e, alpha=1 - decay)
+        n = self.ema_count.sum()
+        smoothed = (self.ema_count + eps) / (n + k * eps) * n  # Laplace: never ~0
+        self.codebook.copy_(self.ema_sum / smoothed[:, None])
+        self.unused_steps.add_(1).masked_fill_(counts > 0, 0)
+        self.idle_steps.add_(1).masked_fill_(counts > 0, 0)
+
+    @torch.no_grad()
+    def restart_dead_codes(self, z_e: torch.Tensor) -> int:
+        """Re-seed codes unused for dead_after_steps updates from random rows of z_e; returns how many."""
+        dead = torch.nonzero(self.unused_steps >= self.cfg.dead_after_steps).flatten()
+        if dead.numel() == 0:
+            return 0
+        rows = z_e[torch.randint(0, z_e.shape[0], (dead.numel(),))]
+        self.codebook[dead] = rows
+        self.ema_sum[dead] = rows  # with ema_count 1 the next update starts from exactly this row
+        self.ema_count[dead] = 1.0
+        self.unused_steps[dead] = 0
+        self.restarts.add_(dead.numel())
+        return int(dead.numel())
+
+    # -- metrics --------------------------------------------------------------------------------
+    def code_stats(self, codes: torch.Tensor) -> dict[str, float]:
+        """perplexity of this batch's codes, batch_code_usage (fraction of codes it uses) and
+        code_usage (fraction that won at least one point within the last dead_after_steps updates
+        or in this batch; a restarted code counts only once it is actually used)."""
+        counts = torch.bincount(codes, minlength=self.cfg.n_codes).to(torch.float32)
+        p = counts / counts.sum().clamp(min=1.0)
+        nz = p[p > 0]
+        return {"perplexity": float(torch.exp(-(nz * nz.log()).sum())),
+                "batch_code_usage": float((counts > 0).float().mean()),
+                "code_usage": float(((self.idle_steps < self.cfg.dead_after_steps) | (counts > 0)).float().mean())}

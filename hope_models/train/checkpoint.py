@@ -1,0 +1,359 @@
+"""Checkpoints a job can be killed in the middle of writing, and that never load pickle.
+
+Layout of one run:
+
+    <run_dir>/checkpoints/<step:08d>/   one complete checkpoint per kept step
+        model.safetensors               the component's state_dict (weights and buffers)
+        config.json                     component.config() + {"train": ..., "checkpoint": {...}}
+        training_state.safetensors      optimizer state tensors ("optim.<param>.<key>"), RNG states
+        training_state.json             step, optimizer param groups, sampler state, loss history, ...
+        manifest.json                   sha256 + size of every file above; written LAST
+    <run_dir>/checkpoints/last          the newest complete step's dir name (atomic write + rename)
+
+A checkpoint is written into a hidden temp dir, every file fsynced, the dir renamed to its final
+name and the parent fsynced (hope_models.durable). A directory whose manifest is missing, or whose
+files do not match it (a torn write, a truncated file, a disk error), is not a checkpoint: loading
+walks from the newest step down and skips such dirs with a warning naming the dir and the reason.
+
+Everything here is torch-free at import (the sequential manager and the daemon read the pointer
+and manifests without loading a model); tensors are written and read with safetensors only.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from hope_models.durable import file_sha256, fsync_path
+
+CHECKPOINT_FORMAT = "hope.checkpoint/1"
+MANIFEST = "manifest.json"
+MODEL_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+STATE_TENSORS = "training_state.safetensors"
+STATE_JSON = "training_state.json"
+POINTER = "last"
+_STEP_DIR = re.compile(r"^\d{8}$")
+# A safetensors file starts with an 8-byte little-endian header length, then a JSON object; a
+# pickle starts with 0x80 and its protocol byte, which read as a length is far past the limit.
+_PICKLE_PROTOCOL_BYTE = 0x80
+_ZIP_MAGIC = b"PK\x03\x04"  # torch.save's default format: a zip of pickles
+_MAX_HEADER = 100_000_000  # safetensors' own limit on the JSON header
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint cannot be written or read; the message names the dir or file and why."""
+
+
+@dataclass
+class LoadedCheckpoint:
+    path: Path
+    step: int
+    config: dict[str, Any]
+    state: dict[str, Any]  # training_state.json
+    model: dict[str, Any]  # name -> torch.Tensor
+    tensors: dict[str, Any]  # training_state.safetensors: name -> torch.Tensor
+
+
+def checkpoints_dir(run_dir: str | Path) -> Path:
+    return Path(run_dir) / "checkpoints"
+
+
+def step_dir_name(step: int) -> str:
+    return f"{step:08d}"
+
+
+# -- writing ------------------------------------------------------------------------------------
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _json_bytes(obj: Any) -> bytes:
+    # allow_nan=False: a NaN in a config or loss history is a bug to surface, not to persist
+    return (json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n").encode("utf-8")
+
+
+def _safetensors_bytes(tensors: dict[str, Any], metadata: dict[str, str] | None = None) -> bytes:
+    import torch
+    from safetensors.torch import save
+
+    # safetensors refuses tensors that share storage (tied weights, views): give each its own copy
+    seen: set[tuple[int, int]] = set()
+    out = {}
+    for name, t in tensors.items():
+        t = t.detach()
+        if t.device.type != "cpu":
+            t = t.cpu()
+        key = (t.untyped_storage().data_ptr(), t.untyped_storage().nbytes()) if t.numel() else (0, -1)
+        if key in seen or not t.is_contiguous():
+            t = t.clone(memory_format=torch.contiguous_format)
+        elif t.numel():
+            seen.add(key)
+        out[name] = t
+    return save(out, metadata=metadata)
+
+
+def write_pointer(run_dir: str | Path, step: int) -> None:
+    """checkpoints/last names the newest complete checkpoint (write a temp file, rename, fsync)."""
+    ckdir = checkpoints_dir(run_dir)
+    tmp = ckdir / f".{POINTER}.tmp-{os.getpid()}"
+    _write_bytes(tmp, (step_dir_name(step) + "\n").encode("ascii"))
+    os.replace(tmp, ckdir / POINTER)
+    fsync_path(ckdir)
+
+
+def save_checkpoint(run_dir: str | Path, step: int, *, model_state: dict[str, Any], config: dict[str, Any],
+                    state_tensors: dict[str, Any], state: dict[str, Any], keep_last: int = 3) -> Path:
+    """Write checkpoint `step` atomically, point `last` at it, then prune to the newest keep_last.
+
+    Serialisation happens before anything touches the disk, so a failure there leaves no trace;
+    the manifest is the last file written into the temp dir, and the rename makes it visible.
+    """
+    if keep_last < 1:
+        raise ValueError(f"keep_last={keep_last} must be >= 1")
+    ckdir = checkpoints_dir(run_dir)
+    ckdir.mkdir(parents=True, exist_ok=True)
+    name = step_dir_name(step)
+    meta = {"format": CHECKPOINT_FORMAT, "step": str(step)}
+    files = {
+        MODEL_FILE: _safetensors_bytes(model_state, meta),
+        CONFIG_FILE: _json_bytes({**config, "checkpoint": {"format": CHECKPOINT_FORMAT, "step": step}}),
+        STATE_TENSORS: _safetensors_bytes(state_tensors, meta),
+        STATE_JSON: _json_bytes({**state, "format": CHECKPOINT_FORMAT, "step": step}),
+    }
+    tmp = ckdir / f".tmp-{name}-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        manifest = {"format": CHECKPOINT_FORMAT, "step": step, "files": {}}
+        for fname, data in files.items():
+            _write_bytes(tmp / fname, data)
+            manifest["files"][fname] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+        _write_bytes(tmp / MANIFEST, _json_bytes(manifest))
+        fsync_path(tmp)
+        final = ckdir / name
+        if final.exists():  # a damaged dir of the same step (skipped on load): replace it
+            _discard(final)
+        os.rename(tmp, final)
+        fsync_path(ckdir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    write_pointer(run_dir, step)
+    prune(run_dir, keep_last)
+    return final
+
+
+def _discard(path: Path) -> None:
+    """Remove a step dir: rename it out of the step namespace first, so a crash halfway through the
+    delete never leaves something that looks like a checkpoint with files missing."""
+    trash = path.parent / f".del-{path.name}-{os.getpid()}-{os.urandom(3).hex()}"
+    os.rename(path, trash)
+    fsync_path(path.parent)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def prune(run_dir: str | Path, keep_last: int) -> list[Path]:
+    """Delete step dirs older than the newest keep_last complete ones (by manifest presence; the
+    hashes were checked when written). Returns the removed dirs."""
+    steps = list_step_dirs(run_dir)
+    complete = [p for _, p in steps if (p / MANIFEST).is_file()]
+    if len(complete) <= keep_last:
+        return []
+    oldest_kept = complete[keep_last - 1]
+    removed = []
+    for _, p in steps:
+        if p.name < oldest_kept.name:
+            _discard(p)
+            removed.append(p)
+    return removed
+
+
+def clean_temp(run_dir: str | Path) -> None:
+    """Remove temp and half-deleted dirs left by a process that was killed while writing."""
+    ckdir = checkpoints_dir(run_dir)
+    if not ckdir.is_dir():
+        return
+    for p in ckdir.iterdir():
+        if p.name.startswith((".tmp-", ".del-", f".{POINTER}.tmp-")):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+
+
+# -- reading ------------------------------------------------------------------------------------
+
+def list_step_dirs(run_dir: str | Path) -> list[tuple[int, Path]]:
+    """(step, dir) of every step-named dir, newest first (complete or not)."""
+    ckdir = checkpoints_dir(run_dir)
+    if not ckdir.is_dir():
+        return []
+    out = [(int(p.name), p) for p in ckdir.iterdir() if _STEP_DIR.match(p.name) and p.is_dir()]
+    return sorted(out, reverse=True)
+
+
+def verify(path: str | Path) -> str | None:
+    """None when the dir is a complete checkpoint, else the reason it is not."""
+    path = Path(path)
+    try:
+        manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return "no manifest.json (the write never finished)"
+    except (OSError, ValueError) as exc:
+        return f"manifest.json unreadable: {exc}"
+    if not isinstance(manifest, dict) or manifest.get("format") != CHECKPOINT_FORMAT:
+        return f"manifest.json is not a {CHECKPOINT_FORMAT} manifest"
+    files = manifest.get("files")
+    if not isinstance(files, dict) or not {MODEL_FILE, CONFIG_FILE, STATE_TENSORS, STATE_JSON} <= set(files):
+        return "manifest.json does not list the four checkpoint files"
+    for fname, entry in files.items():
+        f = path / fname
+        try:
+            size = f.stat().st_size
+        except OSError:
+            return f"{fname} is missing"
+        if size != entry.get("size"):
+            return f"{fname} is {size} bytes, the manifest says {entry.get('size')} (truncated or overwritten)"
+        if file_sha256(f) != entry.get("sha256"):
+            return f"{fname} does not match its sha256 in the manifest"
+    return None
+
+
+def latest_complete(run_dir: str | Path, warn: Callable[[str], None] | None = None) -> Path | None:
+    """The newest step dir that verifies, warning about each newer one skipped. Torch-free."""
+    for _, p in list_step_dirs(run_dir):
+        reason = verify(p)
+        if reason is None:
+            return p
+        _warn(warn, f"skipping checkpoint {p}: {reason}")
+    return None
+
+
+def _warn(warn: Callable[[str], None] | None, message: str) -> None:
+    if warn is None:
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+    else:
+        warn(message)
+
+
+def refuse_non_safetensors(path: Path) -> None:
+    """Raise CheckpointError unless the file starts like a safetensors file. torch.save output (a
+    zip of pickles) or a raw pickle is never handed to any loader."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(9)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read: {exc.strerror}") from None
+    n = int.from_bytes(head[:8], "little") if len(head) >= 8 else -1
+    if 2 <= n <= _MAX_HEADER and head[8:9] == b"{":
+        return  # safetensors' own parser checks the rest
+    if head[:4] == _ZIP_MAGIC or head[:1] == bytes([_PICKLE_PROTOCOL_BYTE]):
+        raise CheckpointError(f"{path}: is a pickle (torch.save) file, not safetensors; pickle is never loaded")
+    raise CheckpointError(f"{path}: not a safetensors file (bad header)")
+
+
+def load_tensors(path: Path) -> dict[str, Any]:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    refuse_non_safetensors(path)
+    try:
+        return load_file(str(path), device="cpu")
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a readable safetensors file: {exc}") from None
+
+
+def load_checkpoint(path: str | Path) -> LoadedCheckpoint:
+    """Verify and read one checkpoint dir (CheckpointError naming the dir and reason otherwise)."""
+    path = Path(path)
+    reason = verify(path)
+    if reason is not None:
+        raise CheckpointError(f"{path}: not a complete checkpoint: {reason}")
+    try:
+        config = json.loads((path / CONFIG_FILE).read_text(encoding="utf-8"))
+        state = json.loads((path / STATE_JSON).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: unreadable JSON: {exc}") from None
+    model = load_tensors(path / MODEL_FILE)
+    tensors = load_tensors(path / STATE_TENSORS)
+    return LoadedCheckpoint(path, int(state["step"]), config, state, model, tensors)
+
+
+def load_latest(run_dir: str | Path, warn: Callable[[str], None] | None = None) -> LoadedCheckpoint | None:
+    """The newest checkpoint that verifies and loads; each one skipped is warned about."""
+    for _, p in list_step_dirs(run_dir):
+        try:
+            return load_checkpoint(p)
+        except CheckpointError as exc:
+            _warn(warn, f"skipping checkpoint {p}: {exc}")
+    return None
+
+
+def resolve_checkpoint_dir(path: str | Path) -> Path:
+    """A checkpoint dir from a checkpoint dir, a run dir or its checkpoints/ dir (newest that
+    verifies). Torch-free; CheckpointError when there is none."""
+    p = Path(path)
+    if (p / MANIFEST).is_file() or (p / MODEL_FILE).is_file():
+        reason = verify(p)
+        if reason:
+            raise CheckpointError(f"{p}: not a complete checkpoint: {reason}")
+        return p
+    run_dir = p.parent if p.name == "checkpoints" else p
+    found = latest_complete(run_dir)
+    if found is None:
+        raise CheckpointError(f"{p}: no complete checkpoint found (expected a checkpoint dir or a run dir "
+                              "with checkpoints/<step>/)")
+    return found
+
+
+# -- optimizer state <-> flat tensors + JSON ---------------------------------------------------------
+
+def flatten_optimizer(opt_state: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """torch optimizer.state_dict() -> (tensors "optim.<param index>.<key>", JSON of the rest)."""
+    import torch
+
+    tensors: dict[str, Any] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for idx, pstate in opt_state["state"].items():
+        for key, value in pstate.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"optim.{int(idx)}.{key}"] = value
+            else:
+                scalars.setdefault(str(int(idx)), {})[key] = value
+    groups = []
+    for g in opt_state["param_groups"]:
+        groups.append({k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()})
+    return tensors, {"param_groups": groups, "scalars": scalars, "tuples": _tuple_keys(opt_state)}
+
+
+def _tuple_keys(opt_state: dict[str, Any]) -> list[str]:
+    keys = set()
+    for g in opt_state["param_groups"]:
+        keys.update(k for k, v in g.items() if isinstance(v, tuple))
+    return sorted(keys)
+
+
+def unflatten_optimizer(tensors: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
+    state: dict[int, dict[str, Any]] = {}
+    for name, t in tensors.items():
+        if not name.startswith("optim."):
+            continue
+        _, idx, key = name.split(".", 2)
+        state.setdefault(int(idx), {})[key] = t
+    for idx, scal in meta.get("scalars", {}).items():
+        state.setdefault(int(idx), {}).update(scal)
+    tuples = set(meta.get("tuples", []))
+    groups = [{k: (tuple(v) if k in tuples else v) for k, v in g.items()} for g in meta["param_groups"]]
+    return {"state": state, "param_groups": groups}

@@ -1,0 +1,423 @@
+"""The three HOPE seed components as the training loop sees them (contract.Component), and how they
+are built from a feature spec or rebuilt from a checkpoint.
+
+    vqvae      window fast, K=1 (the anchor)   its frame if the spec has one, else its obs vector
+               -> a code; loss recon MSE + 0.25 commitment
+    fast_loop  window fast, 100 ms, K=5         obs window (+ codes of a frozen VQ-VAE)
+               -> the action; loss MSE on the normalised action; the model's window_k = the
+               window's K (its stepped form computes exactly the last K points)
+    mid_loop   window mid, 2 s, K=20,           codes (frozen VQ-VAE, required) + past actions
+               horizons 0.5 s and 1 s           -> codes ahead; loss cross-entropy
+
+build_component() takes the defaults of each model's config dataclass, the dims of the feature
+spec, and `model_config` overrides (any config field, plus "window": {"duration_s", "k",
+"horizons_s"}); an unknown key or a dim that does not fit the spec is a ValueError naming it.
+It draws the initial weights from torch's global RNG: seed before building.
+
+A frozen VQ-VAE (fast_loop optionally, mid_loop always) is loaded from `vqvae_dir`, a checkpoint
+dir, and becomes a frozen submodule of the model: its weights travel in the same
+model.safetensors, so a fast/mid checkpoint is self-contained; config.json names the VQ-VAE it
+came from (path, sha256 of its config and weights).
+
+Checkpoint dir = model.safetensors (the model's state_dict, buffers included) + config.json
+(config() below, plus whatever the loop adds). Weights are only ever read with safetensors, never
+pickle.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file
+
+from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.windows import WindowSpec, window_spec
+from hope_models.durable import file_sha256
+from hope_models.models.fast_loop import FastLoop, FastLoopConfig
+from hope_models.models.mid_loop import MidLoop, MidLoopConfig, mid_loop_loss, previous_actions
+from hope_models.models.ssm import count_params
+from hope_models.models.vqvae import VQVAE, VQVAEConfig
+from hope_models.train.contract import COMPONENTS
+
+log = logging.getLogger(__name__)
+
+CONFIG_FORMAT = "hope.component_config/1"
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+
+# component -> (window scale, default window_spec kwargs)
+DEFAULT_WINDOWS: dict[str, tuple[str, dict[str, Any]]] = {
+    "vqvae": ("fast", {"k": 1}),  # one point: the anchor's own frame / observation
+    "fast_loop": ("fast", {}),  # 100 ms, K=5
+    "mid_loop": ("mid", {"horizons_s": (0.5, 1.0)}),  # 2 s, K=20 (100 ms grid): 5 and 10 grid steps ahead
+}
+
+
+class CheckpointError(ValueError):
+    """A checkpoint cannot be used; the message names the file and why."""
+
+
+def _tensor(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.require(a, requirements=["C", "W"]))  # copies only views and read-only maps
+
+
+# -- the components ------------------------------------------------------------------------------
+
+class _Component:
+    name = ""
+
+    def __init__(self, spec: FeatureSpec, model: torch.nn.Module, cfg: Any, window: WindowSpec,
+                 data_fingerprint: str, vqvae_ref: dict | None = None):
+        self.spec, self._model, self.model_config = spec, model, cfg
+        self._window, self.data_fingerprint, self.vqvae_ref = window, data_fingerprint, vqvae_ref
+
+    @property
+    def model(self) -> torch.nn.Module:
+        return self._model
+
+    @property
+    def window(self) -> WindowSpec:
+        return self._window
+
+    @property
+    def wants_frames(self) -> bool:
+        return bool(self._model.wants_frames)
+
+    def _frames(self, batch, attr: str = "frames") -> torch.Tensor | None:
+        if not self.wants_frames:
+            return None
+        frames = getattr(batch, attr, None)
+        if frames is None and attr == "frames":
+            raise ValueError(f"{self.name} reads frames: build its windows with make_windows(..., frames=True)")
+        return None if frames is None else _tensor(frames)
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        raise NotImplementedError
+
+    def loss(self, batch) -> tuple[torch.Tensor, dict[str, float]]:
+        return self._loss(batch, training=True)
+
+    def evaluate(self, batch) -> dict[str, float]:
+        with torch.no_grad():
+            loss, metrics = self._loss(batch, training=False)
+        return {"loss": float(loss), **metrics}
+
+    def after_step(self, step: int) -> None:
+        pass
+
+    def config(self) -> dict[str, Any]:
+        obj = {
+            "format": CONFIG_FORMAT,
+            "component": self.name,
+            "model_config": asdict(self.model_config),
+            "window": self._window.to_json_obj(),
+            "feature_spec": self.spec.to_json_obj(),
+            "data_fingerprint": self.data_fingerprint,
+            "vqvae": self.vqvae_ref,
+            "params": {"trainable": count_params(self._model, trainable_only=True),
+                       "total": count_params(self._model)},
+        }
+        return json.loads(json.dumps(obj))  # tuples -> lists: exactly what config.json will hold
+
+
+class VQVAEComponent(_Component):
+    name = "vqvae"
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._pending: tuple[torch.Tensor, torch.Tensor] | None = None  # (z_e, codes) of the last loss()
+
+    def _x(self, batch) -> torch.Tensor:
+        frames = self._frames(batch)
+        return frames[:, -1] if frames is not None else _tensor(batch.obs[:, -1])
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        model: VQVAE = self._model
+        out = model(self._x(batch), init_codebook=training)
+        if training:  # the codebook moves in after_step, once the optimiser step has been taken
+            self._pending = (out.z_e.detach(), out.codes)
+        metrics = {"recon_loss": out.recon_loss.item(), "commit_loss": out.commit_loss.item(),
+                   **model.code_stats(out.codes), "codes_restarted": float(model.restarts)}
+        return model.loss_of(out), metrics
+
+    def after_step(self, step: int) -> None:
+        if self._pending is None:
+            return
+        z_e, codes = self._pending
+        self._pending = None
+        self._model.update_codebook(z_e, codes)
+        n = self._model.restart_dead_codes(z_e)
+        if n:
+            log.debug("vqvae step %d: restarted %d dead codes", step, n)
+
+
+class FastLoopComponent(_Component):
+    name = "fast_loop"
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        pred = self._model(_tensor(batch.obs), _tensor(batch.mask), self._frames(batch))
+        target = _tensor(batch.target_act)
+        loss = F.mse_loss(pred, target)
+        # baseline: always predicting the dataset's mean action (0 once normalised)
+        return loss, {"mse": loss.item(), "mean_action_mse": float((target * target).mean())}
+
+
+class MidLoopComponent(_Component):
+    name = "mid_loop"
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        model: MidLoop = self._model
+        codes = model.codes(_tensor(batch.obs), self._frames(batch))
+        future_codes = None
+        if self.wants_frames:
+            future_frames = self._frames(batch, "future_frames")  # only if the data layer provides them
+            if future_frames is not None:
+                future_codes = model.codes(None, future_frames)
+        elif batch.future_obs is not None:
+            future_codes = model.codes(_tensor(batch.future_obs))
+        future_mask = None if future_codes is None or batch.future_mask is None else _tensor(batch.future_mask)
+        mask = _tensor(batch.mask)
+        logits = model(codes, previous_actions(_tensor(batch.act)), mask)
+        return mid_loop_loss(logits, codes, mask, self.model_config.horizon_steps, future_codes, future_mask)
+
+
+_CLASSES = {"vqvae": VQVAEComponent, "fast_loop": FastLoopComponent, "mid_loop": MidLoopComponent}
+
+
+# -- configs from defaults, spec dims and overrides ---------------------------------------------
+
+def _config(cls, derived: dict[str, Any], overrides: dict[str, Any], component: str):
+    """cls(**defaults | derived | overrides); overriding a derived dim with another value is refused."""
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(overrides) - set(names))
+    if unknown:
+        raise ValueError(f"model_config for {component}: unknown key(s) {unknown}; valid keys: "
+                         f"{sorted(names) + ['window']}")
+    values = dict(derived)
+    for key, value in overrides.items():
+        default = names[key].default
+        if isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)):
+                raise ValueError(f"model_config.{key}={value!r} must be a list")
+            value = tuple(value)
+        elif isinstance(default, bool) or isinstance(value, bool):
+            raise ValueError(f"model_config.{key}={value!r} has the wrong type")
+        elif isinstance(default, int) and not isinstance(value, int):
+            raise ValueError(f"model_config.{key}={value!r} must be an integer")
+        elif isinstance(default, float) and not (isinstance(value, (int, float)) and math.isfinite(value)):
+            raise ValueError(f"model_config.{key}={value!r} must be a finite number")
+        elif isinstance(default, str) and not isinstance(value, str):
+            raise ValueError(f"model_config.{key}={value!r} must be a string")
+        if key in derived and value != derived[key]:
+            raise ValueError(f"model_config.{key}={value!r} does not fit: the {component} for this data needs "
+                             f"{key}={derived[key]!r}")
+        values[key] = float(value) if isinstance(default, float) else value
+    cfg = cls(**values)
+    if hasattr(cfg, "validate"):
+        cfg.validate()
+    return cfg
+
+
+def _window(name: str, over: Any) -> WindowSpec:
+    scale, kwargs = DEFAULT_WINDOWS[name]
+    kwargs = dict(kwargs)
+    if over is not None:
+        if not isinstance(over, dict):
+            raise ValueError(f"model_config.window must be an object with duration_s, k, horizons_s; got {over!r}")
+        over = dict(over)
+        if over.pop("scale", scale) != scale:
+            raise ValueError(f"model_config.window.scale must be {scale!r} for {name}")
+        unknown = sorted(set(over) - {"duration_s", "k", "horizons_s"})
+        if unknown:
+            raise ValueError(f"model_config.window: unknown key(s) {unknown}; valid: duration_s, k, horizons_s")
+        kwargs.update(over)
+    spec = window_spec(scale, kwargs.get("duration_s"), kwargs.get("k"), kwargs.get("horizons_s", ()))
+    if name == "vqvae" and (spec.k != 1 or spec.horizons_s):
+        raise ValueError("model_config.window: the vqvae reads one frame (k=1, no horizons)")
+    if name == "fast_loop" and spec.horizons_s:
+        raise ValueError("model_config.window.horizons_s: the fast_loop predicts the current action, not horizons")
+    if name == "mid_loop" and not spec.horizons_s:
+        raise ValueError("model_config.window.horizons_s: the mid_loop needs at least one horizon")
+    return spec
+
+
+def _horizon_steps(spec: WindowSpec) -> tuple[int, ...]:
+    steps = []
+    for h in spec.horizons_s:
+        s = h / spec.grid_step_s
+        if abs(s - round(s)) > 1e-6 or round(s) < 1:
+            raise ValueError(f"horizons_s: {h} s is not a whole number of the mid window's {spec.grid_step_s:g} s "
+                             "grid steps (choose duration_s/k so that it is)")
+        steps.append(int(round(s)))
+    return tuple(steps)
+
+
+def _build(name: str, spec: FeatureSpec, model_config: dict | None, vq: tuple[VQVAE, dict] | None,
+           data_fingerprint: str) -> _Component:
+    if name not in COMPONENTS:
+        raise ValueError(f"component {name!r} is not one of {', '.join(COMPONENTS)}")
+    if model_config is not None and not isinstance(model_config, dict):
+        raise ValueError(f"model_config must be an object (dict), got {type(model_config).__name__}")
+    overrides = dict(model_config or {})
+    window = _window(name, overrides.pop("window", None))
+    if name == "vqvae":
+        frame = spec.frame
+        derived: dict[str, Any] = {"obs_dim": spec.obs_dim}
+        want = overrides.get("input", "frame" if frame is not None else "vector")
+        if want == "frame":
+            if frame is None:
+                raise ValueError("model_config.input='frame' but the feature spec has no frame feature")
+            derived["frame_shape"] = tuple(frame.shape)
+        cfg = _config(VQVAEConfig, {"input": want, **derived}, overrides, name)
+        return VQVAEComponent(spec, VQVAE(cfg), cfg, window, data_fingerprint)
+    vqvae, ref = vq if vq is not None else (None, None)
+    if name == "fast_loop":
+        # window_k follows the window: the policy is window-exact over the K points it is trained on
+        cfg = _config(FastLoopConfig, {"obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "window_k": window.k,
+                                       "n_codes": 0 if vqvae is None else vqvae.cfg.n_codes}, overrides, name)
+        return FastLoopComponent(spec, FastLoop(cfg, vqvae), cfg, window, data_fingerprint, ref)
+    if vqvae is None:
+        raise ValueError("mid_loop needs vqvae_dir: the checkpoint dir (model.safetensors + config.json) of a "
+                         "trained VQ-VAE whose codes it predicts; train the vqvae component first")
+    cfg = _config(MidLoopConfig, {"act_dim": spec.act_dim, "n_codes": vqvae.cfg.n_codes,
+                                  "horizon_steps": _horizon_steps(window)}, overrides, name)
+    return MidLoopComponent(spec, MidLoop(cfg, vqvae), cfg, window, data_fingerprint, ref)
+
+
+# -- public API ----------------------------------------------------------------------------------
+
+def build_component(name: str, spec: FeatureSpec, *, model_config: dict | None = None,
+                    vqvae_dir: str | Path | None = None, data_fingerprint: str = "") -> _Component:
+    """A fresh component for a dataset's feature spec (see the module doc)."""
+    if name == "vqvae" and vqvae_dir is not None:
+        raise ValueError("vqvae_dir is for fast_loop and mid_loop (the VQ-VAE whose codes they read); "
+                         "the vqvae component itself takes none")
+    vq = None if vqvae_dir is None else _load_vqvae(Path(vqvae_dir), spec)
+    return _build(name, spec, model_config, vq, data_fingerprint)
+
+
+def component_from_checkpoint(ckpt_dir: str | Path) -> _Component:
+    """Rebuild a component from <ckpt_dir>/config.json and load <ckpt_dir>/model.safetensors."""
+    ckpt = Path(ckpt_dir)
+    cfg_path = ckpt / CONFIG_FILE
+    if not cfg_path.is_file() and (ckpt / "checkpoints").is_dir():
+        raise CheckpointError(f"{ckpt}: this looks like a run dir; pass one of its checkpoints/<step> dirs")
+    obj = _read_json(cfg_path)
+    try:
+        comp = _from_config(obj, cfg_path)
+    except (ValueError, FeatureSpecError, TypeError) as exc:
+        if isinstance(exc, CheckpointError):
+            raise
+        raise CheckpointError(f"{cfg_path}: does not describe a usable component: {exc}") from None
+    load_model_weights(comp.model, ckpt / WEIGHTS_FILE)
+    return comp
+
+
+def load_model_weights(model: torch.nn.Module, path: str | Path) -> None:
+    """Load a safetensors state_dict into model, refusing anything else with a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: weights file not found")
+    with open(path, "rb") as f:
+        head = f.read(2)
+    try:
+        state = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own SafetensorError (an Exception), or OSError
+        kind = ""
+        if head[:1] == b"\x80" or head == b"PK":
+            kind = " It looks like a pickle / torch.save file;"
+        raise CheckpointError(f"{path}: not a valid safetensors file ({exc}).{kind} pickle checkpoints are "
+                              "never loaded (they can run code); only safetensors weights are accepted") from None
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    wrong = [f"{k}: file {list(state[k].shape)} {state[k].dtype}, model {list(v.shape)} {v.dtype}"
+             for k, v in expected.items() if k in state and (state[k].shape != v.shape or state[k].dtype != v.dtype)]
+    if missing or unexpected or wrong:
+        parts = []
+        if wrong:
+            parts.append(f"shape/dtype mismatch: {'; '.join(wrong[:5])}{' ...' if len(wrong) > 5 else ''}")
+        if missing:
+            parts.append(f"missing: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
+        if unexpected:
+            parts.append(f"unexpected: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
+        raise CheckpointError(f"{path}: weights do not fit the model its config.json describes ({', '.join(parts)})")
+    model.load_state_dict(state, strict=True)
+
+
+# -- helpers -------------------------------------------------------------------------------------
+
+def _read_json(path: Path) -> dict:
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: not found (a checkpoint dir holds {WEIGHTS_FILE} + {CONFIG_FILE})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{path}: not readable JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise CheckpointError(f"{path}: must be a JSON object")
+    return obj
+
+
+def _config_sha256(obj: dict) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")).hexdigest()
+
+
+def _from_config(obj: dict, where: Path) -> _Component:
+    fmt = obj.get("format", CONFIG_FORMAT)
+    if fmt != CONFIG_FORMAT:
+        raise CheckpointError(f"{where}: format {fmt!r} is not {CONFIG_FORMAT!r}")
+    name = obj.get("component")
+    if name not in COMPONENTS:
+        raise CheckpointError(f"{where}: component {name!r} is not one of {', '.join(COMPONENTS)}")
+    for key in ("model_config", "feature_spec", "window"):
+        if not isinstance(obj.get(key), dict):
+            raise CheckpointError(f"{where}: '{key}' is missing or not an object")
+    spec = FeatureSpec.from_json_obj(obj["feature_spec"], f"{where}: feature_spec")
+    model_config = dict(obj["model_config"])
+    model_config["window"] = dict(obj["window"])
+    vq = None
+    ref = obj.get("vqvae")
+    if name != "vqvae" and ref is not None:
+        if not isinstance(ref, dict) or not isinstance(ref.get("model_config"), dict):
+            raise CheckpointError(f"{where}: 'vqvae' must name the VQ-VAE with its model_config")
+        vq_cfg = _config(VQVAEConfig, {}, ref["model_config"], "vqvae")
+        vq = (VQVAE(vq_cfg), ref)  # weights arrive with this checkpoint's model.safetensors (prefix vqvae.)
+    return _build(name, spec, model_config, vq, str(obj.get("data_fingerprint", "")))
+
+
+def _load_vqvae(vqvae_dir: Path, spec: FeatureSpec) -> tuple[VQVAE, dict]:
+    """The trained VQ-VAE in vqvae_dir, checked against this dataset's features, and its reference."""
+    comp = component_from_checkpoint(vqvae_dir)
+    if comp.name != "vqvae":
+        raise ValueError(f"vqvae_dir={str(vqvae_dir)!r} holds a {comp.name} checkpoint, not a vqvae")
+    vq: VQVAE = comp.model
+    if vq.cfg.input == "frame":
+        if spec.frame is None or tuple(spec.frame.shape) != tuple(vq.cfg.frame_shape):
+            raise ValueError(f"vqvae_dir={str(vqvae_dir)!r}: that VQ-VAE reads {list(vq.cfg.frame_shape)} frames, "
+                             "which this dataset's feature spec does not have")
+    else:
+        ours = [(f.path, f.size) for f in spec.observation.fields]
+        theirs = [(f.path, f.size) for f in comp.spec.observation.fields]
+        if ours != theirs:
+            raise ValueError(f"vqvae_dir={str(vqvae_dir)!r}: that VQ-VAE was trained on observation fields "
+                             f"{theirs}, this dataset has {ours}")
+        if comp.spec.observation.mean != spec.observation.mean or comp.spec.observation.std != spec.observation.std:
+            log.warning("vqvae_dir=%s was trained with other observation normalisation statistics than this "
+                        "dataset's; its codes may be shifted", vqvae_dir)
+    if not bool(vq.initialized):
+        raise ValueError(f"vqvae_dir={str(vqvae_dir)!r}: that VQ-VAE was never trained (its codebook is not "
+                         "initialised)")
+    cfg_obj = _read_json(vqvae_dir / CONFIG_FILE)
+    ref = {"path": str(vqvae_dir.resolve()), "config_sha256": _config_sha256(cfg_obj),
+           "weights_sha256": file_sha256(vqvae_dir / WEIGHTS_FILE), "model_config": asdict(vq.cfg)}
+    return vq, json.loads(json.dumps(ref))

@@ -1,0 +1,199 @@
+"""Pre-flight memory estimate: refuse a configuration that cannot fit the job's budget before it
+starts, with the estimate in the message.
+
+The estimate of a training process's peak RSS is a sum of parts (MB = 2^20 bytes):
+
+  params       4 B x every parameter (float32), frozen ones included (a frozen VQ-VAE inside
+               fast_loop / mid_loop)
+  gradients    4 B x every trainable parameter
+  optimizer    8 B x every trainable parameter (AdamW's two moments)
+  activations  ACT_FACTOR x 4 B x batch_size x activation floats per sample, where a sample's
+               floats are the sum over the model's leaf modules of what each one outputs for it:
+                 Linear  out_features per token          Embedding  embedding_dim per token
+                 Norm    its width per token             Conv1d/2d, ConvTranspose2d  out_channels
+                         x output H x W per frame, the spatial size followed through the convs in
+                         the order they are registered, from FRAME_HW (64) at an RGB input conv
+                 any other module with its own parameters (the SSM layer): the sum of each own
+                         parameter's widest axis per token (the diagonal SSM's log_rate [N],
+                         B [N, d], C [d, N], D [d]: its state, input, output and skip vectors)
+               tokens per sample = window_k (the window's grid points; + horizons for the frozen
+               encoder of future frames). Trainable modules keep their outputs for backward; a
+               frozen module (no trainable parameter) runs without grad, so only its largest
+               single output counts (x FROZEN_FACTOR, the tensor and the next one being made).
+               A model may override all this with a method
+               activation_floats_per_sample(window_k) -> float.
+  batch        the window arrays: the loader builds loader_chunk batches at once (8 in the loop), each
+               obs/act float32 and, for a component that reads images, uint8 frames; plus the batch
+               in use converted for the model (obs/act x2, frames as float32 x4)
+  runtime      RUNTIME_MB: measured RSS of a process that imported torch, numpy and this project
+               and ran a first training step (torch loads its CPU kernels lazily then); a
+               component on frames adds CONV_RUNTIME_MB for the convolution kernels
+  cache        the data cache's resident budget (DEFAULT_RESIDENT_BUDGET_MB, 64 MB: mapped step
+               arrays count as RSS)
+
+ACT_FACTOR and RUNTIME_MB were calibrated here (x86-64, torch 2.13 CPU) by measuring the peak RSS
+delta of real forward/backward steps (tests/test_train_estimate.py re-checks the fit, within
+0.5x-2x); on the Pi's aarch64 torch the runtime differs by some tens of MB, well inside the
+soft limit's 10% margin of a 3 GiB budget.
+
+No torch import at module level: the model passed in is a torch module, but only its parameters
+and module tree are inspected.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from hope_models.train.guards import validate_budget_mb
+
+MB = 1024 * 1024
+FLOAT_BYTES = 4
+ADAMW_STATES = 2
+ACT_FACTOR = 3.0  # peak activation memory / sum of layer outputs (saved for backward + grad buffers)
+FROZEN_FACTOR = 2.0
+RUNTIME_MB = 320.0  # import torch (~220 MB) + first step's lazily loaded kernels (~90 MB) + project
+CONV_RUNTIME_MB = 20.0  # the conv kernels a frame model loads on its first step
+LOADER_CHUNK = 8  # batches the loop's WindowLoader builds per call
+FRAME_HW = 64
+FRAME_BYTES = FRAME_HW * FRAME_HW * 3
+
+
+class MemoryBudgetError(RuntimeError):
+    """A configuration's estimated memory exceeds the job's budget; the message gives the estimate."""
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    component: str
+    total_mb: float
+    breakdown: dict[str, float]  # MB per part: params, gradients, optimizer, activations, batch, runtime, cache
+    batch_size: int
+    window_k: int
+    details: dict[str, Any] = field(default_factory=dict)  # parameter counts, activation floats per sample
+
+    def describe(self) -> str:
+        parts = ", ".join(f"{name} {mb:.1f}" if mb < 10 else f"{name} {mb:.0f}"
+                          for name, mb in self.breakdown.items())
+        return f"estimated {self.total_mb:.0f} MB ({parts} MB)"
+
+    def to_json_obj(self) -> dict[str, Any]:
+        return {"component": self.component, "total_mb": round(self.total_mb, 1),
+                "breakdown": {k: round(v, 2) for k, v in self.breakdown.items()},
+                "batch_size": self.batch_size, "window_k": self.window_k, "details": self.details}
+
+
+def _conv_out(h: float, m: Any) -> float:
+    """Output height of a (square) conv given the input height, from the module's settings."""
+    k, s, d = m.kernel_size[0], m.stride[0], m.dilation[0]
+    if isinstance(m.padding, str):  # "same" keeps the size at stride 1, "valid" pads nothing
+        p = (d * (k - 1)) // 2 if m.padding == "same" else 0
+    else:
+        p = m.padding[0]
+    if type(m).__name__.startswith("ConvTranspose"):
+        return (h - 1) * s - 2 * p + d * (k - 1) + m.output_padding[0] + 1
+    return math.floor((h + 2 * p - d * (k - 1) - 1) / s + 1)
+
+
+def _leaf_outputs(model: Any) -> list[tuple[float, float, bool]]:
+    """(floats per token, floats per frame, trainable) of every module that produces activations."""
+    out = []
+    h: float = FRAME_HW
+    for m in model.modules():
+        name = type(m).__name__
+        own = list(m.parameters(recurse=False))
+        trainable = any(p.requires_grad for p in own)
+        if name in ("Conv2d", "ConvTranspose2d", "Conv1d", "ConvTranspose1d"):
+            if name.endswith("2d") and m.in_channels == 3 and not name.startswith("ConvTranspose"):
+                h = FRAME_HW  # an RGB input conv starts a new image path (an encoder)
+            h = max(1.0, _conv_out(h, m))
+            spatial = h * h if name.endswith("2d") else h
+            out.append((0.0, m.out_channels * spatial, trainable))
+        elif name == "Linear":
+            out.append((float(m.out_features), 0.0, trainable))
+        elif name == "Embedding":
+            out.append((float(m.embedding_dim), 0.0, trainable))
+        elif "Norm" in name and own:
+            out.append((float(own[0].numel()), 0.0, trainable))
+        elif own:  # e.g. the SSM layer's own decay/B/C/D: each yields about one vector of its widest axis
+            out.append((float(sum(max(p.shape, default=1) for p in own)), 0.0, trainable))
+    return out
+
+
+def activation_floats_per_sample(model: Any, window_k: int, frames: bool, horizons: int = 0) -> tuple[float, float]:
+    """(kept for backward, frozen transient peak) floats per sample; see the module doc."""
+    custom = getattr(model, "activation_floats_per_sample", None)
+    if callable(custom):
+        return float(custom(window_k)), 0.0
+    frames_per_sample = window_k if frames else 0
+    kept = 0.0
+    frozen_peak = 0.0
+    for per_token, per_frame, trainable in _leaf_outputs(model):
+        if trainable:
+            kept += per_token * window_k + per_frame * max(1, frames_per_sample)
+        else:
+            tokens = window_k + horizons
+            frozen_peak = max(frozen_peak, per_token * tokens + per_frame * max(1, frames_per_sample + horizons))
+    return kept, frozen_peak
+
+
+def cache_resident_mb(cache: Any) -> float:
+    """What an open DatasetCache's mapped arrays can add to RSS (nothing for arrays read with
+    pread), capped at the cache's resident budget: the `cache` part of an estimate."""
+    from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB
+    resident = (cache.x.nbytes + cache.t.nbytes) if cache.mode == "mmap" else 0
+    if getattr(cache, "frames", None) is not None and getattr(cache, "frames_mode", "read") == "mmap":
+        resident += cache.frames.nbytes
+    return min(resident, DEFAULT_RESIDENT_BUDGET_MB * MB) / MB
+
+
+def estimate_memory(component_name: str, model: Any, batch_size: int, window_k: int, obs_dim: int,
+                    act_dim: int, frames: bool, *, horizons: int = 0, cache_mb: float | None = None,
+                    runtime_mb: float | None = None, loader_chunk: int = LOADER_CHUNK) -> MemoryEstimate:
+    """Estimated peak RSS of training `model` with this batch and window (module doc: the formula)."""
+    for name, value in (("batch_size", batch_size), ("window_k", window_k)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} = {value!r} must be a positive integer")
+    if cache_mb is None:
+        from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB
+        cache_mb = float(DEFAULT_RESIDENT_BUDGET_MB)
+    params = list(model.parameters())
+    n_params = sum(p.numel() for p in params)
+    n_train = sum(p.numel() for p in params if p.requires_grad)
+    kept, frozen = activation_floats_per_sample(model, window_k, frames, horizons)
+    act_bytes = FLOAT_BYTES * batch_size * (ACT_FACTOR * kept + FROZEN_FACTOR * frozen)
+    if runtime_mb is None:
+        runtime_mb = RUNTIME_MB + (CONV_RUNTIME_MB if frames else 0.0)
+    vec = batch_size * window_k * (obs_dim + act_dim) * FLOAT_BYTES
+    img = batch_size * (window_k + horizons) * FRAME_BYTES if frames else 0
+    batch_bytes = max(1, loader_chunk) * (vec + img) + 2 * vec + FLOAT_BYTES * img
+    breakdown = {
+        "params": n_params * FLOAT_BYTES / MB,
+        "gradients": n_train * FLOAT_BYTES / MB,
+        "optimizer": n_train * FLOAT_BYTES * ADAMW_STATES / MB,
+        "activations": act_bytes / MB,
+        "batch": batch_bytes / MB,
+        "runtime": float(runtime_mb),
+        "cache": float(cache_mb),
+    }
+    details = {"parameters": n_params, "trainable_parameters": n_train,
+               "activation_floats_per_sample": kept, "frozen_floats_per_sample": frozen,
+               "act_factor": ACT_FACTOR, "horizons": horizons, "frames": bool(frames), "loader_chunk": loader_chunk}
+    return MemoryEstimate(component_name, sum(breakdown.values()), breakdown, batch_size, window_k, details)
+
+
+def check_fits(estimate: MemoryEstimate, budget_mb: float, soft_fraction: float = 0.9) -> MemoryEstimate:
+    """Raise MemoryBudgetError if the estimate exceeds the memory guard's soft limit
+    (soft_fraction x budget: where a running job would pause), else return the estimate."""
+    budget = validate_budget_mb(budget_mb)
+    limit = budget * soft_fraction
+    if estimate.total_mb <= limit:
+        return estimate
+    biggest = max((k for k in ("activations", "batch", "optimizer", "params")),
+                  key=lambda k: estimate.breakdown[k])
+    hint = (f"lower --batch-size (now {estimate.batch_size})" if biggest in ("activations", "batch")
+            else "use a smaller model (model_config)")
+    raise MemoryBudgetError(
+        f"{estimate.component}: {estimate.describe()} exceeds the budget of {budget:.0f} MB "
+        f"(the memory guard pauses training at {soft_fraction:.0%} of it, {limit:.0f} MB); "
+        f"{hint}, or raise the budget with --memory-budget-mb / HOPE_MEMORY_BUDGET_MB")

@@ -1,0 +1,201 @@
+"""Train several components one after the other, each in its own process; the parent holds no model.
+
+    run_trainer.py train --sequential vqvae,fast_loop,mid_loop --data DS --run-dir R --steps N
+
+Each component runs as `run_trainer.py train --component X ... --run-dir R/X --json` in a child
+process, so its memory goes back to the OS when it exits and the parent stays small (it never
+imports torch: see tests/test_train_sequential.py). fast_loop and mid_loop get `--vqvae` = the
+newest complete checkpoint of R/vqvae (trained earlier in the sequence, or before), unless
+--vqvae names another one. The parent polls each child's RSS with psutil; the peak per component
+is the larger of that and the child's own report. The sequence stops at the first component that
+does not complete, with its exit code and message. Re-running the same command resumes: finished
+components return at once, an interrupted one continues from its last checkpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from hope_models.train import checkpoint as ckpt
+from hope_models.train.contract import COMPONENTS
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+POLL_S = 0.2
+NEEDS_VQVAE = {"mid_loop"}  # fast_loop uses one when there is one
+# CLI options passed through to every child: (attribute, flag)
+PASS_THROUGH = (("data", "--data"), ("steps", "--steps"), ("seed", "--seed"), ("batch_size", "--batch-size"),
+                ("lr", "--lr"), ("warmup", "--warmup"), ("threads", "--threads"),
+                ("checkpoint_every", "--checkpoint-every"), ("checkpoint_seconds", "--checkpoint-seconds"),
+                ("keep", "--keep"), ("log_every", "--log-every"), ("memory_budget_mb", "--memory-budget-mb"),
+                ("thermal_zone", "--thermal-zone"), ("cache_dir", "--cache-dir"), ("spec", "--spec"),
+                ("imagined_ratio", "--imagined-ratio"))
+
+
+class SequenceError(ValueError):
+    """The sequence cannot start (unknown component, mid_loop without a VQ-VAE, ...)."""
+
+
+def parse_sequence(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise SequenceError("--sequential needs at least one component, e.g. vqvae,fast_loop,mid_loop")
+    unknown = [n for n in names if n not in COMPONENTS]
+    if unknown:
+        raise SequenceError(f"--sequential: unknown component(s) {', '.join(unknown)} "
+                            f"(known: {', '.join(COMPONENTS)})")
+    if len(set(names)) != len(names):
+        raise SequenceError(f"--sequential {text}: a component is listed twice")
+    if "vqvae" in names and any(names.index(n) < names.index("vqvae") for n in names if n != "vqvae"):
+        raise SequenceError("--sequential: vqvae must come before the components that read its codes")
+    return names
+
+
+def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae: Path | None) -> list[str]:
+    cmd = [sys.executable, str(REPO_ROOT / "run_trainer.py"), "train", "--component", component,
+           "--run-dir", str(run_dir), "--json"]
+    for attr, flag in PASS_THROUGH:
+        value = getattr(args, attr, None)
+        if value is not None:
+            cmd += [flag, str(value)]
+    if getattr(args, "model_config", None):
+        cmd += ["--model-config", json.dumps(args.model_config)]
+    if vqvae is not None and component != "vqvae":
+        cmd += ["--vqvae", str(vqvae)]
+    return cmd
+
+
+def _vqvae_for(args: argparse.Namespace, root: Path) -> Path | None:
+    if args.vqvae:
+        return Path(args.vqvae)
+    try:
+        return ckpt.resolve_checkpoint_dir(root / "vqvae")
+    except ckpt.CheckpointError:
+        return None
+
+
+def run_child(cmd: list[str]) -> dict[str, Any]:
+    """Run one child to the end: its exit code, parsed JSON result, polled peak RSS and wall time.
+    Its stderr (progress, warnings) goes straight to ours.
+
+    Signals: Ctrl-C in a terminal reaches the child itself (same process group), which checkpoints
+    and exits paused, so the parent ignores SIGINT meanwhile (forwarding it would be a second
+    Ctrl-C, which aborts); a SIGTERM to the parent (a service stop) is forwarded to the child."""
+    started = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT)
+
+    def forward_term(signum, frame):
+        if proc.poll() is None:
+            proc.terminate()
+
+    previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.SIG_IGN),
+                signal.SIGTERM: signal.signal(signal.SIGTERM, forward_term)}
+    try:
+        return _watch(proc, started)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _watch(proc: subprocess.Popen, started: float) -> dict[str, Any]:
+    out: list[str] = []
+    reader = threading.Thread(target=lambda: out.extend(proc.stdout), daemon=True)
+    reader.start()
+    peak = 0.0
+    try:
+        ps = psutil.Process(proc.pid)
+    except psutil.NoSuchProcess:
+        ps = None
+    while proc.poll() is None:
+        try:
+            if ps is not None:
+                peak = max(peak, ps.memory_info().rss / (1 << 20))
+        except psutil.Error:
+            pass
+        try:
+            proc.wait(timeout=POLL_S)
+        except subprocess.TimeoutExpired:
+            pass
+    reader.join(timeout=10)
+    result: dict[str, Any] = {}
+    for line in reversed("".join(out).splitlines()):
+        try:
+            result = json.loads(line)
+            break
+        except json.JSONDecodeError:
+            continue
+    return {"exit_code": proc.returncode, "result": result, "polled_peak_rss_mb": peak,
+            "seconds": time.monotonic() - started}
+
+
+def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
+    try:
+        names = parse_sequence(args.sequential)
+    except SequenceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    root = Path(args.run_dir)
+    if not Path(args.data).exists():
+        print(f"error: --data {args.data}: no such file or directory", file=sys.stderr)
+        return 2
+    rows: list[dict[str, Any]] = []
+    code = 0
+    for name in names:
+        vqvae = _vqvae_for(args, root) if name != "vqvae" else None
+        if name in NEEDS_VQVAE and vqvae is None:
+            msg = (f"{name} needs a trained VQ-VAE: put vqvae earlier in --sequential, or pass --vqvae DIR "
+                   f"(no complete checkpoint under {root / 'vqvae'})")
+            rows.append({"component": name, "outcome": "error", "exit_code": 2, "message": msg})
+            code = 2
+            break
+        cmd = child_command(args, name, root / name, vqvae)
+        print(f"== {name}: {' '.join(cmd[1:])}", file=sys.stderr, flush=True)
+        child = run_child(cmd)
+        res = child["result"]
+        reported = res.get("peak_rss_mb") or 0.0
+        row = {"component": name, "outcome": res.get("outcome", "failed"), "exit_code": child["exit_code"],
+               "steps": res.get("steps"), "first_loss": res.get("first_loss"), "final_loss": res.get("final_loss"),
+               "checkpoint": res.get("checkpoint"), "resumed_from": res.get("resumed_from"),
+               "peak_rss_mb": round(max(reported, child["polled_peak_rss_mb"]), 1),
+               "child_reported_peak_rss_mb": reported, "polled_peak_rss_mb": round(child["polled_peak_rss_mb"], 1),
+               "seconds": round(child["seconds"], 2), "vqvae": str(vqvae) if vqvae else None}
+        if res.get("message") and row["outcome"] != "completed":
+            row["message"] = res["message"]
+        if not res:
+            row["message"] = f"the {name} process exited with code {child['exit_code']} without a result"
+        rows.append(row)
+        if child["exit_code"] != 0:
+            code = child["exit_code"] or 1
+            break
+    if getattr(args, "json", False):
+        print(json.dumps(rows))
+    else:
+        print(format_table(rows))
+    if code:
+        failed = rows[-1]
+        print(f"error: the sequence stopped at {failed['component']} ({failed['outcome']}): "
+              f"{failed.get('message', '')}; re-run the same command to resume", file=sys.stderr)
+    return code
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    def f(v, spec="{:.4g}"):
+        return "-" if v is None else spec.format(v)
+
+    head = f"{'component':<10} {'outcome':<13} {'steps':>6} {'first loss':>10} {'final loss':>10} " \
+           f"{'peak RSS MB':>11} {'seconds':>8}  checkpoint"
+    lines = [head]
+    for r in rows:
+        lines.append(f"{r['component']:<10} {r['outcome']:<13} {f(r.get('steps'), '{}'):>6} "
+                     f"{f(r.get('first_loss')):>10} {f(r.get('final_loss')):>10} "
+                     f"{f(r.get('peak_rss_mb'), '{:.0f}'):>11} {f(r.get('seconds'), '{:.1f}'):>8}  "
+                     f"{r.get('checkpoint') or r.get('message', '-')}")
+    return "\n".join(lines)

@@ -1,0 +1,231 @@
+"""Fast and Mid Loop models: window forward vs one-tick stepping, masks, action shifting, targets."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hope_models.models.fast_loop import FastLoop, FastLoopConfig
+from hope_models.models.mid_loop import MidLoop, MidLoopConfig, mid_loop_loss, previous_actions
+from hope_models.models.ssm import count_params
+from hope_models.models.vqvae import VQVAE, VQVAEConfig
+
+TOL = 1e-5
+
+
+@pytest.fixture(autouse=True)
+def _one_thread_deterministic():
+    threads, det = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    yield
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(det)
+
+
+def _trained_looking_vq(**kw) -> VQVAE:
+    vq = VQVAE(VQVAEConfig(**{"obs_dim": 20, "n_codes": 16, "code_dim": 8, "hidden": 32, **kw}))
+    x = (torch.randint(0, 256, (64, *vq.cfg.frame_shape), dtype=torch.uint8) if vq.cfg.input == "frame"
+         else torch.randn(64, 20))
+    vq(x, init_codebook=True)  # a seeded codebook, so codes vary
+    return vq
+
+
+def _step_fast(model: FastLoop, obs, frames=None):
+    state = model.init_state(obs.shape[0])
+    for t in range(obs.shape[1]):
+        act, state = model.step(obs[:, t], state, None if frames is None else frames[:, t])
+    return act
+
+
+def test_default_fast_loop_is_small_enough_for_the_pi():
+    torch.manual_seed(0)
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6))
+    assert count_params(model) < 500_000
+    assert "M trainable parameters" in model.describe()
+    vq = _trained_looking_vq(n_codes=128)
+    assert count_params(FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, n_codes=128), vq), trainable_only=True) < 500_000
+
+
+@pytest.mark.parametrize("with_vq", [False, True])
+def test_fast_loop_stepping_through_a_window_gives_forwards_action(with_vq):
+    torch.manual_seed(1)
+    vq = _trained_looking_vq() if with_vq else None
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, n_codes=16 if with_vq else 0), vq)
+    obs = torch.randn(8, 5, 20)
+    action = model(obs, torch.ones(8, 5, dtype=torch.bool))
+    assert action.shape == (8, 6)
+    assert (action - _step_fast(model, obs)).abs().max().item() < TOL
+    if with_vq:
+        assert len(torch.unique(model.codes(obs))) > 1
+
+
+def test_fast_loop_with_a_masked_prefix_equals_stepping_from_the_episode_start():
+    torch.manual_seed(2)
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6))
+    obs = torch.randn(2, 5, 20)
+    obs[0, :3] = 0.0  # window at an episode's third step: the first points are zero-filled and masked
+    mask = torch.ones(2, 5, dtype=torch.bool)
+    mask[0, :3] = False
+    action = model(obs, mask)
+    assert (action[0] - _step_fast(model, obs[:1, 3:])[0]).abs().max().item() < TOL
+    assert (action[1] - _step_fast(model, obs[1:])[0]).abs().max().item() < TOL
+
+
+def _trailing_windows(stream: torch.Tensor, ticks: list[int], episode_start: int, k: int):
+    """forward()'s inputs at each tick, as make_windows builds them: the K points ending at the
+    tick, those before the episode's start masked and zero-filled."""
+    obs = torch.zeros(len(ticks), stream.shape[0], k, stream.shape[-1])
+    mask = torch.zeros(len(ticks), stream.shape[0], k, dtype=torch.bool)
+    for i, t in enumerate(ticks):
+        for j in range(k):
+            s = t - (k - 1) + j
+            if s >= episode_start:
+                obs[i, :, j] = stream[:, s]
+                mask[i, :, j] = True
+    return obs.flatten(0, 1), mask.flatten(0, 1)
+
+
+@pytest.mark.parametrize("decays", ["init", "extreme"])
+def test_fast_loop_stepped_for_2000_ticks_equals_forward_on_each_trailing_window(decays):
+    """The inference contract: init_state() at an episode's start, then one step() per control tick,
+    for as long as the robot runs; every action must be forward() over the last K observations."""
+    torch.manual_seed(5)
+    k, n, restart = 5, 2000, 1234  # a second episode starts at tick 1234: init_state() again
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, window_k=k))
+    if decays == "extreme":  # decays at both clamps (a ~ 0.9999 and a ~ 0) and beyond: the worst
+        with torch.no_grad():  # cases for the subtracted a^K term and for rounding drift
+            model.ssm.log_rate[0::3] = -40.0
+            model.ssm.log_rate[1::3] = 40.0
+    stream = 3.0 * torch.randn(2, n, 20)
+    checked = sorted({*range(50), *range(0, n, 10), *range(restart, restart + 12), n - 1})
+    stepped = {}
+    with torch.no_grad():
+        state = model.init_state(2)
+        for t in range(n):
+            if t == restart:
+                state = model.init_state(2)
+            action, state = model.step(stream[:, t], state)
+            if t in checked:
+                stepped[t] = action
+        assert state.ring.shape == (2, k, model.cfg.d_state) and state.h.shape == (2, model.cfg.d_state)
+        for start, ticks in ((0, [t for t in checked if t < restart]), (restart, [t for t in checked if t >= restart])):
+            obs, mask = _trailing_windows(stream, ticks, start, k)
+            want = model(obs, mask).unflatten(0, (len(ticks), 2))
+            got = torch.stack([stepped[t] for t in ticks])
+            err = (got - want).abs().amax(dim=(1, 2))
+            assert err.max().item() < TOL, f"worst tick {ticks[int(err.argmax())]}: {err.max().item():.2e}"
+        # not vacuous: the window's oldest point matters (a K-1 point window gives another action),
+        # and nothing older does (forward() over 3 more points gives the same action)
+        late = _trailing_windows(stream, [n - 1], 0, k)
+        assert (model(late[0][:, 1:], late[1][:, 1:]) - stepped[n - 1]).abs().max().item() > 1e-3
+        longer = _trailing_windows(stream, [n - 1], 0, k + 3)
+        assert (model(*longer) - stepped[n - 1]).abs().max().item() < TOL
+        # the masked history at an episode start matters too: the window without its mask differs
+        obs, _ = _trailing_windows(stream, [restart + 2], 0, k)
+        assert (model(obs) - stepped[restart + 2]).abs().max().item() > 1e-3
+
+
+def test_fast_loop_actions_at_every_point_are_the_trailing_windows_actions():
+    torch.manual_seed(6)
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, window_k=4))
+    stream = torch.randn(1, 30, 20)
+    with torch.no_grad():
+        every = model.actions(stream)
+        obs, mask = _trailing_windows(stream, list(range(30)), 0, 4)
+        torch.testing.assert_close(every[0], model(obs, mask), atol=TOL, rtol=0)
+        state = model.init_state(1)
+        for t in range(30):
+            action, state = model.step(stream[:, t], state)
+            assert (action[0] - every[0, t]).abs().max().item() < TOL
+
+
+def test_fast_loop_stepping_never_mutates_the_state_it_was_given():
+    torch.manual_seed(7)
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6))
+    obs = torch.randn(8, 1, 20)
+    with torch.no_grad():
+        state = model.init_state(1)
+        for t in range(7):
+            _, state = model.step(obs[t], state)
+        before = (state.h.clone(), state.ring.clone(), state.pos)
+        a1, _ = model.step(obs[7], state)
+        a2, _ = model.step(obs[7], state)  # the same tick again from the same state: e.g. a retry
+    assert torch.equal(a1, a2)
+    assert torch.equal(state.h, before[0]) and torch.equal(state.ring, before[1]) and state.pos == before[2]
+
+
+def test_fast_loop_with_a_frame_vqvae_reads_frames_in_both_forms():
+    torch.manual_seed(3)
+    vq = _trained_looking_vq(input="frame", channels=4)
+    model = FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, n_codes=16), vq)
+    assert model.wants_frames
+    obs = torch.randn(2, 5, 20)
+    frames = torch.randint(0, 256, (2, 5, 64, 64, 3), dtype=torch.uint8)
+    action = model(obs, None, frames)
+    assert (action - _step_fast(model, obs, frames)).abs().max().item() < TOL
+    with pytest.raises(ValueError, match="pass frames"):
+        model(obs)
+    assert all(not p.requires_grad for p in model.vqvae.parameters())
+    assert count_params(model, trainable_only=True) < count_params(model)
+
+
+def test_fast_loop_refuses_a_codebook_size_that_does_not_match_its_vqvae():
+    vq = _trained_looking_vq()
+    with pytest.raises(ValueError, match="n_codes"):
+        FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, n_codes=32), vq)
+    with pytest.raises(ValueError, match="n_codes"):
+        FastLoop(FastLoopConfig(obs_dim=20, act_dim=6, n_codes=16), None)
+
+
+def test_previous_actions_drop_the_anchors_own_action():
+    act = torch.arange(1, 7, dtype=torch.float32).reshape(1, 3, 2)
+    prev = previous_actions(act)
+    assert prev.tolist() == [[[0, 0], [1, 2], [3, 4]]]
+
+
+def test_mid_loop_stepping_gives_forwards_logits_at_every_point():
+    torch.manual_seed(4)
+    vq = _trained_looking_vq()
+    model = MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2, 4)), vq)
+    codes = torch.randint(0, 16, (3, 20))
+    prev = previous_actions(torch.randn(3, 20, 6))
+    logits = model(codes, prev, torch.ones(3, 20, dtype=torch.bool))
+    assert logits.shape == (3, 20, 2, 16)
+    state = model.init_state(3)
+    for t in range(20):
+        step_logits, state = model.step(codes[:, t], prev[:, t], state)
+        assert (step_logits - logits[:, t]).abs().max().item() < TOL
+
+
+def test_mid_loop_targets_and_copy_last_baseline_by_hand():
+    codes = torch.tensor([[0, 1, 2, 3, 4, 5]])
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    # perfect logits for horizon 2: the code two points later
+    logits = torch.full((1, 6, 1, 8), -20.0)
+    for k in range(4):
+        logits[0, k, 0, codes[0, k + 2]] = 20.0
+    loss, m = mid_loop_loss(logits, codes, mask, (2,))
+    assert m["targets"] == 4 and m["window_targets"] == 4
+    assert m["accuracy"] == 1.0 and m["copy_last_accuracy"] == 0.0 and loss.item() < 1e-6
+
+    still = torch.full((1, 6), 7)  # nothing changes: copying the last code is always right
+    _, m = mid_loop_loss(logits, still, mask, (2,))
+    assert m["copy_last_accuracy"] == 1.0 and m["accuracy"] == 0.0
+
+    masked = torch.tensor([[False, False, True, True, True, True]])  # window starts before the episode
+    _, m = mid_loop_loss(logits, codes, masked, (2,))
+    assert m["targets"] == 2  # only points 2 and 3 (targets 4 and 5) are real pairs
+
+    # beyond the window: the anchor's future code, where the episode still runs
+    future = torch.tensor([[7, 9]])
+    logits2 = torch.zeros(1, 6, 2, 10)
+    logits2[0, -1, 0, 7] = 5.0
+    _, m = mid_loop_loss(logits2, codes, mask, (10, 20), future, torch.tensor([[True, False]]))
+    assert m["window_targets"] == 0 and m["targets"] == 1
+    assert m["anchor_accuracy"] == 1.0 and m["anchor_copy_last_accuracy"] == 0.0
+    # no target at all (window shorter than the horizons, no futures): a zero loss, not a crash
+    empty = logits2.clone().requires_grad_(True)
+    loss, m = mid_loop_loss(empty, codes, mask, (10, 20))
+    assert loss.item() == 0.0 and m["targets"] == 0
+    loss.backward()
+    assert empty.grad is not None and (empty.grad == 0).all()
