@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _demo(home: Path, *extra: str) -> dict:
     env = dict(os.environ, HOPE_HOME=str(home))
-    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "4000", "--json", *extra],
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "4000", "--train-steps", "150", "--json", *extra],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     return json.loads(proc.stdout)
@@ -27,10 +27,18 @@ def test_demo_end_to_end_then_rerun_changes_nothing(tmp_path):
     assert first["dataset"]["obs_dim"] == 20 and first["dataset"]["act_dim"] == 6
     assert set(first["dataset"]["rates"]) == {"10 Hz", "20 Hz", "50 Hz"}
     assert first["sampler_resume_identical"] is True
+    trained = {r["component"]: r for r in first["training"]}
+    assert list(trained) == ["vqvae", "fast_loop", "mid_loop"]
+    for r in trained.values():
+        assert r["outcome"] == "completed" and r["steps"] == 150, r
+        assert r["final_loss"] < r["first_loss"], r
+        assert Path(r["checkpoint"]).is_dir()
 
     again = _demo(tmp_path)
     assert again["ingest_first"]["written"] == 0  # the episodes from the first run are all there
     assert again["dataset"]["fingerprint"] == first["dataset"]["fingerprint"]
+    # re-running finds every component finished: same checkpoints, nothing retrained
+    assert [r["checkpoint"] for r in again["training"]] == [r["checkpoint"] for r in first["training"]]
 
 
 def test_demo_refuses_a_too_small_dataset(tmp_path):

@@ -1,10 +1,11 @@
 """`run_trainer.py demo`: the end-to-end job on generated episodes, with no server.
 
-What exists so far is the data layer, so the demo shows it whole: episodes in every shape a real
-robot fleet produces (clean canonical dirs at 10/20/50 Hz, a camelCase XR-app dir, a gzip TFRecord,
-an MCAP, a file with a truncated last line, one with a NaN, a metadata-only dir), validated,
-ingested twice (the second run must change nothing), compiled into the memory-mapped cache, and cut
-into time-based windows by the resumable sampler.
+Episodes in every shape a real robot fleet produces (clean canonical dirs at 10/20/50 Hz, a
+camelCase XR-app dir, a gzip TFRecord, an MCAP, a file with a truncated last line, one with a NaN,
+a metadata-only dir) are validated, ingested twice (the second run must change nothing), compiled
+into the memory-mapped cache and cut into time-based windows by the resumable sampler; then the
+three HOPE components are trained one after the other, each in its own process
+(`train --sequential vqvae,fast_loop,mid_loop`), and the per-component results are printed.
 """
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR", help="where the demo writes (default: $HOPE_HOME/demo)")
     parser.add_argument("--steps", type=int, default=20_000, help="synthetic steps to generate (default 20000)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--train-steps", type=int, default=400,
+                        help="training steps per component (default 400; 0 skips training)")
     parser.add_argument("--fresh", action="store_true", help="delete the demo dir first")
     parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
 
@@ -89,6 +92,23 @@ def make_messy_sources(raw: Path, clean: Path) -> dict[str, str]:
     (messy / "metadata_only" / "metadata.json").write_text('{"xr_mode": "autonomous"}', encoding="utf-8")
     expected["metadata_only"] = "skipped (no steps)"
     return expected
+
+
+def _train_sequence(args: argparse.Namespace, dataset: Path, cache_root: Path, runs: Path) -> list[dict[str, Any]]:
+    """`run_trainer.py train --sequential ...` in a child process: this process never imports torch,
+    and each component's memory goes back to the OS when its own process exits."""
+    import subprocess
+
+    cmd = [sys.executable, str(Path(__file__).resolve().parents[2] / "run_trainer.py"), "train",
+           "--sequential", "vqvae,fast_loop,mid_loop", "--data", str(dataset), "--run-dir", str(runs),
+           "--steps", str(args.train_steps), "--seed", str(args.seed), "--cache-dir", str(cache_root), "--json"]
+    # the children's progress lines go to our stderr as they happen; the JSON table comes on stdout
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+    try:
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return [{"component": "sequence", "outcome": "failed",
+                 "message": f"train --sequential exited with code {proc.returncode} and no result"}]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -189,6 +209,17 @@ def run(args: argparse.Namespace) -> int:
                f"{mid_batch.mask.size} grid points inside their episodes")
     _say(args, f"   sampler resumed from its saved position draws the same next batch: {same}")
 
+    training: list[dict[str, Any]] = []
+    if args.train_steps > 0:
+        t0 = time.perf_counter()
+        _say(args, f"\n6. training vqvae, fast_loop, mid_loop for {args.train_steps} steps each, "
+                   "each in its own process (progress below):")
+        training = _train_sequence(args, dataset, cache_root, out / "runs")
+        timed("train", t0)
+        if not args.json:
+            from hope_models.train.sequential import format_table
+            print("   " + format_table(training).replace("\n", "\n   "))
+
     result: dict[str, Any] = {
         "out": str(out),
         "validate": s,
@@ -199,15 +230,21 @@ def run(args: argparse.Namespace) -> int:
                                              "act_dim", "cache_path", "fingerprint")},
         "cache_reused_on_second_open": reused,
         "fast_batches_per_s": round(fast_rate, 1),
+        "training": training,
         "sampler_resume_identical": same,
         "seconds": timings,
         "total_seconds": round(time.perf_counter() - started, 1),
     }
-    ok = (recheck["ok"] and second["written"] == 0 and reused and same and s["rejected"] >= 1)
+    trained_ok = all(r.get("outcome") == "completed" for r in training) and (
+        args.train_steps == 0 or len(training) == 3)
+    ok = (recheck["ok"] and second["written"] == 0 and reused and same and s["rejected"] >= 1 and trained_ok)
     result["ok"] = ok
     if args.json:
         print(json.dumps(result, indent=1))
     else:
+        for r in training:
+            if r.get("outcome") != "completed":
+                print(f"training {r['component']} did not complete: {r.get('message', r.get('outcome'))}")
         print(f"\nSummary: {summary['episodes']} episodes / {summary['steps']} steps ingested and cached; "
               f"{s['rejected']} rejected with reasons; re-ingest changed nothing; "
               f"total {result['total_seconds']:.1f} s. {'OK' if ok else 'SOMETHING IS WRONG (see above)'}")
