@@ -19,3 +19,17 @@ def samples_dir() -> Path:
     if not SAMPLES.is_dir():
         pytest.fail(f"sample episodes not found at {SAMPLES}; set HOPE_SAMPLES_DIR or put ../shared beside the repo")
     return SAMPLES
+
+
+@pytest.fixture
+def torch_one_thread():
+    """One thread and deterministic kernels for the test, restored afterwards (torch imported lazily,
+    so tests that never touch torch do not pay for it)."""
+    import torch
+
+    threads, det = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    yield
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(det)

@@ -12,14 +12,7 @@ from hope_models.models.vqvae import VQVAE, VQVAEConfig
 TOL = 1e-5
 
 
-@pytest.fixture(autouse=True)
-def _one_thread_deterministic():
-    threads, det = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
-    torch.set_num_threads(1)
-    torch.use_deterministic_algorithms(True)
-    yield
-    torch.set_num_threads(threads)
-    torch.use_deterministic_algorithms(det)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def _trained_looking_vq(**kw) -> VQVAE:
