@@ -17,6 +17,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("hope_models.cli.export", "write the Pi runtime's cloud upload package"),
     "dataset": ("hope_models.cli.dataset", "build the feature spec and cache of a dataset and summarise it"),
     "train": ("hope_models.cli.train", "train one component (or a sequence) in the foreground, resumable"),
+    "sim-demos": ("hope_models.cli.sim_demos", "record expert demonstrations in the dm_control reacher as RLDS"),
+    "imagine": ("hope_models.cli.imagine", "produce imagined rollouts by offline search, stored as RLDS"),
+    "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
     "demo": ("hope_models.cli.demo", "run the end-to-end job on generated episodes"),
 }
 

@@ -1,0 +1,203 @@
+"""A trained fast_loop as a reflex policy: one control tick per call, O(1) recurrent state.
+
+    policy = ReflexPolicy.from_checkpoint("runs/reach")      # a run dir or a checkpoints/<step> dir
+    policy.reset()                                           # at every episode start
+    action = policy.act(observation)                         # observation dict, or a raw vector
+
+act() reads the checkpoint's feature spec: each observation field path (e.g.
+`observation.robot_state.joint_positions`) is looked up in the observation dict (the RLDS
+`observation` block, with or without the leading "observation." level), the values are
+concatenated in the spec's order (a raw vector must already be in that order), normalised with the
+spec's mean/std exactly as the dataset cache does (float32, x * 1/std - mean/std), and fed to
+FastLoop.step with the policy's recurrent state. The normalised action is denormalised
+(a * std + mean) and clipped to the action bounds. After any number of ticks the action equals
+FastLoop.forward over the last K observations of the episode (window-exact; tested).
+
+`from_checkpoint` refuses what this runtime cannot drive, with the reason: a component that is not
+a fast_loop, a fast_loop that reads camera frames, or (by default) a spec whose fields are not the
+dm_control reacher's observation / action (pass expect_observation=None, expect_action=None and
+action_bounds=None to use it for another robot).
+
+`.version` names the weights: "<run name>@<step>:<first 12 hex of sha256(model.safetensors)>"
+(the run name is the run dir's name; a bare checkpoint dir gives its own name), so every action
+can be traced to the file that produced it.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from hope_models.sim.reacher import ACT_DIM, ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
+
+SIM_OBSERVATION: tuple[tuple[str, int], ...] = OBS_FIELDS
+SIM_ACTION: tuple[tuple[str, int], ...] = (ACTION_FIELD,)
+SIM_BOUNDS = (ACTION_LOW, ACTION_HIGH)
+
+
+class ReflexPolicyError(ValueError):
+    """The checkpoint cannot be driven as a reflex policy here; the message names the file and why."""
+
+
+def _lookup(obs: dict[str, Any], path: str) -> Any:
+    parts = path.split(".")
+    if parts[0] == "observation" and "observation" not in obs:
+        parts = parts[1:]
+    v: Any = obs
+    for p in parts:
+        if not isinstance(v, dict) or p not in v:
+            raise KeyError(path)
+        v = v[p]
+    return v
+
+
+def check_spec(spec, where: str, expect_observation: Sequence[tuple[str, int]] | None,
+               expect_action: Sequence[tuple[str, int]] | None) -> None:
+    """Refuse a spec whose observation fields are not among expect_observation (same sizes) or
+    whose action fields differ from expect_action."""
+    if expect_observation is not None:
+        avail = dict(expect_observation)
+        for f in spec.observation.fields:
+            if f.path not in avail:
+                raise ReflexPolicyError(
+                    f"{where}: the checkpoint reads {f.path} ({f.size} values), which this environment's "
+                    f"observation does not have (it has {', '.join(f'{p}[{n}]' for p, n in expect_observation)}); "
+                    "it was trained on other data")
+            if avail[f.path] != f.size:
+                raise ReflexPolicyError(f"{where}: the checkpoint reads {f.path} with {f.size} values, this "
+                                        f"environment gives {avail[f.path]}")
+    if expect_action is not None:
+        got = [(f.path, f.size) for f in spec.action.fields]
+        if got != [tuple(x) for x in expect_action]:
+            raise ReflexPolicyError(
+                f"{where}: the checkpoint's action is {', '.join(f'{p}[{n}]' for p, n in got)}, this environment "
+                f"needs {', '.join(f'{p}[{n}]' for p, n in expect_action)}")
+    if not spec.observation.has_stats or not spec.action.has_stats:
+        raise ReflexPolicyError(f"{where}: the feature spec has no normalisation statistics (mean/std)")
+
+
+class ReflexPolicy:
+    """A FastLoop stepped once per control tick (see the module doc)."""
+
+    name = "fast_loop"
+
+    def __init__(self, model, spec, version: str, action_bounds: tuple[float, float] | None = SIM_BOUNDS,
+                 checkpoint_dir: Path | None = None):
+        import torch
+
+        self._torch = torch
+        self.model = model.eval()
+        self.spec = spec
+        self.version = version
+        self.checkpoint_dir = checkpoint_dir
+        self.obs_dim, self.act_dim = spec.obs_dim, spec.act_dim
+        obs_mean, obs_std, act_mean, act_std = spec.normalizer()
+        # exactly the dataset cache's arithmetic: float32 x * inv_std - mean * inv_std
+        self._inv_std = (1.0 / obs_std).astype(np.float32)
+        self._shift = (obs_mean * self._inv_std).astype(np.float32)
+        self._act_mean = np.asarray(act_mean, dtype=np.float64)
+        self._act_std = np.asarray(act_std, dtype=np.float64)
+        self.action_bounds = action_bounds
+        self.ticks = 0
+        self._state = None
+        self.reset()
+
+    # -- loading --------------------------------------------------------------------------------
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, *,
+                        expect_observation: Sequence[tuple[str, int]] | None = SIM_OBSERVATION,
+                        expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
+                        action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
+        from hope_models.durable import file_sha256
+        from hope_models.train.checkpoint import CheckpointError as CkptError
+        from hope_models.train.checkpoint import resolve_checkpoint_dir
+        from hope_models.train.components import CheckpointError, component_from_checkpoint
+
+        p = Path(path)
+        if not p.exists():
+            raise ReflexPolicyError(f"{p}: checkpoint not found (give a run dir or a checkpoints/<step> dir)")
+        try:
+            ckpt = resolve_checkpoint_dir(p)
+        except CkptError as exc:
+            raise ReflexPolicyError(str(exc)) from None
+        try:
+            comp = component_from_checkpoint(ckpt)
+        except CheckpointError as exc:
+            raise ReflexPolicyError(str(exc)) from None
+        where = str(ckpt / "config.json")
+        if comp.name != "fast_loop":
+            raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a fast_loop checkpoint")
+        if comp.model.wants_frames:
+            raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "
+                                    "the reflex runtime drives state-only fast_loops")
+        check_spec(comp.spec, where, expect_observation, expect_action)
+        try:
+            step = json.loads((ckpt / "config.json").read_text(encoding="utf-8")).get("checkpoint", {}).get("step")
+        except (OSError, ValueError, AttributeError):
+            step = None
+        if step is None:
+            step = int(ckpt.name) if ckpt.name.isdigit() else 0
+        run_name = ckpt.parent.parent.name if ckpt.parent.name == "checkpoints" else ckpt.name
+        sha = file_sha256(ckpt / "model.safetensors")[:12]
+        version = f"{run_name}@{int(step)}:{sha}"
+        return cls(comp.model, comp.spec, version, action_bounds, ckpt)
+
+    # -- the tick -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Start of an episode: every earlier point is masked (as the training windows do)."""
+        self._state = self.model.init_state(1)
+        self.ticks = 0
+
+    def observation_vector(self, obs: Any) -> np.ndarray:
+        """An observation dict (spec field paths) or a raw vector in spec order -> float64 [obs_dim]."""
+        if isinstance(obs, dict):
+            parts = []
+            for f in self.spec.observation.fields:
+                try:
+                    v = _lookup(obs, f.path)
+                except KeyError:
+                    raise ReflexPolicyError(f"observation has no {f.path} (the policy's feature spec reads it)") from None
+                a = np.asarray(v, dtype=np.float64).reshape(-1)
+                if a.size != f.size:
+                    raise ReflexPolicyError(f"observation {f.path} has {a.size} values, the policy needs {f.size}")
+                parts.append(a)
+            x = np.concatenate(parts) if parts else np.zeros(0)
+        else:
+            x = np.asarray(obs, dtype=np.float64).reshape(-1)
+            if x.size != self.obs_dim:
+                raise ReflexPolicyError(f"observation vector has {x.size} values, the policy needs {self.obs_dim} "
+                                        f"({', '.join(self.spec.observation.dim_names())})")
+        if not np.isfinite(x).all():
+            raise ReflexPolicyError(f"observation has non-finite values: {x.tolist()}")
+        return x
+
+    def normalise(self, x: np.ndarray) -> np.ndarray:
+        x32 = np.asarray(x, dtype=np.float32) * self._inv_std
+        x32 -= self._shift
+        return x32
+
+    def act(self, obs: Any) -> np.ndarray:
+        """One control tick: observation -> action (denormalised, clipped to the bounds)."""
+        torch = self._torch
+        xn = torch.from_numpy(self.normalise(self.observation_vector(obs))[None, :])
+        with torch.inference_mode():
+            a, self._state = self.model.step(xn, self._state)
+        self.ticks += 1
+        action = a[0].double().numpy() * self._act_std + self._act_mean
+        if self.action_bounds is not None:
+            action = np.clip(action, self.action_bounds[0], self.action_bounds[1])
+        return action
+
+    def __repr__(self) -> str:
+        return f"ReflexPolicy({self.version}, obs {self.obs_dim} -> act {self.act_dim})"
+
+
+def load_reflex_policy(path: str | Path) -> ReflexPolicy:
+    """The sim reflex policy of a checkpoint (run dir or checkpoint dir); ReflexPolicyError if unusable."""
+    return ReflexPolicy.from_checkpoint(path)
+
+
+__all__ = ["ReflexPolicy", "ReflexPolicyError", "check_spec", "load_reflex_policy", "SIM_OBSERVATION",
+           "SIM_ACTION", "SIM_BOUNDS", "ACT_DIM"]

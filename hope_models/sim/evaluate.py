@@ -1,0 +1,161 @@
+"""Closed-loop evaluation of a policy in the reacher: one act() per 20 ms control step, seeded.
+
+    result = evaluate_policy(lambda seed: policy, seeds=range(0, 20), task="reach")
+    result.mean_return, result.success_rate, result.time_to_reach_s, result.episodes
+
+Each seed is one episode of the task with that seed (reacher.make_env(task, seed)); the policy's
+reset() is called before its first step, then act(observation) once per control step for the
+1000 steps. The same policy and seeds give the same returns, bit for bit (the env is seeded, the
+expert and the fast loop are deterministic, the random policy is seeded per episode).
+
+Success (docs/reflex.md): the fingertip is within the reward tolerance (TOLERANCE_M = 0.06 m of the
+target centre: reward 1) for the first time within REACH_DEADLINE_S = 2 s, and stays within it for
+at least ON_TARGET_FRACTION = 80 % of the steps from then to the end of the episode. The same rule
+serves reach and track (on track the target moves, so staying is the hard part).
+time_to_reach_s = (index of the first rewarded step + 1) x 20 ms, i.e. the time at which the
+fingertip is first on target; the aggregate is the mean over the episodes that reached at all
+(null when none did), and `reached` says how many that was.
+
+Held-out seeds: evaluation uses seeds S .. S+N-1 (eval-reflex --seed S, default 0); sim-demos
+records from seed 100000 up (recorder.DEFAULT_SEED_BASE), so a policy is never scored on an episode
+it was trained on unless asked to.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, TASKS, make_env
+
+REACH_DEADLINE_S = 2.0
+ON_TARGET_FRACTION = 0.8
+
+
+@dataclass
+class EpisodeScore:
+    seed: int
+    ret: float
+    success: bool
+    time_to_reach_s: float | None
+    on_target_after_reach: float  # fraction of steps on target from the first reach to the end (0 if never)
+
+    def to_json_obj(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["return"] = d.pop("ret")
+        return d
+
+
+@dataclass
+class EvalResult:
+    task: str
+    policy: str
+    episodes: list[EpisodeScore] = field(default_factory=list)
+
+    @property
+    def returns(self) -> list[float]:
+        return [e.ret for e in self.episodes]
+
+    @property
+    def mean_return(self) -> float:
+        return float(np.mean(self.returns)) if self.episodes else float("nan")
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean([e.success for e in self.episodes])) if self.episodes else float("nan")
+
+    @property
+    def reached(self) -> int:
+        return sum(e.time_to_reach_s is not None for e in self.episodes)
+
+    @property
+    def time_to_reach_s(self) -> float | None:
+        times = [e.time_to_reach_s for e in self.episodes if e.time_to_reach_s is not None]
+        return float(np.mean(times)) if times else None
+
+    def summary(self) -> dict[str, Any]:
+        return {"task": self.task, "policy": self.policy, "mean_return": self.mean_return,
+                "success_rate": self.success_rate, "time_to_reach_s": self.time_to_reach_s,
+                "reached": self.reached, "episodes": len(self.episodes)}
+
+
+def score_rewards(seed: int, rewards: np.ndarray) -> EpisodeScore:
+    """Return, success and time to reach of one episode from its per-step rewards."""
+    on = np.asarray(rewards) > 0.5
+    ret = float(np.sum(rewards))
+    hits = np.flatnonzero(on)
+    if hits.size == 0:
+        return EpisodeScore(seed, ret, False, None, 0.0)
+    first = int(hits[0])
+    t_reach = round((first + 1) * CONTROL_PERIOD_S, 6)
+    frac = float(on[first:].mean())
+    success = t_reach <= REACH_DEADLINE_S + 1e-9 and frac >= ON_TARGET_FRACTION
+    return EpisodeScore(seed, ret, bool(success), t_reach, frac)
+
+
+PolicyFactory = Callable[[int], Any]
+
+
+def _policy_for(policy_factory: Any, seed: int):
+    if hasattr(policy_factory, "act"):
+        return policy_factory
+    return policy_factory(seed)
+
+
+def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS) -> np.ndarray:
+    """Per-step rewards of one closed-loop episode."""
+    env = make_env(task, seed)
+    obs = env.reset()
+    reset = getattr(policy, "reset", None)
+    if reset is not None:
+        reset()
+    rewards = np.zeros(steps)
+    for t in range(steps):
+        action = np.asarray(policy.act(obs), dtype=np.float64)
+        if not np.isfinite(action).all():
+            raise ValueError(f"{task} seed {seed} step {t}: the policy gave a non-finite action {action.tolist()}")
+        obs, rewards[t], done = env.step(action)
+        if done:
+            break
+    return rewards
+
+
+def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], task: str = "reach",
+                    name: str | None = None, steps: int = EPISODE_STEPS) -> EvalResult:
+    """Score a policy on each seed. `policy_factory` is a callable seed -> policy, or a policy
+    (anything with act(observation) and optionally reset(), which is called per episode)."""
+    if task not in TASKS:
+        raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("seeds is empty: evaluate at least one episode")
+    if steps < 1 or steps > EPISODE_STEPS:
+        raise ValueError(f"steps={steps} must be within 1-{EPISODE_STEPS}")
+    label = name
+    out = EvalResult(task, "")
+    for seed in seeds:
+        policy = _policy_for(policy_factory, seed)
+        if label is None:
+            label = str(getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__))
+        out.episodes.append(score_rewards(seed, run_episode(policy, task, seed, steps)))
+    out.policy = label or ""
+    return out
+
+
+def expert_factory(seed: int):
+    from hope_models.sim.expert import ExpertController
+    return ExpertController()
+
+
+def random_factory(seed: int):
+    from hope_models.sim.expert import RandomPolicy
+    return RandomPolicy(seed)
+
+
+def json_number(v: float | None) -> float | None:
+    """Rounded for printing; NaN becomes null (JSON has no NaN)."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return None
+    return round(float(v), 4)
