@@ -11,7 +11,7 @@ from hope_models.sim.evaluate import (
 )
 from hope_models.sim.expert import ExpertController, RandomPolicy
 from hope_models.sim.reacher import (
-    CONTROL_PERIOD_S, EPISODE_STEPS, OBS_DIM, TOLERANCE_M, TRACK_OMEGA_RAD_S, TRACK_RADIUS_M, make_env,
+    CONTROL_PERIOD_S, EPISODE_STEPS, OBS_DIM, from_arm_frame, TOLERANCE_M, TRACK_OMEGA_RAD_S, TRACK_RADIUS_M, make_env,
     observation_vector,
 )
 
@@ -36,8 +36,9 @@ def test_observation_layout_and_constants():
     v = observation_vector(obs)
     assert v.shape == (OBS_DIM,) and np.isfinite(v).all()
     assert -math.pi <= v[0] < math.pi  # the continuous shoulder is wrapped
-    # target_offset is target minus fingertip
-    np.testing.assert_allclose(v[4:], env.target_xy() - env.fingertip_xy(), atol=1e-12)
+    # target_offset is target minus fingertip, in the upper arm's frame
+    np.testing.assert_allclose(from_arm_frame(v[0], v[4:]), env.target_xy() - env.fingertip_xy(), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(v[4:]), env.distance(), atol=1e-12)
     assert env.physics.model.opt.timestep == pytest.approx(CONTROL_PERIOD_S)
     assert env._env.control_timestep() == pytest.approx(CONTROL_PERIOD_S)
 
@@ -93,8 +94,8 @@ def test_track_target_moves_along_a_reachable_circle():
     angles = np.unwrap(np.arctan2(p[:, 1], p[:, 0]))
     np.testing.assert_allclose(np.diff(angles), task.direction * TRACK_OMEGA_RAD_S * CONTROL_PERIOD_S, atol=1e-9)
     # the observation's offset follows the moving target
-    np.testing.assert_allclose(observation_vector(env.observation)[4:], env.target_xy() - env.fingertip_xy(),
-                               atol=1e-12)
+    v = observation_vector(env.observation)
+    np.testing.assert_allclose(from_arm_frame(v[0], v[4:]), env.target_xy() - env.fingertip_xy(), atol=1e-12)
 
 
 def test_reach_target_does_not_move():

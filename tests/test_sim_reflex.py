@@ -40,8 +40,9 @@ def _cfg(data: Path, run_dir: Path, cache: Path, component: str = "fast_loop", s
 
 
 @pytest.fixture(scope="module")
-def bc(tmp_path_factory) -> dict:
-    torch.set_num_threads(1)
+def bc(tmp_path_factory):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # for the whole module (restored at its end); train() uses threads=1 too
     root = tmp_path_factory.mktemp("bc")
     record_dataset(root / "demos", 20, task="reach", noise=1.0)
     started = time.perf_counter()
@@ -49,7 +50,8 @@ def bc(tmp_path_factory) -> dict:
     elapsed = time.perf_counter() - started
     assert result.outcome == "completed", result.message
     print(f"\nBC run: {BC_STEPS} steps in {elapsed:.1f} s, final loss {result.final_loss:.4f}")
-    return {"root": root, "run": root / "run", "ckpt": Path(result.checkpoint), "train_s": elapsed}
+    yield {"root": root, "run": root / "run", "ckpt": Path(result.checkpoint), "train_s": elapsed}
+    torch.set_num_threads(threads)
 
 
 def test_short_bc_run_beats_random_by_10x(bc):

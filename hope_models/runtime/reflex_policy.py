@@ -30,7 +30,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from hope_models.sim.reacher import ACT_DIM, ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
+from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
 SIM_OBSERVATION: tuple[tuple[str, int], ...] = OBS_FIELDS
 SIM_ACTION: tuple[tuple[str, int], ...] = (ACTION_FIELD,)
@@ -200,4 +200,4 @@ def load_reflex_policy(path: str | Path) -> ReflexPolicy:
 
 
 __all__ = ["ReflexPolicy", "ReflexPolicyError", "check_spec", "load_reflex_policy", "SIM_OBSERVATION",
-           "SIM_ACTION", "SIM_BOUNDS", "ACT_DIM"]
+           "SIM_ACTION", "SIM_BOUNDS"]

@@ -28,7 +28,15 @@ Observation (the RLDS `observation` block a step holds, and what a policy reads)
                                                                    #  joint, wrapped to [-pi, pi)
                      "joint_velocities": [shoulder, wrist]},      # rad/s
      "target_offset": [dx, dy]}                                   # target centre minus fingertip, m,
-                                                                   #  world frame (dm_control's to_target)
+                                                                   #  in the upper arm's frame
+
+target_offset is dm_control's `to_target` (world frame) rotated by -shoulder, i.e. expressed in the
+frame of the upper arm (x along the upper arm). The world-frame offset makes every useful action
+depend on the shoulder angle, which a policy sees wrapped at +-pi: behaviour cloning then failed
+around the wrap (2-5 of 100 held-out episodes stuck with the shoulder near +-pi). In the arm frame
+the expert's action is a function of the wrist angle, the joint velocities and the offset alone, and
+the cloned policy matches the expert (docs/reflex.md, "Why the arm frame"). to_arm_frame /
+from_arm_frame convert.
 
 OBS_FIELDS lists these paths in the order the feature spec infers them (sorted dotted paths), which
 is the order of `observation_vector`. The action is `action.command` = [shoulder, wrist] motor
@@ -103,18 +111,22 @@ def wrap_angle(a: float | np.ndarray) -> Any:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-OFFSET_FRAME = os.environ.get("HOPE_SIM_OFFSET_FRAME", "world")  # EXPERIMENT
-
-
 def to_arm_frame(q1: float, v) -> np.ndarray:
+    """A world-frame planar vector in the upper arm's frame (rotated by -q1)."""
     c, s = math.cos(q1), math.sin(q1)
     return np.array([c * v[0] + s * v[1], -s * v[0] + c * v[1]])
 
 
+def from_arm_frame(q1: float, v) -> np.ndarray:
+    """An upper-arm-frame planar vector in the world frame (rotated by q1)."""
+    c, s = math.cos(q1), math.sin(q1)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+
+
 def observation_from_state(qpos, qvel, to_target) -> dict[str, Any]:
-    """The RLDS observation block from joint angles, joint velocities and target-minus-fingertip."""
-    if OFFSET_FRAME == "arm":
-        to_target = to_arm_frame(float(qpos[0]), to_target)
+    """The RLDS observation block from joint angles, joint velocities and the world-frame
+    target-minus-fingertip vector (dm_control's to_target), which is stored in the arm frame."""
+    to_target = to_arm_frame(float(qpos[0]), to_target)
     return {
         "robot_state": {
             "joint_positions": [float(wrap_angle(qpos[0])), float(qpos[1])],
@@ -234,6 +246,8 @@ class ReacherEnv:
 
     # -- the episode ----------------------------------------------------------------------------
     def reset(self) -> dict[str, Any]:
+        """Start an episode. The first reset() of an env is the episode of its seed; a second one
+        draws the next start from the same RandomState (make a new env to replay a seed)."""
         ts = self._env.reset()
         self.t = 0
         self._obs = self.observation_dict(ts.observation)
