@@ -7,9 +7,17 @@ STAMP  := $(VENV)/.installed-stamp
 # pytest options for `make test`; e.g. make test PYTEST_ARGS="-k rlds"
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test demo bench clean system-deps
 
 setup: $(STAMP)
+
+# The daemon tests start a real redis-server on a loopback port (the production broker).
+system-deps:
+	@command -v redis-server >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q redis-server >/dev/null || \
+	    { apt-get update -q >/dev/null && apt-get install -y -q redis-server >/dev/null; }; \
+	  else sudo apt-get install -y -q redis-server >/dev/null; fi; }
+	@command -v redis-server >/dev/null 2>&1 || { echo "redis-server is needed by the tests: apt-get install redis-server" >&2; exit 1; }
 
 # Plain pip into a venv: uv/poetry would skip the local CPU torch wheel and pull CUDA.
 $(STAMP): pyproject.toml
@@ -17,7 +25,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,sim]'
 	@touch $@
 
-test: setup
+test: setup system-deps
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 demo: setup

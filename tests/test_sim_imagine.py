@@ -126,8 +126,7 @@ def test_overlapping_seeds_are_refused(tmp_path):
     imagine.imagine_dataset(tmp_path / "c", 1, seed=300_001, task="track", steps=5, demos=[demos])
 
 
-def test_start_states_differ_from_the_demos(tmp_path, imagined):
-    from hope_models.rlds.write_episode_dir import write_episode_dir
+def test_start_states_differ_from_the_demos(imagined):
     from hope_models.sim.recorder import record_episode
 
     out, _, _ = imagined

@@ -27,11 +27,11 @@ the states a wrong policy drifts into, each labelled with what the searcher woul
 noise = 0 records the searcher's own trajectories (labels = executed commands).
 
 Noise: DART_NOISE_STD = 2.0 for both methods, chosen by measurement (docs/reflex.md, "Imagined
-rollouts"): a fast_loop trained on 5 demos + 50 imagined rollouts scores 411 (noise 0: no better
-than the demos alone) -> ~980 from noise 1-2 on, on 20 held-out seeds; the expert itself still
-scores ~950 while driven with the noise, so the rollouts still mostly reach the target. The
-noise is large against the [-1, 1] command range because the arm low-passes white noise at 50 Hz
-(noise 0.5 costs the expert ~3 return points).
+rollouts"): a fast_loop trained on 5 demos + 50 imagined rollouts scores 216 (demos alone) -> 641
+(dart, noise 0) -> 975 (0.5) -> 981 (1.0) -> 983 (2.0) on 20 held-out seeds (expert 986); with the
+earlier world-frame observation only 2.0 reached ~980. The expert still scores ~940 while driven
+with noise 2.0, so the rollouts mostly reach the target. The noise is large against the [-1, 1]
+command range because the arm low-passes white noise at 50 Hz (0.5 costs the expert ~2 points).
 
 Start states. Episode i uses the task seed `seed + i`; a task seed fixes the start state (joint
 angles, target position, on track the circle). The seed space is split by convention:
@@ -45,9 +45,9 @@ allow_overlap=True, and with `demos=DIR...` it also refuses seeds that any recor
 those dirs used (read from metadata.provenance.sim.seed / task), wherever they came from.
 
 Each episode is a canonical RLDS v1.1 dir with the recorder's layout (observation block, action
-{command, source, executed_command}, reward, 20 ms timestamps; optional 64x64 frames as .npy blobs), provenance
-origin `imagined:<method>` and the tag `continuon.imagined` in metadata.tags (so
-Episode.is_imagined and the sampler's imagined pool see it), validated with the train profile
+{command, source, executed_command}, reward, 20 ms timestamps; optional 64x64 frames as .npy
+blobs), provenance origin `imagined:<method>` and the tag `continuon.imagined` in metadata.tags
+(so Episode.is_imagined and the sampler's imagined pool see it), validated with the train profile
 before it is written (an error there is a bug and raises). The same (method, task, seed, settings)
 gives the same episode, byte for byte.
 """
@@ -161,7 +161,7 @@ class DartSearch:
 
     def settings(self) -> dict[str, Any]:
         return {"noise_std": self.inject.noise, "label": "expert action at the visited state",
-                "expert": {"kp": self.expert.kp, "kd": self.expert.kd}}
+                "expert": self.expert.config()}
 
     def choose(self, obs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, dict[str, Any], dict[str, Any]]:
         """(label, executed, extra action keys, step_metadata) at the current state."""
@@ -321,8 +321,8 @@ def imagine_episode(task: str, seed: int, method: str = "dart", *, noise: float 
         obs, reward, done = env.step(executed)
         total += reward
         action = {"command": [float(v) for v in label], "source": source, **extra}
-        out.append(Step(observation=observation, action=action, reward=float(reward), is_terminal=(t == steps - 1), step_metadata=meta,
-                        timestamp_ns=t * PERIOD_NS))
+        out.append(Step(observation=observation, action=action, reward=float(reward), is_terminal=(t == steps - 1),
+                        step_metadata=meta, timestamp_ns=t * PERIOD_NS))
         if done:
             break
     origin = origin_for(method)
