@@ -21,6 +21,18 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "imagine": ("hope_models.cli.imagine", "produce imagined rollouts by offline search, stored as RLDS"),
     "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
     "demo": ("hope_models.cli.demo", "run the end-to-end job on generated episodes"),
+    # the service side (issue 5): none of these imports torch in its own process
+    "serve": ("daemon.cli.serve", "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
+    "daemon": ("daemon.cli.daemon", "the supervisor service: dispatch, monitors, recovery, events (systemd)"),
+    "worker": ("workers.cli", "the Celery worker that trains one queued run at a time (-Q queue)"),
+    "webapp": ("daemon.cli.webapp", "the Robot Editor API and Socket.IO server (systemd; events via Redis)"),
+    "enqueue": ("daemon.cli.enqueue", "queue a training run for the daemon (works with the daemon down)"),
+    "sequential": ("daemon.cli.sequential", "queue a chain of runs, e.g. vqvae,fast_loop,mid_loop, one after another"),
+    "status": ("daemon.cli.status", "list runs from the registry (--json for scripts)"),
+    "watch": ("daemon.cli.watch", "follow a run with a progress bar until it ends"),
+    "cancel": ("daemon.cli.cancel", "cancel a run (a running job checkpoints first)"),
+    "pause": ("daemon.cli.pause", "pause a run (a running job checkpoints and stops)"),
+    "resume": ("daemon.cli.resume", "queue a paused run again; it resumes from its checkpoint"),
 }
 
 

@@ -1,0 +1,102 @@
+"""`run_trainer.py daemon`: the supervisor as a service (systemd hope-daemon.service, Type=notify).
+
+    run_trainer.py daemon [--tick-s 0.5] [--heartbeat-timeout-s 30] [--log-level info]
+
+Migrates the registry once, reconciles what a crash left, then ticks: monitors, throttle, requeue,
+dispatch, events (see daemon/service.py). Events go to browsers through the Socket.IO message
+queue on settings.redis_url (the webapp relays them); with the embedded broker and no Redis they
+stay in the registry (use `serve`, which hosts the webapp and the daemon in one process).
+sd_notify: READY=1 once started, WATCHDOG=1 at half WatchdogSec after ticks that worked,
+STATUS= the active run, STOPPING=1 on SIGTERM/SIGINT, which stop it cleanly (exit 0). Stopping the
+daemon does not stop a training job: the worker is its own service, and a restarted daemon finds
+the run where it is.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text} must be a positive number")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--tick-s", type=_positive_float, default=0.5, metavar="S",
+                        help="seconds between two rounds of monitor/dispatch/reconcile (default 0.5)")
+    parser.add_argument("--heartbeat-timeout-s", type=_positive_float, default=30.0, metavar="S",
+                        help="a running job silent for this long is taken for dead and requeued (default 30)")
+    parser.add_argument("--claim-timeout-s", type=_positive_float, default=600.0, metavar="S",
+                        help="a sent task not picked up for this long is sent again (default 600)")
+    parser.add_argument("--stats-every-s", type=_positive_float, default=5.0, metavar="S",
+                        help="system.stats event interval (default 5)")
+    parser.add_argument("--local-queues", default="pi", metavar="LIST",
+                        help="queues whose worker runs on this host: this host's temperature and memory "
+                             "govern them (default pi)")
+    parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.db import RegistryError
+    from hope_models.settings import SettingsError, load_settings
+
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    log = logging.getLogger("daemon")
+    try:
+        settings = load_settings()
+    except SettingsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    from daemon.events import NullSink, RedisEmitterSink
+    from daemon.sdnotify import SdNotifier
+    from daemon.service import Daemon
+
+    if settings.redis_url:
+        sink = RedisEmitterSink(settings.redis_url)
+    else:
+        log.info("no redis_url: run events stay in the registry (the embedded mode pushes them from `serve`)")
+        sink = NullSink()
+    queues = [q.strip() for q in args.local_queues.split(",") if q.strip()]
+    notifier = SdNotifier()
+    daemon = Daemon(settings, sink, tick_s=args.tick_s, stats_every_s=args.stats_every_s,
+                    heartbeat_timeout_s=args.heartbeat_timeout_s, claim_timeout_s=args.claim_timeout_s,
+                    local_queues=queues, notifier=notifier)
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        log.info("%s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        daemon.start()
+    except (RegistryError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        daemon.run_forever(stop)
+    finally:
+        daemon.stop()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="run_trainer.py daemon", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

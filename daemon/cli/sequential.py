@@ -1,0 +1,56 @@
+"""`run_trainer.py sequential --components vqvae,fast_loop,mid_loop --data DS --steps N`: queue a chain.
+
+One run per component, in order, sharing a sequence id: each starts only after the previous one
+completed (each in its own worker child), and fast_loop / mid_loop read the codes of the chain's
+vqvae run. If a member fails or is cancelled, the rest are cancelled with that reason. Prints the
+run ids, one per line (`--json`: {"sequence_id", "runs": [{"id", "component", "state", "run_dir"}]}).
+Like enqueue, it only writes the registry: it works whether the daemon is up or not.
+"""
+from __future__ import annotations
+
+import argparse
+
+from daemon.cli.enqueue import add_job_options, overrides_from_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--components", required=True, metavar="LIST",
+                        help="comma-separated components in training order, e.g. vqvae,fast_loop,mid_loop")
+    add_job_options(parser)
+    vq = parser.add_mutually_exclusive_group()
+    vq.add_argument("--vqvae", metavar="DIR", default=None,
+                    help="a trained VQ-VAE for a chain without vqvae (checkpoint dir or run dir)")
+    vq.add_argument("--vqvae-run", metavar="RUN", default=None, help="or the id of a vqvae run in the registry")
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.cli.registry import CommandError, open_registry, print_json, run_command
+    from daemon.dispatch import create_sequence
+    from daemon.run_request import build_request, check_vqvae_run
+    from hope_models.train.sequential import SequenceError, parse_sequence
+
+    def body() -> int:
+        try:
+            names = parse_sequence(args.components)
+        except SequenceError as exc:
+            raise CommandError(str(exc).replace("--sequential", "--components")) from None
+        # the fields every member shares, checked as enqueue checks them
+        req = build_request(component=names[0], data=args.data, steps=args.steps, queue=args.queue,
+                            priority=args.priority, max_attempts=args.max_attempts, vqvae_dir=args.vqvae,
+                            vqvae_run=args.vqvae_run, overrides=overrides_from_args(args))
+        with open_registry() as (settings, registry):
+            with registry.session() as s:
+                check_vqvae_run(s, req.vqvae_run)
+                members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
+                                          queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
+                out = {"sequence_id": members[0].sequence_id,
+                       "runs": [{"id": r.id, "component": r.component, "state": r.state, "run_dir": r.run_dir}
+                                for r in members]}
+        if args.json:
+            print_json(out)
+        else:
+            for r in out["runs"]:
+                print(r["id"])
+        return 0
+
+    return run_command(body)

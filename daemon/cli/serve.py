@@ -1,0 +1,341 @@
+"""`run_trainer.py serve`: the all-in-one mode (first run, a laptop, a bench Pi). No Redis needed.
+
+    run_trainer.py serve [--host 127.0.0.1] [--port 8765] [--no-worker] [--queue pi]
+
+One process runs the webapp (REST + Socket.IO) and the daemon (a background thread pushing events
+straight into this process's Socket.IO), and supervises the Celery worker as a child process
+(restarted with backoff if it dies; its output goes to $HOPE_HOME/logs/worker.log). The broker is
+the embedded SQLite one under $HOPE_HOME/broker unless HOPE_REDIS_URL is set. It prints the URL and
+the API token ($HOPE_HOME/token, created 0600 on the first start).
+
+Ctrl-C or SIGTERM stops everything in order: the daemon stops dispatching; the running job is asked
+to checkpoint and hand its run back to the queue (up to 30 s); the worker is stopped (SIGTERM, then
+SIGKILL after 20 s); a job that could not finish in time is recorded as interrupted and requeued.
+The next `serve` finds the runs as they were left and resumes the queued one from its checkpoint.
+A second Ctrl-C skips the waiting. Exit 0 after a clean stop, 2 when it cannot start (port taken,
+unreadable token), 1 when the daemon loop died.
+Nothing in this process imports torch: only the worker's job child does.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("hope.serve")
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SHUTDOWN_WAIT_S = 30.0  # for the running job to checkpoint and requeue itself
+WORKER_STOP_S = 20.0  # for the worker to exit after SIGTERM, before SIGKILL
+BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0, 60.0)  # worker restarts; reset after it stayed up STABLE_S
+STABLE_S = 60.0
+
+# Runs the worker under PR_SET_PDEATHSIG, so it gets SIGTERM if `serve` dies without stopping it
+# (SIGKILL, OOM): an orphaned worker would keep taking jobs next to the next serve's worker.
+# Set in a tiny exec wrapper instead of preexec_fn, which is unsafe in a threaded parent.
+_PDEATHSIG_WRAPPER = (
+    "import ctypes, os, signal, sys\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG\n"
+    "except (OSError, AttributeError):\n"
+    "    pass  # not Linux: the supervisor still stops the worker on a clean exit\n"
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    sys.exit(0)  # serve died before we got here\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{v} is not a port number (0-65535; 0 = any free port)")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
+    parser.add_argument("--port", type=_port, default=None, help="port (default: settings, 8765; 0 = any free one)")
+    parser.add_argument("--no-worker", action="store_true",
+                        help="do not start a worker child (one runs elsewhere, e.g. `run_trainer.py worker`)")
+    parser.add_argument("--queue", default="pi", help="the queue the worker child serves (default pi)")
+    parser.add_argument("--tick", type=float, default=0.5, help=argparse.SUPPRESS)  # daemon tick, seconds
+
+
+class WorkerSupervisor:
+    """Keeps one worker process alive (restart with backoff) until stop()."""
+
+    def __init__(self, settings: Any, queue: str, log_path: Path):
+        from workers.cli import worker_command, worker_env
+
+        self.cmd = worker_command(settings, queue)
+        self.env = worker_env(settings)
+        self.log_path = log_path
+        self.proc: subprocess.Popen | None = None
+        self.restarts = 0
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="worker-supervisor", daemon=True)
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _spawn(self) -> subprocess.Popen:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "ab") as out:
+            argv = [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *self.cmd]
+            # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order
+            return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                                    env=self.env, cwd=str(REPO_ROOT), start_new_session=True)
+
+    def _loop(self) -> None:
+        failures = 0
+        while not self._stopping.is_set():
+            started = time.monotonic()
+            try:
+                with self._lock:
+                    if self._stopping.is_set():
+                        return
+                    self.proc = self._spawn()
+                log.info("worker started (pid %d), log %s", self.proc.pid, self.log_path)
+                code = self.proc.wait()
+                why = f"exited with code {code}"
+            except OSError as exc:  # cannot start it at all (log dir unwritable, python gone): keep trying
+                why = f"could not be started: {exc}"
+            if self._stopping.is_set():
+                return
+            failures = 0 if time.monotonic() - started >= STABLE_S else failures + 1
+            delay = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
+            self.restarts += 1
+            log.warning("worker %s; restarting in %.0f s (see %s)%s", why, delay, self.log_path,
+                        "\n" + self.log_tail() if failures >= 2 else "")
+            self._stopping.wait(delay)
+
+    def log_tail(self, lines: int = 15) -> str:
+        try:
+            text = self.log_path.read_text(encoding="utf-8", errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join("  | " + line for line in text[-lines:])
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self, timeout: float = WORKER_STOP_S, force: bool = False) -> int | None:
+        """SIGTERM (Celery's warm shutdown), SIGKILL the whole group after `timeout` (or at once with force)."""
+        with self._lock:
+            self._stopping.set()
+            proc = self.proc
+        if proc is None:
+            return None
+        if proc.poll() is None:
+            try:
+                if force:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                else:
+                    proc.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                log.warning("worker did not stop within %.0f s; killing it", timeout)
+        # whatever is left of its process group (a job child that did not exit)
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        code = proc.wait()
+        self._thread.join(2.0)
+        return code
+
+
+class Serve:
+    """The pieces of one `serve` process, started and stopped in order."""
+
+    def __init__(self, settings: Any, args: argparse.Namespace):
+        self.settings = settings
+        self.args = args
+        self.shutdown = threading.Event()
+        self.force = threading.Event()
+        self.daemon_stop = threading.Event()
+        self.registry = None
+        self.server = None
+        self.daemon = None
+        self.daemon_thread: threading.Thread | None = None
+        self.worker: WorkerSupervisor | None = None
+        self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
+
+    def start(self) -> str:
+        from daemon.db import Registry
+        from daemon.events import SocketIOSink
+        from daemon.service import Daemon
+        from webapp import create_app
+        from webapp.auth import load_or_create_token
+        from webapp.server import HttpServer
+
+        self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
+        token = load_or_create_token(self.settings)
+        app, socketio = create_app(self.settings, token=token, registry=self.registry)
+        self.server = HttpServer(app, self.settings.host, self.settings.port)  # bind before anything runs
+        self.daemon = Daemon(self.settings, SocketIOSink(socketio), tick_s=self.args.tick, registry=self.registry,
+                             local_queues=(self.args.queue,))
+        app.extensions["hope"].daemon = self.daemon
+        self.daemon.start()  # reconcile what the last stop (or crash) left
+        self.server.start()
+        self.daemon_thread = threading.Thread(target=self._run_daemon, name="daemon", daemon=True)
+        self.daemon_thread.start()
+        if not self.args.no_worker:
+            self.worker = WorkerSupervisor(self.settings, self.args.queue, self.settings.home / "logs" / "worker.log")
+            self.worker.start()
+        return token
+
+    def _run_daemon(self) -> None:
+        try:
+            self.daemon.run_forever(self.daemon_stop)
+        except Exception:  # noqa: BLE001 - a dead daemon thread must stop serve, not leave it half-alive
+            log.exception("the daemon loop crashed; stopping")
+            self.failed = True
+            self.shutdown.set()
+
+    # -- stopping ----------------------------------------------------------------------------
+
+    def _local_running(self) -> list[str]:
+        from sqlalchemy import select
+
+        from daemon.models import Run
+
+        with self.registry.session(readonly=True) as s:
+            return list(s.scalars(select(Run.id).where(Run.state == "running", Run.queue == self.args.queue)))
+
+    def _hand_back_runs(self) -> list[str]:
+        """Ask our worker's running job to checkpoint and requeue itself; a run dispatched but not yet
+        claimed by a child goes back to the queue at once (its task, if delivered later, is stale)."""
+        from daemon import runs
+        from daemon.models import Run
+
+        waiting = []
+        for run_id in self._local_running():
+            with self.registry.session() as s:
+                run = s.get(Run, run_id)
+                if run is None or run.state != "running":
+                    continue
+                if run.worker_pid is None:
+                    runs.transition(s, run, "queued", reason="shutdown", message=runs.SHUTDOWN_MESSAGE)
+                    log.info("run %s: not started yet; back in the queue", run_id)
+                else:
+                    runs.request_shutdown(s, run)
+                    waiting.append(run_id)
+                    log.info("run %s: asking the job to checkpoint and stop", run_id)
+        return waiting
+
+    def _wait_runs(self, run_ids: list[str], timeout: float) -> list[str]:
+        deadline = time.monotonic() + timeout
+        left = list(run_ids)
+        while left and time.monotonic() < deadline and not self.force.is_set():
+            if self.worker is not None and not self.worker.alive():
+                break
+            time.sleep(0.2)
+            still = set(self._local_running())
+            left = [r for r in left if r in still]
+        return left
+
+    def stop(self) -> None:
+        self.daemon_stop.set()  # no new dispatches from here on
+        if self.daemon is not None:
+            self.daemon.wake()  # leave the tick's wait now
+        if self.daemon_thread is not None:
+            self.daemon_thread.join(10.0)
+        if self.worker is not None:
+            left = self._wait_runs(self._hand_back_runs(), SHUTDOWN_WAIT_S)
+            if left:
+                log.warning("run(s) %s did not stop within %.0f s", ", ".join(left), SHUTDOWN_WAIT_S)
+            log.info("stopping the worker")
+            code = self.worker.stop(timeout=0.5 if self.force.is_set() else WORKER_STOP_S, force=self.force.is_set())
+            log.info("worker stopped (exit code %s)", code)
+            if self.daemon is not None and self.daemon.reconciler is not None:
+                # a job killed before it could hand its run back: interrupted -> queued (attempt + 1)
+                for action in self.daemon.reconciler.reconcile():
+                    log.info("run %s %s (%s)", action.run_id, action.action, action.why)
+        if self.server is not None:
+            self.server.stop()
+        if self.daemon is not None:
+            self.daemon.stop()
+        if self.registry is not None:
+            self.registry.close()
+
+
+def _setup_logging(home: Path) -> None:
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+    root = logging.getLogger()
+    root.setLevel(logging.INFO)
+    console = logging.StreamHandler(sys.stderr)
+    console.setFormatter(fmt)
+    root.addHandler(console)
+    (home / "logs").mkdir(parents=True, exist_ok=True)
+    file_handler = logging.FileHandler(home / "logs" / "daemon.log", encoding="utf-8")
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(file_handler)
+    for noisy in ("werkzeug", "engineio", "socketio", "kombu", "celery", "amqp", "alembic"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.db import RegistryError
+    from hope_models.settings import SettingsError, load_settings
+    from webapp.auth import TokenError
+    from webapp.server import ServerError
+
+    try:
+        settings = load_settings()
+    except SettingsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.host is not None:
+        settings.host = args.host
+    if args.port is not None:
+        settings.port = args.port
+    _setup_logging(settings.home)
+    serve = Serve(settings, args)
+
+    def on_signal(signum, _frame):
+        if serve.shutdown.is_set():
+            serve.force.set()
+            print("\nstopping now (not waiting for the job)", file=sys.stderr, flush=True)
+        else:
+            serve.shutdown.set()
+            print("\nstopping: the running job checkpoints and goes back to the queue (again to force)",
+                  file=sys.stderr, flush=True)
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            token = serve.start()
+        except (RegistryError, TokenError, ServerError, OSError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            serve.stop()
+            return 2
+        broker = "redis" if settings.redis_url else f"embedded ({settings.home / 'broker'})"
+        worker = "no worker (--no-worker)" if args.no_worker else f"worker queue {args.queue}"
+        print(f"Robot Editor: {serve.server.url}  token: {token}", flush=True)
+        print(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop", flush=True)
+        while not serve.shutdown.is_set():
+            serve.shutdown.wait(0.5)
+        serve.stop()
+        if serve.failed:
+            print("stopped after an error in the daemon loop (see above and logs/daemon.log)", file=sys.stderr)
+            return 1
+        print("stopped", file=sys.stderr, flush=True)
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,122 @@
+"""`run_trainer.py webapp`: the Robot Editor API and Socket.IO server on its own (hope-webapp.service).
+
+    run_trainer.py webapp [--host 127.0.0.1] [--port 8765]
+
+Production runs the daemon and the worker as their own services; this process serves HTTP and
+relays events. With HOPE_REDIS_URL set (production), Socket.IO uses Redis as its message queue,
+so the events the daemon process emits reach this process's browsers. Without Redis it tails the
+registry's run events itself (same host only; no system.stats, which only the daemon samples).
+
+Under systemd (Type=notify) it sends READY=1 once the port is bound and WATCHDOG=1 only while its
+own GET /api/health answers, so a wedged server is restarted. SIGTERM stops it cleanly.
+"""
+from __future__ import annotations
+
+import argparse
+import http.client
+import logging
+import signal
+import sys
+import threading
+
+from daemon.cli.serve import _port
+
+log = logging.getLogger("hope.webapp")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
+    parser.add_argument("--port", type=_port, default=None, help="port (default: settings, 8765; 0 = any free one)")
+    parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+
+
+def health_ok(host: str, port: int, timeout: float = 5.0) -> bool:
+    if host in ("0.0.0.0", "::", ""):
+        host = "127.0.0.1"
+    try:
+        conn = http.client.HTTPConnection(host, port, timeout=timeout)
+        try:
+            conn.request("GET", "/api/health")
+            return conn.getresponse().status == 200
+        finally:
+            conn.close()
+    except OSError:
+        return False
+
+
+def _tail_events(registry, socketio, stop: threading.Event) -> None:
+    """No Redis: push run events from the registry to this process's browsers."""
+    from daemon.events import EventTailer, SocketIOSink
+
+    tailer = EventTailer(registry, SocketIOSink(socketio))
+    while not stop.is_set():
+        try:
+            tailer.poll()
+        except Exception:  # noqa: BLE001 - the next poll retries; the events stay in the database
+            log.exception("event tail failed; retrying")
+        stop.wait(0.5)
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.db import Registry, RegistryError
+    from daemon.sdnotify import SdNotifier
+    from hope_models.settings import SettingsError, load_settings
+    from webapp import create_app
+    from webapp.auth import TokenError, load_or_create_token, token_path
+    from webapp.server import HttpServer, ServerError
+
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    notifier = SdNotifier()
+    stop = threading.Event()
+    try:
+        settings = load_settings()
+        if args.host is not None:
+            settings.host = args.host
+        if args.port is not None:
+            settings.port = args.port
+        registry = Registry.open(settings, migrate=True)
+    except (SettingsError, RegistryError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    threads: list[threading.Thread] = []
+    try:
+        token = load_or_create_token(settings)
+        app, socketio = create_app(settings, token=token, registry=registry, message_queue=settings.redis_url)
+        server = HttpServer(app, settings.host, settings.port)
+    except (TokenError, ServerError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        registry.close()
+        return 2
+
+    def on_signal(signum, _frame):
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        server.start()
+        if settings.redis_url:
+            log.info("events from the daemon through Redis (Socket.IO message queue)")
+        else:
+            log.warning("no HOPE_REDIS_URL: relaying run events from the registry in this process "
+                        "(production runs Redis; see docs/pi.md)")
+            t = threading.Thread(target=_tail_events, args=(registry, socketio, stop), name="events", daemon=True)
+            t.start()
+            threads.append(t)
+        print(f"Robot Editor: {server.url}  token in {token_path(settings)}", flush=True)
+        notifier.ready(f"listening on {server.url}")
+        ping_every = notifier.watchdog_s / 2 if notifier.watchdog_s else 5.0
+        while not stop.wait(ping_every):
+            if notifier.watchdog_s and health_ok(settings.host, server.port):
+                notifier.watchdog()
+        notifier.stopping("stopping")
+        server.stop()
+        for t in threads:
+            t.join(2.0)
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        registry.close()

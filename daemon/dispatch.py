@@ -1,0 +1,253 @@
+"""Dispatch: start the next queued run on each queue when nothing runs there.
+
+Per queue, at most one run is `running` (registry: next_dispatchable refuses otherwise), highest
+priority first, then first queued; a chain member waits for its predecessor. A run is marked
+running (with a fresh task id) and committed BEFORE its Celery message is sent, so the worker
+child's claim() always finds the row it expects; if the send fails the run goes back to queued.
+A message that is sent but never picked up is re-sent by reconcile.py after claim_timeout_s, and
+a duplicate delivery never trains twice: claim() refuses task ids that are not the run's current one.
+
+Local queues (the ones whose worker runs on this host, default just "pi") follow this host's
+throttle level: no new run starts at level 2 (hot), a thermal-paused run is requeued once the
+level is back to 0, and a memory-paused run is requeued once the host has its memory budget free
+again (not sooner than memory_retry_s after it paused, and not again when the last automatic
+requeue got no step further: a job that hits its own limit at once must not spin; it then waits
+for a user's resume). Runs paused on other hosts' queues wait for a user's resume.
+
+Sending builds no torch: the Celery app only needs the task's name (workers.celery).
+"""
+from __future__ import annotations
+
+import logging
+import uuid
+from dataclasses import dataclass
+from datetime import timedelta
+from typing import Any, Callable, Iterable
+
+from sqlalchemy import select
+
+from daemon import runs
+from daemon.models import Run, new_run_id, utcnow
+
+log = logging.getLogger(__name__)
+
+NEEDS_VQVAE = {"mid_loop"}
+
+
+@dataclass
+class Dispatched:
+    run_id: str
+    queue: str
+    task_id: str
+    attempt: int
+
+
+class Dispatcher:
+    def __init__(self, registry: Any, settings: Any, *, celery_app: Any = None,
+                 local_queues: Iterable[str] = ("pi",), memory_retry_s: float = 60.0,
+                 send: Callable[[str, int, str, str], None] | None = None):
+        self.registry = registry
+        self.settings = settings
+        self.local_queues = set(local_queues)
+        self.memory_retry_s = float(memory_retry_s)
+        self._app = celery_app
+        self._send = send  # tests may replace the broker; None = Celery send_task
+
+    # -- sending ---------------------------------------------------------------------------
+
+    @property
+    def app(self) -> Any:
+        if self._app is None:
+            from workers.celery import create_celery
+
+            self._app = create_celery(self.settings)
+        return self._app
+
+    def send(self, run_id: str, attempt: int, queue: str, task_id: str) -> None:
+        if self._send is not None:
+            self._send(run_id, attempt, queue, task_id)
+            return
+        from workers.celery import TASK_TRAIN_RUN
+
+        self.app.send_task(TASK_TRAIN_RUN, args=[run_id, attempt], queue=queue, task_id=task_id)
+
+    # -- dispatch --------------------------------------------------------------------------
+
+    def waiting_queues(self) -> list[str]:
+        """Queues with a queued run and no running one (a cheap read; most ticks end here)."""
+        with self.registry.session(readonly=True) as s:
+            queued = set(s.scalars(select(Run.queue).where(Run.state == "queued").distinct()))
+            busy = set(s.scalars(select(Run.queue).where(Run.state.in_(runs.ACTIVE)).distinct()))
+        return sorted(queued - busy)
+
+    def dispatch(self, throttle_level: int = 0) -> list[Dispatched]:
+        """Start the next run on every idle queue; returns what was sent."""
+        sent: list[Dispatched] = []
+        for queue in self.waiting_queues():
+            local = queue in self.local_queues
+            if local and throttle_level >= 2:
+                continue  # too hot to start anything here; the run waits queued
+            d = self._dispatch_one(queue, throttle_level if local else 0)
+            if d is not None:
+                sent.append(d)
+        return sent
+
+    def _dispatch_one(self, queue: str, level: int) -> Dispatched | None:
+        task_id = str(uuid.uuid4())
+        with self.registry.session() as s:
+            run = runs.next_dispatchable(s, queue)
+            if run is None:
+                return None
+            runs.mark_dispatched(s, run, task_id, throttle_level=level)
+            d = Dispatched(run.id, queue, task_id, run.attempt)
+        try:
+            self.send(d.run_id, d.attempt, queue, task_id)
+        except Exception as exc:  # noqa: BLE001 - broker down, bad URL: keep the run queued
+            self._unsend(d, exc)
+            return None
+        log.info("dispatched %s (attempt %d) to queue %s as task %s", d.run_id, d.attempt, queue, task_id)
+        return d
+
+    def _unsend(self, d: Dispatched, exc: BaseException) -> None:
+        why = f"could not send task {d.task_id} to queue {d.queue}: {type(exc).__name__}: {exc}"
+        log.warning("run %s: %s; it stays queued", d.run_id, why)
+        with self.registry.session() as s:
+            run = runs.get_run(s, d.run_id)
+            # Only if nothing happened to it since (a very fast child could have claimed it
+            # from a send that raised after all; then it is really running).
+            if run.state == "running" and run.celery_task_id == d.task_id and run.worker_pid is None:
+                runs.transition(s, run, "queued", reason="send_failed", message=why)
+                run.celery_task_id = None
+
+    def resend(self, run_id: str) -> str | None:
+        """A dispatched run that no child claimed in time: same attempt, new task id."""
+        task_id = str(uuid.uuid4())
+        with self.registry.session() as s:
+            run = runs.get_run(s, run_id)
+            if run.state != "running" or run.worker_pid is not None:
+                return None
+            runs.resend(s, run, task_id)
+            attempt, queue = run.attempt, run.queue
+        try:
+            self.send(run_id, attempt, queue, task_id)
+        except Exception as exc:  # noqa: BLE001
+            self._unsend(Dispatched(run_id, queue, task_id, attempt), exc)
+            return None
+        log.warning("run %s: not claimed in time; re-sent as task %s", run_id, task_id)
+        return task_id
+
+    # -- paused runs that the daemon paused --------------------------------------------------
+
+    def requeue_paused(self, throttle_level: int, mem_available_mb: float | None) -> list[str]:
+        """Thermal-paused runs once the level is 0; memory-paused ones once their budget is free."""
+        with self.registry.session(readonly=True) as s:
+            paused = s.scalars(select(Run).where(Run.state == "paused", Run.queue.in_(self.local_queues),
+                                                 Run.pause_reason.in_(("thermal", "memory")))).all()
+            candidates, stuck = [], []
+            for r in paused:
+                if not self._ready(r, throttle_level, mem_available_mb):
+                    continue
+                if r.pause_reason == "memory":
+                    requeued_at, said = self._memory_marks(s, r)
+                    if requeued_at and requeued_at[-1] >= r.step:  # see _say_stuck
+                        if r.step not in said:
+                            stuck.append(r.id)
+                        continue
+                candidates.append(r.id)
+        for run_id in stuck:
+            with self.registry.session() as s:
+                self._say_stuck(s, runs.get_run(s, run_id))
+        requeued = []
+        for run_id in candidates:
+            with self.registry.session() as s:
+                run = runs.get_run(s, run_id)
+                if run.state != "paused" or not self._ready(run, throttle_level, mem_available_mb):
+                    continue
+                if run.pause_reason == "thermal":
+                    msg = "cooled down (throttle level 0); resumes from its last checkpoint"
+                else:
+                    msg = (f"{mem_available_mb:.0f} MB available again (budget {self._budget_mb(run):.0f} MB); "
+                           "resumes from its last checkpoint")
+                    runs.add_event(s, run.id, "log", {"level": "info", "message": msg,
+                                                      "memory_requeue_step": run.step})
+                runs.transition(s, run, "queued", reason=run.pause_reason, message=msg)
+                requeued.append(run_id)
+                log.info("run %s requeued: %s", run_id, msg)
+        return requeued
+
+    @staticmethod
+    def _memory_marks(s: Any, run: Run) -> tuple[list[int], list[int]]:
+        logs = [e.payload or {} for e in runs.run_events(s, run.id, kinds=["log"])]
+        return ([p["memory_requeue_step"] for p in logs if "memory_requeue_step" in p],
+                [p["memory_requeue_stopped"] for p in logs if "memory_requeue_stopped" in p])
+
+    def _say_stuck(self, s: Any, run: Run) -> None:
+        """A memory-paused run whose last automatic requeue got no step further reaches its own
+        limit at once: requeueing it again would only spin. It waits for a user's resume (with a
+        larger memory_budget_mb, or less else running on the host); said once in its log."""
+        requeued_at, said = self._memory_marks(s, run)
+        if run.state != "paused" or not requeued_at or requeued_at[-1] < run.step or run.step in said:
+            return
+        runs.add_event(s, run.id, "log", {
+            "level": "warning", "memory_requeue_stopped": run.step,
+            "message": f"paused for memory again at step {run.step} without progress since the last automatic "
+                       "resume; not resuming it automatically (resume it yourself, e.g. with a larger memory budget)"})
+
+    def _budget_mb(self, run: Run) -> float:
+        return float((run.config or {}).get("memory_budget_mb") or self.settings.memory_budget_mb)
+
+    def _ready(self, run: Run, level: int, mem_available_mb: float | None) -> bool:
+        if run.pause_reason == "thermal":
+            return level == 0
+        if run.pause_reason == "memory":
+            paused_for = utcnow() - (run.updated_at or utcnow())
+            return (mem_available_mb is not None and mem_available_mb >= self._budget_mb(run)
+                    and paused_for >= timedelta(seconds=self.memory_retry_s))
+        return False
+
+
+# -- sequential chains ------------------------------------------------------------------------
+
+def create_sequence(s: Any, components: Iterable[str] | str, base_config: dict[str, Any], *, total_steps: int,
+                    runs_dir: Any, queue: str = "pi", priority: int = 0, max_attempts: int = 3,
+                    sequence_id: str | None = None) -> list[Run]:
+    """Queue a chain: one run per component, in order, sharing a sequence id (indices 0..n-1).
+    Each member starts only after the previous one completed (next_dispatchable), and one that
+    fails or is cancelled cancels the rest. fast_loop/mid_loop after a vqvae member get
+    config["vqvae_run"] = that member's id (the worker resolves it to its run dir)."""
+    from pathlib import Path
+
+    from hope_models.train.sequential import SequenceError, parse_sequence
+
+    text = components if isinstance(components, str) else ",".join(components)
+    try:
+        names = parse_sequence(text)
+    except SequenceError as exc:
+        raise runs.RunError(str(exc).replace("--sequential", "components")) from None
+    has_vqvae = bool(base_config.get("vqvae_dir") or base_config.get("vqvae_run"))
+    for name in names:
+        if name in NEEDS_VQVAE and "vqvae" not in names[:names.index(name)] and not has_vqvae:
+            raise runs.RunError(f"components: {name} needs a trained VQ-VAE: put vqvae before it in the chain, "
+                                "or give vqvae_dir / vqvae_run")
+    seq = sequence_id or "s" + new_run_id()[1:]
+    created: list[Run] = []
+    vqvae_run: str | None = None
+    for index, name in enumerate(names):
+        cfg = dict(base_config)
+        if name != "vqvae" and vqvae_run is not None:
+            cfg.pop("vqvae_dir", None)
+            cfg["vqvae_run"] = vqvae_run
+        if name == "vqvae":
+            cfg.pop("vqvae_dir", None)
+            cfg.pop("vqvae_run", None)
+        run_id = new_run_id()
+        run = runs.create_run(s, component=name, config=cfg, total_steps=total_steps,
+                              run_dir=str(Path(runs_dir) / run_id), queue=queue, priority=priority,
+                              max_attempts=max_attempts, sequence_id=seq, sequence_index=index, run_id=run_id)
+        if name == "vqvae":
+            vqvae_run = run.id
+        created.append(run)
+    return created
+
+
+__all__ = ["Dispatched", "Dispatcher", "create_sequence"]

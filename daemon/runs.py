@@ -1,0 +1,474 @@
+"""The run state machine and every change to a run, in one place.
+
+All functions take an open Session first (Registry.session(): one transaction, BEGIN IMMEDIATE)
+and leave committing to it. Invalid requests raise RunError naming the run and the field. Every
+state change writes a `state` RunEvent {"state", "from", "reason", "message"}, so the event log
+is a complete timeline of each run.
+
+    queued -> running -> completed | failed | cancelled
+    running -> paused (user | thermal | memory) -> queued -> running ...
+    running -> interrupted (its worker died) -> queued (attempt + 1) | failed (attempts used up)
+    running -> queued (shutdown, or a task message that was lost; attempt unchanged)
+
+Control from outside (CLI, webapp, daemon) flows through desired_state / throttle_level on the
+row; the worker child reads them between steps and reports back through finish().
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from typing import Any, Iterable
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from daemon.models import Run, RunEvent, new_run_id, utcnow
+from hope_models.train.contract import COMPONENTS
+
+STATES = ("queued", "running", "paused", "completed", "failed", "cancelled", "interrupted")
+TERMINAL = {"completed", "failed", "cancelled"}
+ACTIVE = {"running"}
+ALLOWED: dict[str, set[str]] = {
+    "queued": {"running", "cancelled", "paused"},
+    "running": {"paused", "completed", "failed", "cancelled", "interrupted", "queued"},
+    "paused": {"queued", "cancelled"},
+    # + cancelled: request_control cancels an interrupted run at once (the brief's cancel rule).
+    "interrupted": {"queued", "failed", "cancelled"},
+    "completed": set(),
+    "failed": set(),
+    "cancelled": set(),
+}
+EVENT_KINDS = ("progress", "log", "state", "throttle", "checkpoint", "metric")
+PAUSE_REASONS = ("user", "thermal", "memory", "shutdown")
+DESIRED_STATES = ("run", "pause", "cancel")
+CONTROL_ACTIONS = ("cancel", "pause", "resume")
+# Trainer outcomes (hope_models.train.contract.OUTCOME_EXIT_CODES) that finish() accepts.
+OUTCOMES = ("completed", "failed", "cancelled", "paused_memory", "paused_user")
+HEARTBEAT_FIELDS = ("step", "loss", "steps_per_s", "last_checkpoint")
+SHUTDOWN_MESSAGE = "stopped by shutdown; resumes on next start"
+
+_QUEUE_RE = re.compile(r"[a-z0-9_-]+")
+
+
+class RunError(ValueError):
+    """A run request that cannot be done; the message names the run id and the field."""
+
+
+def _hint(run_id: str) -> str:
+    return f"no run {run_id} (see `run_trainer.py status`)"
+
+
+def _json_dict(value: Any, what: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise RunError(f"{what} must be a JSON object, got {type(value).__name__}")
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise RunError(f"{what} is not JSON-serialisable: {exc}") from None
+    return value
+
+
+def _finite(value: Any) -> Any:
+    """JSON has no NaN/Infinity (browsers refuse them): non-finite floats are stored as null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+# --- events -------------------------------------------------------------------------------
+
+def add_event(s: Session, run_id: str, kind: str, payload: dict[str, Any]) -> RunEvent:
+    if kind not in EVENT_KINDS:
+        raise RunError(f"run {run_id}: event kind {kind!r} is not one of {', '.join(EVENT_KINDS)}")
+    payload = _json_dict(_finite(payload), f"run {run_id}: {kind} event payload")
+    if s.get(Run, run_id) is None:
+        raise RunError(_hint(run_id))
+    event = RunEvent(run_id=run_id, kind=kind, payload=payload, time=utcnow())
+    s.add(event)
+    s.flush()  # assigns the id
+    return event
+
+
+def events_after(s: Session, last_id: int, limit: int = 500) -> list[RunEvent]:
+    """Events of every run with id > last_id, oldest first (the daemon's tail of the log)."""
+    return list(s.scalars(select(RunEvent).where(RunEvent.id > last_id).order_by(RunEvent.id).limit(limit)))
+
+
+def run_events(s: Session, run_id: str, kinds: Iterable[str] | None = None, after_id: int = 0) -> list[RunEvent]:
+    query = select(RunEvent).where(RunEvent.run_id == run_id, RunEvent.id > after_id)
+    if kinds is not None:
+        query = query.where(RunEvent.kind.in_(list(kinds)))
+    return list(s.scalars(query.order_by(RunEvent.id)))
+
+
+def _log(s: Session, run: Run, message: str, level: str = "info") -> None:
+    add_event(s, run.id, "log", {"level": level, "message": message})
+
+
+# --- the state machine --------------------------------------------------------------------
+
+def transition(s: Session, run: Run, new: str, *, reason: str | None = None, message: str | None = None) -> Run:
+    """Move `run` to state `new` (validated against ALLOWED) and record a state event.
+
+    Entering queued or leaving running clears what belonged to the last attempt's child
+    (worker pid/host, desired state and its reason, throttle level): a request has been served
+    once the child has stopped, and a requeued run starts clean.
+    """
+    old = run.state
+    if new not in STATES:
+        raise RunError(f"run {run.id}: unknown state {new!r} (states: {', '.join(STATES)})")
+    if new not in ALLOWED.get(old, set()):
+        raise RunError(f"run {run.id}: cannot go from {old} to {new}")
+    if new == "paused" and reason not in PAUSE_REASONS:
+        raise RunError(f"run {run.id}: pause reason {reason!r} is not one of {', '.join(PAUSE_REASONS)}")
+    now = utcnow()
+    run.state = new
+    run.updated_at = now
+    if old == "running":
+        run.worker_pid = None
+        run.worker_host = None
+        run.desired_state = "run"
+        run.requested_reason = None
+        run.throttle_level = 0
+    if new == "paused":
+        run.pause_reason = reason
+    elif old == "paused":
+        run.pause_reason = None
+    if new == "queued":
+        # queued_at orders the line. A run the system knocked out (shutdown, lost worker, thermal
+        # or memory pause) keeps its place; a user's resume re-enters at the back.
+        if run.queued_at is None or (old == "paused" and reason == "user"):
+            run.queued_at = now
+        run.desired_state = "run"
+        run.requested_reason = None
+    if new in TERMINAL:
+        run.finished_at = now
+        if new in ("failed", "cancelled") and message:
+            run.error_message = message
+    add_event(s, run.id, "state", {"state": new, "from": old, "reason": reason, "message": message})
+    return run
+
+
+# --- create and read ----------------------------------------------------------------------
+
+def create_run(
+    s: Session,
+    *,
+    component: str,
+    config: dict[str, Any],
+    total_steps: int,
+    run_dir: str,
+    queue: str = "pi",
+    priority: int = 0,
+    max_attempts: int = 3,
+    sequence_id: str | None = None,
+    sequence_index: int | None = None,
+    run_id: str | None = None,
+    dataset_fingerprint: str | None = None,
+) -> Run:
+    rid = run_id or new_run_id()
+    if component not in COMPONENTS:
+        raise RunError(f"run {rid}: component {component!r} is not one of {', '.join(COMPONENTS)}")
+    _json_dict(config, f"run {rid}: config")
+    if not _is_int(total_steps) or total_steps < 1:
+        raise RunError(f"run {rid}: total_steps must be an integer >= 1, got {total_steps!r}")
+    if not isinstance(queue, str) or not _QUEUE_RE.fullmatch(queue):
+        raise RunError(f"run {rid}: queue {queue!r} must match [a-z0-9_-]+")
+    if not _is_int(priority):
+        raise RunError(f"run {rid}: priority must be an integer, got {priority!r}")
+    if not _is_int(max_attempts) or max_attempts < 1:
+        raise RunError(f"run {rid}: max_attempts must be an integer >= 1, got {max_attempts!r}")
+    if not run_dir or not isinstance(run_dir, str):
+        raise RunError(f"run {rid}: run_dir must be a non-empty path string, got {run_dir!r}")
+    if (sequence_id is None) != (sequence_index is None):
+        raise RunError(f"run {rid}: sequence_id and sequence_index go together (got {sequence_id!r}, {sequence_index!r})")
+    if sequence_index is not None and (not _is_int(sequence_index) or sequence_index < 0):
+        raise RunError(f"run {rid}: sequence_index must be an integer >= 0, got {sequence_index!r}")
+    if s.get(Run, rid) is not None:
+        raise RunError(f"run {rid} already exists")
+    now = utcnow()
+    run = Run(
+        id=rid,
+        component=component,
+        config=config,
+        dataset_fingerprint=dataset_fingerprint,
+        queue=queue,
+        priority=priority,
+        sequence_id=sequence_id,
+        sequence_index=sequence_index,
+        state="queued",
+        desired_state="run",
+        throttle_level=0,
+        step=0,
+        total_steps=total_steps,
+        attempt=1,
+        max_attempts=max_attempts,
+        run_dir=run_dir,
+        created_at=now,
+        queued_at=now,
+        updated_at=now,
+    )
+    s.add(run)
+    s.flush()
+    add_event(s, rid, "state", {"state": "queued", "from": None, "reason": "created", "message": None})
+    return run
+
+
+def get_run(s: Session, run_id: str) -> Run:
+    run = s.get(Run, run_id)
+    if run is None:
+        raise RunError(_hint(run_id))
+    return run
+
+
+def list_runs(s: Session, states: Iterable[str] | None = None, limit: int | None = None) -> list[Run]:
+    """Runs, newest first."""
+    query = select(Run)
+    if states is not None:
+        states = list(states)
+        unknown = [st for st in states if st not in STATES]
+        if unknown:
+            raise RunError(f"unknown state(s) {', '.join(map(repr, unknown))} (states: {', '.join(STATES)})")
+        query = query.where(Run.state.in_(states))
+    query = query.order_by(Run.created_at.desc(), Run.id.desc())
+    if limit is not None:
+        query = query.limit(limit)
+    return list(s.scalars(query))
+
+
+def sequence_runs(s: Session, sequence_id: str) -> list[Run]:
+    return list(s.scalars(select(Run).where(Run.sequence_id == sequence_id).order_by(Run.sequence_index)))
+
+
+# --- control from outside (CLI, webapp) ------------------------------------------------------
+
+def request_control(s: Session, run_id: str, action: str) -> Run:
+    """cancel | pause | resume. Done at once when no child runs the job; a running job is asked
+    through desired_state and stops at its next control poll (the worker reports via finish())."""
+    if action not in CONTROL_ACTIONS:
+        raise RunError(f"run {run_id}: action {action!r} is not one of {', '.join(CONTROL_ACTIONS)}")
+    run = get_run(s, run_id)
+    state = run.state
+    if state in TERMINAL:
+        raise RunError(f"run {run_id} is {state}; nothing to {action}")
+    if action == "cancel":
+        if state == "running":
+            if run.desired_state != "cancel":
+                run.desired_state, run.requested_reason = "cancel", "user"
+                run.updated_at = utcnow()
+            _log(s, run, "cancel requested by user; the job stops at its next step")
+        else:  # queued, paused, interrupted
+            transition(s, run, "cancelled", reason="user", message="cancelled by user")
+            _log(s, run, "cancel requested by user; cancelled")
+    elif action == "pause":
+        if state == "queued":
+            transition(s, run, "paused", reason="user")
+            _log(s, run, "pause requested by user; paused before it started")
+        elif state == "running":
+            if run.desired_state == "cancel":
+                raise RunError(f"run {run_id}: a cancel is already requested; it cannot be paused")
+            run.desired_state, run.requested_reason = "pause", "user"
+            run.updated_at = utcnow()
+            _log(s, run, "pause requested by user; the job checkpoints and stops at its next step")
+        elif state == "paused":
+            _log(s, run, f"pause requested by user; already paused ({run.pause_reason})")
+        else:  # interrupted: transient, the daemon requeues it in the same transaction
+            raise RunError(f"run {run_id} is interrupted and about to be requeued; pause it once it is queued")
+    else:  # resume
+        if state == "paused":
+            transition(s, run, "queued", reason="user", message=f"resumed by user (was paused: {run.pause_reason})")
+            _log(s, run, "resume requested by user; queued")
+        elif state == "running":
+            if run.desired_state == "cancel":
+                raise RunError(f"run {run_id}: a cancel is already requested; it cannot be resumed")
+            if run.desired_state == "pause":
+                run.desired_state, run.requested_reason = "run", None
+                run.updated_at = utcnow()
+                _log(s, run, "resume requested by user; the pending pause is withdrawn")
+            else:
+                _log(s, run, "resume requested by user; already running")
+        else:  # queued, interrupted: it will run
+            _log(s, run, f"resume requested by user; already {state}")
+    return run
+
+
+# --- dispatch (daemon) ----------------------------------------------------------------------
+
+def _predecessor(s: Session, run: Run) -> Run | None:
+    return s.scalars(
+        select(Run).where(Run.sequence_id == run.sequence_id, Run.sequence_index == run.sequence_index - 1)
+    ).first()
+
+
+def next_dispatchable(s: Session, queue: str) -> Run | None:
+    """The run to start next on `queue`, or None (one already runs there, or nothing is ready).
+
+    Highest priority first, then oldest queued_at. A chain member waits for its predecessor to
+    complete; if the predecessor ended failed/cancelled (or is gone) the member is cancelled.
+    """
+    if s.scalars(select(Run.id).where(Run.queue == queue, Run.state.in_(ACTIVE)).limit(1)).first() is not None:
+        return None
+    while True:
+        candidates = s.scalars(
+            select(Run)
+            .where(Run.queue == queue, Run.state == "queued")
+            .order_by(Run.priority.desc(), Run.queued_at, Run.created_at, Run.id)
+        ).all()
+        cancelled_one = False
+        for run in candidates:
+            if not run.sequence_index:  # not in a chain, or its first member
+                return run
+            prev = _predecessor(s, run)
+            if prev is not None and prev.state == "completed":
+                return run
+            if prev is None or prev.state in ("failed", "cancelled"):
+                why = (
+                    f"previous run {prev.id} in sequence {run.sequence_id} ended {prev.state}"
+                    if prev is not None
+                    else f"previous member #{run.sequence_index - 1} of sequence {run.sequence_id} does not exist"
+                )
+                transition(s, run, "cancelled", reason="sequence", message=why)
+                cancelled_one = True
+                break  # cancelling may unblock or cancel later members: scan again
+            # predecessor still queued/running/paused/interrupted: wait, consider the next one
+        if not cancelled_one:
+            return None
+
+
+def mark_dispatched(s: Session, run: Run, task_id: str, *, throttle_level: int = 0) -> Run:
+    """queued -> running once its task is sent. The child claims it with claim()."""
+    transition(s, run, "running", reason="dispatched", message=f"task {task_id} attempt {run.attempt}")
+    now = utcnow()
+    run.celery_task_id = task_id
+    run.heartbeat_at = now
+    run.worker_pid = None
+    run.worker_host = None
+    run.started_at = None
+    run.throttle_level = throttle_level
+    return run
+
+
+def request_shutdown(s: Session, run: Run) -> Run:
+    """The service is stopping: ask the running job to checkpoint and stop; finish() then puts it
+    back to queued (attempt unchanged) instead of paused, so the next start resumes it."""
+    if run.state != "running":
+        raise RunError(f"run {run.id} is {run.state}; only a running run is stopped for shutdown")
+    run.desired_state, run.requested_reason = "pause", "shutdown"
+    run.updated_at = utcnow()
+    _log(s, run, "service stopping; the job checkpoints and is requeued")
+    return run
+
+
+def resend(s: Session, run: Run, task_id: str) -> Run:
+    """A dispatched run that no child claimed: record the new task id (same attempt). The old
+    task, if it ever arrives, no longer matches celery_task_id, so claim() refuses it."""
+    if run.state != "running" or run.worker_pid is not None:
+        raise RunError(f"run {run.id}: only a running, unclaimed run can be re-sent (state {run.state}, pid {run.worker_pid})")
+    old = run.celery_task_id
+    run.celery_task_id = task_id
+    run.heartbeat_at = utcnow()
+    run.updated_at = run.heartbeat_at
+    _log(s, run, f"task {old} was not picked up; re-sent as task {task_id} (attempt {run.attempt})", "warning")
+    return run
+
+
+# --- the worker child ---------------------------------------------------------------------
+
+def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: int) -> Run | None:
+    """Record this child as the one training the run; None if the task is stale (re-sent,
+    requeued, cancelled, or already claimed), in which case it must not train."""
+    now = utcnow()
+    result = s.execute(
+        update(Run)
+        .where(
+            Run.id == run_id,
+            Run.celery_task_id == task_id,
+            Run.attempt == attempt,
+            Run.state == "running",
+            Run.worker_pid.is_(None),
+        )
+        .values(worker_pid=pid, worker_host=host, started_at=now, heartbeat_at=now, updated_at=now)
+        .execution_options(synchronize_session=False)
+    )
+    if result.rowcount != 1:
+        return None
+    run = s.scalars(select(Run).where(Run.id == run_id).execution_options(populate_existing=True)).one()
+    _log(s, run, f"claimed by pid {pid} on {host} (task {task_id}, attempt {attempt})")
+    return run
+
+
+def heartbeat(s: Session, run_id: str, pid: int, **progress: Any) -> bool:
+    """The child is alive (+ optional step/loss/steps_per_s/last_checkpoint). False when the run
+    is no longer this child's (then the child should stop)."""
+    unknown = set(progress) - set(HEARTBEAT_FIELDS)
+    if unknown:
+        raise RunError(f"run {run_id}: heartbeat fields {sorted(unknown)} are not among {', '.join(HEARTBEAT_FIELDS)}")
+    now = utcnow()
+    values = {k: v for k, v in _finite(progress).items() if v is not None}
+    result = s.execute(
+        update(Run)
+        .where(Run.id == run_id, Run.worker_pid == pid, Run.state == "running")
+        .values(heartbeat_at=now, updated_at=now, **values)
+        .execution_options(synchronize_session=False)
+    )
+    return result.rowcount == 1
+
+
+def finish(
+    s: Session,
+    run_id: str,
+    pid: int,
+    outcome: str,
+    message: str,
+    *,
+    step: int | None,
+    last_checkpoint: str | None,
+) -> Run | None:
+    """Record the trainer's outcome. None (nothing written) if the run is no longer this
+    child's: a stale child must not overwrite the state the daemon has moved on to."""
+    if outcome not in OUTCOMES:
+        raise RunError(f"run {run_id}: outcome {outcome!r} is not one of {', '.join(OUTCOMES)}")
+    run = s.scalars(select(Run).where(Run.id == run_id).execution_options(populate_existing=True)).first()
+    if run is None:
+        raise RunError(_hint(run_id))
+    if run.state != "running" or run.worker_pid != pid:
+        return None
+    if step is not None:
+        run.step = step
+    if last_checkpoint is not None:
+        run.last_checkpoint = last_checkpoint
+    requested = run.requested_reason
+    if outcome in ("completed", "failed", "cancelled"):
+        transition(s, run, outcome, reason="trainer", message=message or None)
+    elif outcome == "paused_memory":
+        transition(s, run, "paused", reason="memory", message=message)
+    elif requested == "shutdown":  # paused_user because the service is stopping
+        transition(s, run, "queued", reason="shutdown", message=SHUTDOWN_MESSAGE)
+    else:
+        reason = requested or ("thermal" if run.throttle_level >= 2 else "user")
+        transition(s, run, "paused", reason=reason, message=message)
+    return run
+
+
+# --- recovery (daemon) ----------------------------------------------------------------------
+
+def mark_interrupted(s: Session, run: Run, why: str) -> Run:
+    """A running run whose child is gone: interrupted, then at once queued for another attempt
+    (it resumes from its last checkpoint), or failed when the attempts are used up."""
+    transition(s, run, "interrupted", reason="lost", message=why)
+    if run.attempt >= run.max_attempts:
+        transition(s, run, "failed", reason="attempts", message=f"gave up after {run.attempt} attempts: {why}")
+    else:
+        run.attempt += 1
+        transition(s, run, "queued", reason="retry", message=f"attempt {run.attempt} of {run.max_attempts} after: {why}")
+    return run
+

@@ -1,0 +1,200 @@
+"""The daemon: one loop that keeps the registry, the host and the worker in step.
+
+    d = Daemon(settings, sink)        # sink: where run/system events go (daemon.events)
+    d.start()                         # migrate the registry once, reconcile what a crash left
+    d.run_forever(stop_event)         # tick every tick_s until stop_event is set
+    d.stop()
+
+Each tick, in this order:
+1. monitor: memory, CPU, temperature; the throttle level (hysteresis, monitor.ThrottlePolicy);
+   a level change is written on the active local run (+ a `throttle` run event) or, with no run,
+   pushed as `system.throttle` directly;
+2. paused runs the daemon paused (thermal, memory) are requeued when the host allows;
+3. reconcile: runs whose worker child is gone are interrupted and requeued (reconcile.py);
+4. dispatch: the next queued run on every idle queue (dispatch.py), none on a hot host;
+5. events: new run_events rows to the sink; `system.stats` every stats_every_s;
+6. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
+A failing tick (the database locked past its busy timeout, a broker error) is logged and the next
+tick tries again; the state is all in the registry, so nothing is lost by skipping one.
+The daemon never imports torch.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any, Iterable
+
+from sqlalchemy import select
+
+from daemon import runs
+from daemon.dispatch import Dispatcher
+from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, NullSink
+from daemon.models import Run
+from daemon.monitor import SystemMonitor, ThrottleChange, ThrottlePolicy
+from daemon.reconcile import Reconciler
+from daemon.sdnotify import SdNotifier
+
+log = logging.getLogger(__name__)
+
+
+class Daemon:
+    def __init__(self, settings: Any, sink: EventSink | None = None, *, tick_s: float = 0.5,
+                 stats_every_s: float = 5.0, heartbeat_timeout_s: float = 30.0, claim_timeout_s: float = 600.0,
+                 memory_retry_s: float = 60.0, local_queues: Iterable[str] = ("pi",),
+                 monitor: SystemMonitor | None = None, policy: ThrottlePolicy | None = None,
+                 celery_app: Any = None, notifier: SdNotifier | None = None, host: str | None = None,
+                 registry: Any = None, send: Any = None):
+        self.settings = settings
+        self.sink = sink or NullSink()
+        self.tick_s = float(tick_s)
+        self.stats_every_s = float(stats_every_s)
+        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
+        self.claim_timeout_s = float(claim_timeout_s)
+        self.memory_retry_s = float(memory_retry_s)
+        self.local_queues = tuple(local_queues)
+        self.monitor = monitor or SystemMonitor(settings)
+        self.policy = policy or ThrottlePolicy.from_settings(settings)
+        self.notifier = notifier or SdNotifier()
+        self.host = host
+        self._celery_app = celery_app
+        self._send = send  # (run_id, attempt, queue, task_id) -> None instead of Celery (tests)
+        self.registry = registry
+        self._own_registry = registry is None
+        self.dispatcher: Dispatcher | None = None
+        self.reconciler: Reconciler | None = None
+        self.tailer: EventTailer | None = None
+        self.last_sample: dict[str, Any] | None = None
+        self._stats_at: float | None = None
+        self._failures = 0
+        self.ticks = 0
+        self._status = ""
+        self._wake = threading.Event()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self.registry is None:
+            from daemon.db import Registry
+
+            self.registry = Registry.open(self.settings, migrate=True)  # the daemon migrates once, here
+        self.dispatcher = Dispatcher(self.registry, self.settings, celery_app=self._celery_app,
+                                     local_queues=self.local_queues, memory_retry_s=self.memory_retry_s,
+                                     send=self._send)
+        self.reconciler = Reconciler(self.registry, host=self.host, heartbeat_timeout_s=self.heartbeat_timeout_s,
+                                     claim_timeout_s=self.claim_timeout_s, resend=self.dispatcher.resend)
+        self.tailer = EventTailer(self.registry, self.sink)
+        # What a crash (ours or a worker's) left behind; a dispatch this daemon committed but may
+        # not have sent before it died is re-sent after heartbeat_timeout_s, not claim_timeout_s.
+        for action in self.reconciler.reconcile(claim_timeout_s=min(self.claim_timeout_s, self.heartbeat_timeout_s)):
+            log.info("start: run %s %s (%s)", action.run_id, action.action, action.why)
+        log.info("daemon started: registry %s, queues local %s, broker %s", self.registry.path,
+                 ",".join(self.local_queues), "redis" if self.settings.redis_url else "embedded sqlite")
+
+    def stop(self) -> None:
+        self.notifier.stopping()
+        if self.registry is not None and self._own_registry:
+            self.registry.close()
+            self.registry = None
+        log.info("daemon stopped")
+
+    def run_forever(self, stop_event: threading.Event) -> None:
+        if self.dispatcher is None:
+            self.start()
+        try:
+            status = self.status_text()
+        except Exception:  # noqa: BLE001 - READY matters more than its status line
+            status = "started"
+        self.notifier.ready(status)
+        while not stop_event.is_set():
+            started = time.monotonic()
+            self.safe_tick()
+            if self._wake.wait(max(0.0, self.tick_s - (time.monotonic() - started))):
+                self._wake.clear()
+
+    def wake(self) -> None:
+        """Tick now rather than at the next tick_s (the webapp calls it after an enqueue or a
+        control request, so a new run starts without waiting). Safe from any thread."""
+        self._wake.set()
+
+    # -- one tick ----------------------------------------------------------------------------
+
+    def safe_tick(self) -> bool:
+        try:
+            self.tick()
+        except Exception:  # noqa: BLE001 - the next tick retries; say so loudly but once per streak
+            self._failures += 1
+            if self._failures == 1 or self._failures % 100 == 0:
+                log.exception("daemon tick failed (%d in a row); retrying", self._failures)
+            return False
+        if self._failures:
+            log.info("daemon tick works again after %d failures", self._failures)
+        self._failures = 0
+        self.notifier.maybe_watchdog()  # only a working loop keeps systemd's watchdog quiet
+        return True
+
+    def tick(self) -> None:
+        assert self.dispatcher is not None and self.reconciler is not None and self.tailer is not None, \
+            "Daemon.start() first"
+        sample = self.monitor.sample()
+        self.last_sample = sample
+        change = self.policy.update_from_sample(sample)
+        self.apply_throttle(change)
+        self.dispatcher.requeue_paused(self.policy.level, sample.get("mem_available_mb"))
+        self.reconciler.reconcile()
+        self.dispatcher.dispatch(self.policy.level)
+        self.tailer.poll()
+        now = time.monotonic()
+        if self._stats_at is None or now - self._stats_at >= self.stats_every_s:
+            self._stats_at = now
+            self.tailer.push(STATS_EVENT, {**sample, "throttle_level": self.policy.level})
+        self.ticks += 1
+        self._update_status()
+
+    def apply_throttle(self, change: ThrottleChange | None) -> None:
+        """Keep throttle_level of every running local run equal to the policy's level. Checked
+        every tick (not only on a change): a run dispatched or claimed meanwhile gets it too."""
+        level = self.policy.level
+        if change is not None:
+            log.info("throttle level %d -> %d: %s", change.previous, change.level, change.reason)
+        with self.registry.session(readonly=True) as s:
+            stale = s.scalars(select(Run.id).where(Run.state.in_(runs.ACTIVE), Run.queue.in_(self.local_queues),
+                                                   Run.throttle_level != level)).all()
+        written = False
+        for run_id in stale:
+            with self.registry.session() as s:
+                run = runs.get_run(s, run_id)
+                if run.state not in runs.ACTIVE or run.throttle_level == level:
+                    continue
+                previous = run.throttle_level
+                run.throttle_level = level
+                reason = change.reason if change is not None else "the host's current throttle level"
+                runs.add_event(s, run.id, "throttle", {
+                    "level": level, "previous": previous, "reason": reason, "source": "daemon",
+                    "temp_c": (self.last_sample or {}).get("temp_c")})
+                written = True
+        if change is not None and not written:
+            # No run to record it on: browsers still hear about it.
+            self.tailer.push(THROTTLE_EVENT, {**change.to_json_obj(), "run_id": None, "source": "daemon"})
+
+    # -- status ------------------------------------------------------------------------------
+
+    def status_text(self) -> str:
+        if self.registry is None:
+            return "starting"
+        with self.registry.session(readonly=True) as s:
+            active = s.scalars(select(Run).where(Run.state.in_(runs.ACTIVE))).all()
+            queued = len(s.scalars(select(Run.id).where(Run.state == "queued")).all())
+        parts = [f"{r.id} {r.component} step {r.step}/{r.total_steps}" for r in active] or ["idle"]
+        return "; ".join(parts) + f"; {queued} queued; throttle {self.policy.level}"
+
+    def _update_status(self) -> None:
+        if not self.notifier.enabled or self.ticks % max(1, int(5 / max(self.tick_s, 0.01))):
+            return
+        text = self.status_text()
+        if text != self._status:
+            self._status = text
+            self.notifier.status(text)
+
+
+__all__ = ["Daemon"]

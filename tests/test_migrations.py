@@ -1,0 +1,177 @@
+"""Alembic migrations of the registry: up and down, schema == models, idempotent, safe when several
+processes start at once."""
+from __future__ import annotations
+
+import fcntl
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import Column, Integer, MetaData, inspect
+
+import migrations
+from daemon import runs
+from daemon.db import Registry, _alembic_config, current_revision, downgrade, make_engine, migrate
+from daemon.models import Base
+from hope_models.settings import load_settings
+
+REPO = Path(__file__).resolve().parents[1]
+TABLES = {"runs", "run_events", "models"}
+
+
+def head() -> str:
+    return ScriptDirectory(str(Path(migrations.__file__).parent)).get_current_head()
+
+
+def tables(engine) -> set[str]:
+    return set(inspect(engine).get_table_names()) - {"alembic_version"}
+
+
+def diffs(engine, metadata: MetaData) -> list:
+    with engine.connect() as c:
+        return compare_metadata(MigrationContext.configure(c, opts={"compare_type": True}), metadata)
+
+
+@pytest.fixture
+def engine(tmp_path):
+    eng = make_engine(tmp_path / "hope.db")
+    yield eng
+    eng.dispose()
+
+
+def test_single_linear_history():
+    script = ScriptDirectory(str(Path(migrations.__file__).parent))
+    assert len(script.get_heads()) == 1
+    assert [r.revision for r in script.walk_revisions()][-1] == "0001"
+
+
+def test_empty_to_head_to_base_to_head(engine):
+    assert tables(engine) == set() and current_revision(engine) is None
+    migrate(engine)
+    assert tables(engine) == TABLES and current_revision(engine) == head()
+    downgrade(engine)
+    assert tables(engine) == set() and current_revision(engine) is None
+    migrate(engine, "head")
+    assert tables(engine) == TABLES and current_revision(engine) == head()
+
+
+def test_head_schema_matches_models(engine):
+    migrate(engine)
+    assert diffs(engine, Base.metadata) == []
+    # the comparison is able to see a difference (so the empty list above means something)
+    changed = MetaData(naming_convention=Base.metadata.naming_convention)
+    for table in Base.metadata.sorted_tables:
+        table.to_metadata(changed)
+    changed.tables["runs"].append_column(Column("extra", Integer))
+    assert [d[0] for d in diffs(engine, changed)] == ["add_column"]
+
+
+def test_head_schema_details(engine):
+    migrate(engine)
+    with engine.connect() as c:
+        sql = dict(c.exec_driver_sql("SELECT name, sql FROM sqlite_master WHERE type='index' AND sql IS NOT NULL").all())
+    # the partial unique index (one promoted model per component); autogenerate does not compare WHERE
+    assert "WHERE promoted_at IS NOT NULL" in sql["uq_models_promoted_component"]
+    assert "UNIQUE" in sql["uq_models_promoted_component"]
+    assert sql["ix_runs_dispatch"].endswith("(state, queue, priority, created_at)")
+    names = {fk["name"] for fk in inspect(engine).get_foreign_keys("run_events")}
+    assert names == {"fk_run_events_run_id_runs"}  # the naming convention is applied
+
+
+def test_migrate_is_idempotent_and_keeps_data(tmp_path):
+    settings = load_settings(tmp_path / "home", env={})
+    with Registry.open(settings) as reg:
+        with reg.session() as s:
+            rid = runs.create_run(s, component="vqvae", config={}, total_steps=5, run_dir="/r").id
+    for _ in range(2):
+        migrate(tmp_path / "home" / "hope.db")  # a path works as well as an engine
+        with Registry.open(settings) as reg:
+            assert current_revision(reg.engine) == head()
+            with reg.session(readonly=True) as s:
+                assert runs.get_run(s, rid).total_steps == 5
+            with reg.engine.connect() as c:
+                assert c.exec_driver_sql("SELECT count(*) FROM alembic_version").scalar() == 1
+
+
+def test_migration_failure_rolls_back(engine, tmp_path):
+    """One transaction per migrate(): a failing step leaves the database as it was."""
+    migrate(engine)
+    with engine.begin() as c:
+        c.exec_driver_sql("CREATE TABLE blocker (x INTEGER)")
+    downgrade(engine)
+    with engine.begin() as c:  # make the upgrade fail half-way: models' index name is taken
+        c.exec_driver_sql("CREATE INDEX ix_run_events_run_id ON blocker (x)")
+    with pytest.raises(Exception, match="ix_run_events_run_id"):
+        migrate(engine)
+    assert tables(engine) == {"blocker"} and current_revision(engine) is None
+
+
+MIGRATOR = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from daemon.db import migrate
+    db, go = Path(sys.argv[1]), Path(sys.argv[2])
+    while not go.exists():
+        time.sleep(0.002)
+    migrate(db)
+    print("torch" in sys.modules)
+    """
+)
+
+
+def _spawn(db: Path, go: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", MIGRATOR, str(db), str(go)], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_processes_migrating_at_once(tmp_path):
+    db, go = tmp_path / "hope.db", tmp_path / "go"
+    procs = [_spawn(db, go) for _ in range(3)]
+    time.sleep(0.3)  # let them import and wait at the start line
+    go.touch()
+    for p in procs:
+        out, err = p.communicate(timeout=60)
+        assert p.returncode == 0, f"a concurrent migrate failed:\n{err}"
+        assert out.strip() == "False", "migrating must not import torch"
+    eng = make_engine(db)
+    try:
+        assert tables(eng) == TABLES and current_revision(eng) == head()
+        assert diffs(eng, Base.metadata) == []
+    finally:
+        eng.dispose()
+
+
+def test_migrate_waits_for_the_lock(tmp_path):
+    db, go = tmp_path / "hope.db", tmp_path / "go"
+    go.touch()
+    with open(tmp_path / "hope.db.migrate.lock", "a+") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)  # another process is migrating
+        proc = _spawn(db, go)
+        time.sleep(1.0)
+        assert proc.poll() is None, "migrate did not wait for the migrate lock"
+        assert not db.exists() or current_revision_of(db) is None
+        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert current_revision_of(db) == head()
+
+
+def current_revision_of(db: Path) -> str | None:
+    eng = make_engine(db)
+    try:
+        return current_revision(eng)
+    finally:
+        eng.dispose()
+
+
+def test_alembic_config_points_at_the_package(engine):
+    with engine.connect() as c:
+        cfg = _alembic_config(c)
+    assert Path(cfg.get_main_option("script_location")) == Path(migrations.__file__).resolve().parent

@@ -1,0 +1,91 @@
+"""systemd/: the unit files say what docs/pi.md promises, and install.sh renders them to valid units."""
+from __future__ import annotations
+
+import configparser
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+UNITS = ("hope-daemon.service", "hope-worker.service", "hope-webapp.service")
+
+
+def unit(path: Path) -> configparser.ConfigParser:
+    # systemd allows repeated keys (Environment=); keep the last for the checks, read all with multi()
+    cp = configparser.ConfigParser(strict=False, interpolation=None, comment_prefixes=("#", ";"))
+    cp.optionxform = str
+    cp.read_string(path.read_text())
+    return cp
+
+
+def multi(path: Path, key: str) -> list[str]:
+    return [line.split("=", 1)[1] for line in path.read_text().splitlines() if line.startswith(f"{key}=")]
+
+
+def render(tmp_path: Path) -> Path:
+    units = tmp_path / "units"
+    proc = subprocess.run(["sh", str(REPO / "systemd" / "install.sh"), "--no-systemctl", "--no-user",
+                           "--python", sys.executable, "--unit-dir", str(units), "--state-dir", str(tmp_path / "state"),
+                           "--defaults-file", str(tmp_path / "default")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return units
+
+
+def test_units_carry_the_promised_settings():
+    d, w, a = (REPO / "systemd" / name for name in UNITS)
+    for path in (d, w, a):
+        u = unit(path)
+        assert u["Service"]["Restart"] == "on-failure"
+        assert u["Service"]["User"] == "hope"
+        assert "redis-server.service" in u["Unit"]["After"] and "redis-server.service" in u["Unit"]["Wants"]
+        env = multi(path, "Environment")
+        assert "HOPE_HOME=/var/lib/hope-trainer" in env
+        assert "HOPE_REDIS_URL=redis://127.0.0.1:6379/0" in env
+        assert u["Install"]["WantedBy"] == "multi-user.target"
+    daemon, worker, webapp = unit(d)["Service"], unit(w)["Service"], unit(a)["Service"]
+    assert daemon["Type"] == "notify" and daemon["WatchdogSec"] == "30"
+    assert daemon["ExecStart"].endswith("run_trainer.py daemon")
+    assert webapp["Type"] == "notify" and webapp["ExecStart"].endswith("run_trainer.py webapp")
+    assert worker["ExecStart"].endswith("run_trainer.py worker -Q pi")
+    assert worker["KillMode"] == "control-group" and worker["TimeoutStopSec"] == "60"
+    assert int(worker["Nice"]) >= 10 and int(worker["CPUWeight"]) < 100
+    assert worker["MemoryHigh"] and worker["MemoryMax"]
+
+
+def test_install_script_renders_units(tmp_path):
+    units = render(tmp_path)
+    for name in UNITS:
+        text = (units / name).read_text()
+        assert "@REPO@" not in text and "@PYTHON@" not in text
+        assert f"ExecStart={sys.executable} {REPO}/run_trainer.py" in text
+        assert f"HOPE_HOME={tmp_path / 'state'}" in text
+    assert (tmp_path / "state").is_dir()
+    assert "HOPE_REDIS_URL" in (tmp_path / "default").read_text()
+    # re-running keeps the site's overrides file
+    (tmp_path / "default").write_text("HOPE_MEMORY_BUDGET_MB=2048\n")
+    render(tmp_path)
+    assert (tmp_path / "default").read_text() == "HOPE_MEMORY_BUDGET_MB=2048\n"
+
+
+def test_install_script_refuses_a_missing_python(tmp_path):
+    proc = subprocess.run(["sh", str(REPO / "systemd" / "install.sh"), "--no-systemctl", "--no-user",
+                           "--python", str(tmp_path / "nope" / "python"), "--unit-dir", str(tmp_path / "u")],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "not found" in proc.stderr
+    assert not (tmp_path / "u").exists()
+
+
+def test_rendered_units_pass_systemd_analyze(tmp_path):
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze is not installed here; the structural checks above still ran")
+    units = render(tmp_path)
+    proc = subprocess.run([exe, "verify", *(str(units / n) for n in UNITS)], capture_output=True, text=True,
+                          timeout=60)
+    # verify exits 0 even for unknown keys and bad values; it reports them on stderr naming the file
+    complaints = [line for line in (proc.stdout + proc.stderr).splitlines() if str(units) in line]
+    assert not complaints, "\n".join(complaints)

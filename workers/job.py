@@ -1,0 +1,461 @@
+"""One training job for a run in the registry: the body of the `hope.train_run` task.
+
+    run_job(settings, run_id, attempt, task_id=...) -> {"status": "finished" | "stale" | ..., ...}
+
+It runs in the Celery worker's prefork child, which exits afterwards. In order:
+1. claim the run in the registry (refused for a stale or duplicate delivery: then it does not train);
+2. start a heartbeat thread at once, before torch is imported, so a slow start (torch import,
+   dataset cache build) is not taken for a dead child;
+3. build the TrainConfig from the run's config and train through hope_models.train.loop.train with
+   - DBControl: the run row's desired_state / throttle_level, read between steps;
+   - DBEmitter: progress and metric events into run_events at most 5 a second each, checkpoint
+     events (+ runs.last_checkpoint), logs (capped), throttle events;
+4. record the outcome with finish() (pid-guarded: a superseded child changes nothing).
+SIGTERM (service stop) asks the loop to checkpoint and stop; finish() then requeues the run.
+
+Torch is imported only by the trainer, inside train(): importing this module stays torch-free.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+import traceback
+from dataclasses import fields
+from pathlib import Path
+from typing import Any, Callable
+
+from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
+
+from daemon import runs
+from daemon.db import Registry
+from daemon.models import Run
+from hope_models.train.contract import ControlCommand
+from hope_models.train.loop import TrainConfig, TrainSetupError, train
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_S = 2.0
+EVENT_MIN_GAP_S = 0.2  # progress and metric events: at most 5 a second each
+RATE_LIMITED = ("progress", "metric")
+LOG_MAX_CHARS = 8000  # one log event (a traceback keeps its head and its tail)
+LOG_MAX_EVENTS = 2000  # log events per job; later ones go to the worker log only
+THROTTLE_SLOW = 0.5  # throttle_level 1: sleep this fraction of each step
+RUN_DIR_WAIT_S = 60.0  # how long a new child waits for a superseded one to leave the run dir
+
+# Run config keys: TrainConfig fields, minus what the run row or the daemon decides, plus chain
+# links. run_dir comes from the row; component and steps may repeat the row's values.
+DAEMON_OWNED = ("thermal_zone", "vcgencmd", "thermal_soft_c", "thermal_hard_c", "thermal_resume_c")
+EXTRA_KEYS = ("vqvae_run",)  # a run id whose run_dir becomes vqvae_dir
+RUN_CONFIG_KEYS = frozenset({f.name for f in fields(TrainConfig)} - set(DAEMON_OWNED) - {"run_dir"}
+                            | set(EXTRA_KEYS))
+
+
+class JobConfigError(ValueError):
+    """The run's config cannot become a TrainConfig; the message names the run and the key."""
+
+
+# -- config ---------------------------------------------------------------------------------------
+
+def build_train_config(settings, run: Run, run_dir_of: Callable[[str], str]) -> TrainConfig:
+    """TrainConfig for `run`: its config overrides, run_dir and steps from the row, the memory
+    budget and cache dir from settings unless the config sets them, and no thermal sources (the
+    daemon watches the temperature and sets throttle_level). `run_dir_of(run_id)` resolves
+    "vqvae_run" (it raises JobConfigError when that run cannot be used)."""
+    cfg = dict(run.config or {})
+    owned = sorted(k for k in cfg if k in DAEMON_OWNED)
+    if owned:
+        raise JobConfigError(f"run {run.id}: config key(s) {', '.join(map(repr, owned))} are set by the daemon "
+                             "(it watches the temperature for every job), not per run")
+    unknown = sorted(k for k in cfg if k not in RUN_CONFIG_KEYS)
+    if unknown:
+        raise JobConfigError(f"run {run.id}: unknown config key(s) {', '.join(map(repr, unknown))} "
+                             f"(known: {', '.join(sorted(RUN_CONFIG_KEYS))})")
+    component = cfg.pop("component", run.component)
+    if component != run.component:
+        raise JobConfigError(f"run {run.id}: config component {component!r} differs from the run's {run.component!r}")
+    steps = cfg.pop("steps", run.total_steps)
+    if steps != run.total_steps:
+        raise JobConfigError(f"run {run.id}: config steps {steps!r} differs from the run's total_steps "
+                             f"{run.total_steps}")
+    if not cfg.get("data"):
+        raise JobConfigError(f"run {run.id}: config has no 'data' (the dataset path to train on)")
+    if not isinstance(cfg.get("model_config", {}), dict):
+        raise JobConfigError(f"run {run.id}: config model_config must be a JSON object, "
+                             f"got {type(cfg['model_config']).__name__}")
+    vqvae_run = cfg.pop("vqvae_run", None)
+    if vqvae_run is not None:
+        if cfg.get("vqvae_dir"):
+            raise JobConfigError(f"run {run.id}: config sets both vqvae_run and vqvae_dir; give one")
+        cfg["vqvae_dir"] = run_dir_of(str(vqvae_run))
+    cfg.setdefault("memory_budget_mb", float(settings.memory_budget_mb))
+    cfg.setdefault("cache_dir", str(settings.cache_dir))
+    return TrainConfig(component=run.component, run_dir=run.run_dir, steps=run.total_steps,
+                       thermal_zone=None, vcgencmd=None, **cfg)
+
+
+def _vqvae_run_dir(registry: Registry, run_id: str, for_run: str) -> str:
+    with registry.session(readonly=True) as s:
+        other = s.get(Run, run_id)
+        if other is None:
+            raise JobConfigError(f"run {for_run}: vqvae_run {run_id} does not exist")
+        if other.component != "vqvae" or other.state != "completed":
+            raise JobConfigError(f"run {for_run}: vqvae_run {run_id} is a {other.state} {other.component} run, "
+                                 "not a completed vqvae run")
+        return other.run_dir
+
+
+# -- control --------------------------------------------------------------------------------------
+
+class DBControl:
+    """The trainer's Control, read from the run's row (a cheap SELECT; the loop polls at most every
+    control_interval_s). desired_state pause/cancel pass through; throttle_level 1 slows each step
+    by THROTTLE_SLOW; throttle_level >= 2 pauses (finish() records it as a thermal pause).
+
+    The row must still be this child's (state running, worker_pid = ours): if the daemon gave the
+    run up and requeued it (e.g. after a missed heartbeat), this child cancels itself, leaving a
+    checkpoint for the one that took over. A SIGTERM (`shutdown` set) becomes desired pause +
+    requested_reason "shutdown" on the row, so finish() puts the run back in the queue.
+    A registry error keeps the last answer (training does not stop for a busy database)."""
+
+    def __init__(self, registry: Registry, run_id: str, pid: int, *, shutdown: threading.Event | None = None,
+                 lost: threading.Event | None = None, emit: Callable[[str, dict], None] | None = None):
+        self.registry, self.run_id, self.pid = registry, run_id, pid
+        self.shutdown = shutdown or threading.Event()
+        self.lost = lost or threading.Event()
+        self._emit = emit
+        self._last = ControlCommand()
+        self._shutdown_written = False
+        self._thermal_written = False
+        self._said: set[str] = set()
+
+    def _say(self, key: str, message: str, level: str = "warning") -> None:
+        if key in self._said:
+            return
+        self._said.add(key)
+        log.log(logging.WARNING if level == "warning" else logging.INFO, "run %s: %s", self.run_id, message)
+        if self._emit is not None:
+            self._emit("log", {"level": level, "message": message})
+
+    def _write_shutdown(self) -> None:
+        self._shutdown_written = True
+        try:
+            with self.registry.session() as s:
+                run = s.get(Run, self.run_id)
+                if (run is not None and run.state == "running" and run.worker_pid == self.pid
+                        and run.desired_state != "cancel"):
+                    runs.request_shutdown(s, run)
+        except (SQLAlchemyError, runs.RunError) as exc:
+            log.warning("run %s: could not record the shutdown request: %s", self.run_id, exc)
+
+    def _write_thermal(self) -> None:
+        """Record why we pause on the row now: if the host cools below the resume limit before
+        finish(), throttle_level is back at 0 and the pause would read as a user's (never resumed
+        automatically)."""
+        if self._thermal_written:
+            return
+        self._thermal_written = True
+        try:
+            with self.registry.session() as s:
+                run = s.get(Run, self.run_id)
+                if (run is not None and run.state == "running" and run.worker_pid == self.pid
+                        and run.requested_reason is None):
+                    run.requested_reason = "thermal"
+        except SQLAlchemyError as exc:
+            log.warning("run %s: could not record the thermal pause: %s", self.run_id, exc)
+
+    def poll(self, step: int) -> ControlCommand:
+        if self.shutdown.is_set() and not self._shutdown_written:
+            self._write_shutdown()
+        try:
+            with self.registry.session(readonly=True) as s:
+                row = s.execute(select(Run.state, Run.worker_pid, Run.desired_state, Run.throttle_level)
+                                .where(Run.id == self.run_id)).one_or_none()
+        except SQLAlchemyError as exc:
+            self._say("db", f"cannot read the run's control state ({type(exc).__name__}: {exc}); "
+                            "keeping the last one")
+            return self._last
+        if row is None or row.state != "running" or row.worker_pid != self.pid or self.lost.is_set():
+            self.lost.set()
+            where = "gone" if row is None else f"{row.state}, worker pid {row.worker_pid}"
+            self._say("lost", f"the run is no longer this child's ({where}); pid {self.pid} checkpoints and stops")
+            cmd = ControlCommand(desired="cancel")
+        elif row.desired_state == "cancel":
+            cmd = ControlCommand(desired="cancel")
+        elif row.desired_state == "pause" or self.shutdown.is_set():
+            cmd = ControlCommand(desired="pause")
+        elif row.throttle_level >= 2:
+            self._say("hot", f"throttle level {row.throttle_level}: pausing until the daemon sees it cool down",
+                      "info")
+            self._write_thermal()
+            cmd = ControlCommand(desired="pause")
+        elif row.throttle_level == 1:
+            cmd = ControlCommand(throttle=THROTTLE_SLOW)
+        else:
+            cmd = ControlCommand()
+        self._last = cmd
+        return cmd
+
+
+# -- events ---------------------------------------------------------------------------------------
+
+def cap_text(text: str, limit: int = LOG_MAX_CHARS) -> str:
+    """At most `limit` characters: the head and the tail (where a traceback says what failed)."""
+    if len(text) <= limit:
+        return text
+    head = limit // 4
+    tail = limit - head - 40
+    return f"{text[:head]}\n... [{len(text) - head - tail} characters cut] ...\n{text[-tail:]}"
+
+
+def _describe(kind: str, payload: dict) -> tuple[str, str]:
+    """(level, message) for trainer events that are not registry event kinds."""
+    if kind == "resume":
+        return "info", f"resuming from step {payload.get('step')} ({payload.get('path')})"
+    if kind == "memory":
+        return "warning", f"memory soft limit at step {payload.get('step')}: {payload.get('message')}"
+    if kind == "state":  # the trainer's own end-of-job record; the registry writes the run's state
+        return "info", f"trainer: {payload.get('state')} at step {payload.get('step')}: {payload.get('message')}"
+    return "info", f"{kind}: {json.dumps(payload, default=str)}"
+
+
+class DBEmitter:
+    """The trainer's emit(kind, payload) -> run_events rows (and the run row's live fields).
+
+    progress: at most one event per EVENT_MIN_GAP_S (5/s), plus runs.step/loss/steps_per_s and
+    the heartbeat; the newest skipped one is kept and written by flush() at the end of the job,
+    so the last progress always lands. metric: the same limit (every record is in the run dir's
+    metrics.jsonl anyway). checkpoint: an event + runs.last_checkpoint. log: capped in size and
+    count. throttle: as is. Other trainer events (resume, memory, state) become log events.
+    A registry error drops the event (logged): it never stops training."""
+
+    def __init__(self, registry: Registry, run_id: str, pid: int, *, lost: threading.Event | None = None,
+                 min_gap_s: float = EVENT_MIN_GAP_S, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.registry, self.run_id, self.pid = registry, run_id, pid
+        self.lost = lost or threading.Event()
+        self.min_gap_s, self._clock, self._sleep = min_gap_s, clock, sleep
+        self._last_write: dict[str, float] = {}
+        self._pending: dict[str, dict] = {}
+        self.logs = 0
+        self.dropped = 0
+
+    def __call__(self, kind: str, payload: dict) -> None:
+        payload = dict(payload or {})
+        if kind in RATE_LIMITED:
+            last = self._last_write.get(kind)
+            if last is not None and self._clock() - last < self.min_gap_s:
+                self._pending[kind] = payload
+                return
+            self._pending.pop(kind, None)
+            self._write_limited(kind, payload)
+        elif kind == "checkpoint":
+            self._write(kind, payload, heartbeat={"step": payload.get("step"), "last_checkpoint": payload.get("path")})
+        elif kind == "log":
+            self._log(str(payload.get("level", "info")), str(payload.get("message", "")))
+        elif kind == "throttle":
+            self._write(kind, payload)
+        else:
+            level, message = _describe(kind, payload)
+            self._log(level, message, extra={"event": kind, "data": payload})
+
+    def flush(self) -> None:
+        """Write the newest skipped progress/metric event, keeping the 5/s limit (waits < 0.2 s)."""
+        for kind in RATE_LIMITED:
+            payload = self._pending.pop(kind, None)
+            if payload is None:
+                continue
+            wait = self.min_gap_s - (self._clock() - self._last_write.get(kind, float("-inf")))
+            if wait > 0:
+                self._sleep(wait)
+            self._write_limited(kind, payload)
+
+    def _write_limited(self, kind: str, payload: dict) -> None:
+        self._last_write[kind] = self._clock()
+        heartbeat = None
+        if kind == "progress":
+            heartbeat = {"step": payload.get("step"), "loss": payload.get("loss"),
+                         "steps_per_s": payload.get("steps_per_s")}
+        self._write(kind, payload, heartbeat=heartbeat)
+
+    def _log(self, level: str, message: str, extra: dict | None = None) -> None:
+        self.logs += 1
+        if self.logs > LOG_MAX_EVENTS:
+            log.log(logging.WARNING if level != "info" else logging.INFO, "run %s: %s", self.run_id, message)
+            if self.logs == LOG_MAX_EVENTS + 1:
+                self._write("log", {"level": "warning", "message": f"more than {LOG_MAX_EVENTS} log events: "
+                                    "the rest of this job's log goes to the worker log only"})
+            return
+        self._write("log", {"level": level, "message": cap_text(message), **(extra or {})})
+
+    def _write(self, kind: str, payload: dict, heartbeat: dict | None = None) -> None:
+        try:
+            with self.registry.session() as s:
+                runs.add_event(s, self.run_id, kind, payload)
+                if heartbeat is not None:
+                    values = {k: v for k, v in heartbeat.items() if v is not None}
+                    if not runs.heartbeat(s, self.run_id, self.pid, **values):
+                        self.lost.set()
+        except (SQLAlchemyError, runs.RunError) as exc:
+            self.dropped += 1
+            log.warning("run %s: %s event not recorded: %s", self.run_id, kind, exc)
+
+
+# -- heartbeat ------------------------------------------------------------------------------------
+
+class Heartbeat:
+    """A daemon thread touching runs.heartbeat_at every `interval_s` while the job runs (setup
+    included). It stops, and sets `lost`, once the row is no longer this child's."""
+
+    def __init__(self, registry: Registry, run_id: str, pid: int, lost: threading.Event,
+                 interval_s: float = HEARTBEAT_S):
+        self.registry, self.run_id, self.pid, self.lost, self.interval_s = registry, run_id, pid, lost, interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{run_id}", daemon=True)
+
+    def start(self) -> "Heartbeat":
+        self._thread.start()
+        return self
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                with self.registry.session() as s:
+                    mine = runs.heartbeat(s, self.run_id, self.pid)
+            except SQLAlchemyError as exc:
+                log.warning("run %s: heartbeat not recorded: %s", self.run_id, exc)
+                continue
+            if not mine:
+                self.lost.set()
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+# -- the job --------------------------------------------------------------------------------------
+
+def _wait_run_dir_free(run_dir: Path, timeout_s: float, give_up: threading.Event) -> None:
+    """Wait while another process holds the run dir's training lock: a child the daemon gave up
+    on stops at its next control poll (DBControl sees the row is no longer its own) and leaves a
+    checkpoint this job resumes from. The trainer takes the lock itself right after."""
+    lock = run_dir / ".lock"
+    deadline = time.monotonic() + timeout_s
+    while lock.exists() and not give_up.is_set():
+        fd = os.open(lock, os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return
+        except BlockingIOError:
+            pass
+        finally:
+            os.close(fd)
+        if time.monotonic() >= deadline:
+            return  # the trainer reports the busy run dir
+        time.sleep(0.2)
+
+
+def _install_sigterm(flag: threading.Event):
+    def on_sigterm(signum, frame):  # only set a flag: the loop's next control poll acts on it
+        flag.set()
+
+    try:
+        return signal.signal(signal.SIGTERM, on_sigterm)
+    except ValueError:  # not the main thread (a test calling run_job from a thread)
+        return None
+
+
+class _Job:
+    def __init__(self, registry: Registry, settings, run: Run, pid: int, shutdown: threading.Event):
+        self.registry, self.settings, self.run, self.pid = registry, settings, run, pid
+        self.lost = threading.Event()
+        self.shutdown = shutdown
+        self.emitter = DBEmitter(registry, run.id, pid, lost=self.lost)
+        self.control = DBControl(registry, run.id, pid, shutdown=self.shutdown, lost=self.lost, emit=self.emitter)
+
+    def train(self) -> tuple[str, str, int | None, str | None]:
+        """(outcome, message, step, last checkpoint) of the trainer, or failed with why."""
+        run = self.run
+        try:
+            cfg = build_train_config(self.settings, run, lambda rid: _vqvae_run_dir(self.registry, rid, run.id))
+            _wait_run_dir_free(Path(cfg.run_dir), RUN_DIR_WAIT_S, self.shutdown)
+            # Asked to stop before training began (SIGTERM or a request during setup): do not start.
+            first = self.control.poll(run.step)
+            if first.desired != "run":
+                outcome = "cancelled" if first.desired == "cancel" else "paused_user"
+                return outcome, f"{first.desired} requested before training started", None, None
+            result = train(cfg, self.control, self.emitter)
+            return result.outcome, result.message, result.steps, result.checkpoint
+        except (JobConfigError, TrainSetupError) as exc:
+            self.emitter("log", {"level": "error", "message": str(exc)})
+            return "failed", str(exc), None, None
+        except Exception as exc:  # a bug or an environment problem: say what and where
+            self.emitter("log", {"level": "error", "message": traceback.format_exc()})
+            return "failed", f"{type(exc).__name__}: {exc}", None, None
+
+    def __call__(self) -> dict[str, Any]:
+        run, pid = self.run, self.pid
+        heartbeat = Heartbeat(self.registry, run.id, pid, self.lost).start()
+        try:
+            outcome, message, step, checkpoint = self.train()
+            self.emitter.flush()
+        finally:
+            heartbeat.stop()
+        with self.registry.session() as s:
+            final = runs.finish(s, run.id, pid, outcome, message, step=step, last_checkpoint=checkpoint)
+        out = {"run_id": run.id, "attempt": run.attempt, "outcome": outcome, "step": step, "message": message}
+        if final is None:
+            log.warning("run %s: pid %d was superseded; its outcome %s is not recorded", run.id, pid, outcome)
+            return {"status": "superseded", **out}
+        log.info("run %s: %s -> %s at step %s", run.id, outcome, final.state, final.step)
+        return {"status": "finished", "state": final.state, **out}
+
+
+def _note_stale(registry: Registry, run_id: str, task_id: str, attempt: int) -> str:
+    try:
+        with registry.session() as s:
+            run = s.get(Run, run_id)
+            if run is None:
+                log.warning("task %s: no run %s in the registry; nothing to train", task_id, run_id)
+                return "missing"
+            message = (f"ignored a stale delivery (task {task_id}, attempt {attempt}): the run is {run.state}, "
+                       f"attempt {run.attempt}, task {run.celery_task_id}, pid {run.worker_pid}; it did not train")
+            runs.add_event(s, run_id, "log", {"level": "warning", "message": message})
+    except SQLAlchemyError as exc:
+        message = f"stale delivery of task {task_id} (the registry could not be read: {exc})"
+    log.warning("run %s: %s", run_id, message)
+    return "stale"
+
+
+def run_job(settings, run_id: str, attempt: int, *, task_id: str, host: str | None = None,
+            pid: int | None = None) -> dict[str, Any]:
+    """Claim run `run_id` for delivery (task_id, attempt) and train it in this process; a small
+    JSON-able summary. Stale deliveries return {"status": "stale"} without training."""
+    host = host or socket.gethostname()
+    pid = pid or os.getpid()
+    # From the start of the task: a SIGTERM during setup is served at the first control poll.
+    shutdown = threading.Event()
+    previous = _install_sigterm(shutdown)
+    try:
+        registry = Registry.open(settings, migrate=False)
+        try:
+            with registry.session() as s:
+                run = runs.claim(s, run_id, task_id, attempt, host, pid)
+            if run is None:
+                status = _note_stale(registry, run_id, task_id, attempt)
+                return {"status": status, "run_id": run_id, "attempt": attempt, "task_id": task_id}
+            log.info("run %s: claimed by pid %d on %s (task %s, attempt %d)", run_id, pid, host, task_id, attempt)
+            return _Job(registry, settings, run, pid, shutdown)()
+        finally:
+            registry.close()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)

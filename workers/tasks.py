@@ -1,0 +1,20 @@
+"""The one Celery task: train a run from the registry in this worker child. Thin on purpose:
+the work (claim, control, events, outcome) is workers.job.run_job, which tests call directly too.
+
+The task body imports workers.job (and, through the trainer, torch) only when it runs, i.e. in the
+prefork child; the worker parent that imports this module at start stays torch-free.
+"""
+from __future__ import annotations
+
+from celery import shared_task
+
+from workers.celery import TASK_TRAIN_RUN
+
+
+@shared_task(name=TASK_TRAIN_RUN, bind=True, acks_late=True, ignore_result=True)
+def train_run(self, run_id: str, attempt: int) -> dict:
+    from hope_models.settings import load_settings
+    from workers.job import run_job
+
+    settings = getattr(self.app, "hope_settings", None) or load_settings()
+    return run_job(settings, run_id, int(attempt), task_id=self.request.id)
