@@ -1,1 +1,1 @@
-"""Placeholder: built in a later issue."""
+"""The supervisor: run registry, queue policy, monitors, event push, recovery (see docs/architecture.md)."""

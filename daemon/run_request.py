@@ -211,7 +211,14 @@ def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None
     from daemon import runs
     from daemon.models import new_run_id
 
+    from hope_models.train.sequential import NEEDS_VQVAE  # torch-free
+
     check_vqvae_run(session, req.vqvae_run)
+    if req.component in NEEDS_VQVAE and sequence_id is None and not (req.vqvae_dir or req.vqvae_run):
+        # Refused here rather than failing in the worker minutes later.
+        raise RunRequestError(f"{req.component} predicts VQ-VAE codes: give vqvae_dir (a trained VQ-VAE) or "
+                              "vqvae_run (a completed vqvae run), or queue vqvae first in one chain with "
+                              "`run_trainer.py sequential --components vqvae," + req.component + "`")
     run_id = new_run_id()
     run_dir = Path(settings.runs_dir) / run_id
     return runs.create_run(session, component=req.component, config=req.config(), total_steps=req.steps,

@@ -152,6 +152,7 @@ def test_enqueue_status_and_control_with_no_daemon(home, tiny_dataset):
     (["enqueue", "--component", "fast_loop", "--data", ".", "--queue", "GPU"], "queue"),
     (["sequential", "--components", "fast_loop,vqvae", "--data", "."], "vqvae must come before"),
     (["sequential", "--components", "mid_loop", "--data", "."], "needs a trained VQ-VAE"),
+    (["enqueue", "--component", "mid_loop", "--data", "."], "predicts VQ-VAE codes"),
     (["status", "r-unknown"], "no run r-unknown"),
     (["watch", "r-unknown"], "no run r-unknown"),
     (["pause", "r-unknown"], "no run r-unknown"),

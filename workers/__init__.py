@@ -1,1 +1,1 @@
-"""Placeholder: built in a later issue."""
+"""The Celery app and the one training task (see docs/architecture.md)."""

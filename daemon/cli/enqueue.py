@@ -51,7 +51,7 @@ def add_job_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=_positive_int, default=None, help="default 64")
     parser.add_argument("--lr", type=_positive_float, default=None, help="peak learning rate (default 1e-3)")
     parser.add_argument("--warmup", type=_non_negative_int, default=None, help="warmup steps (default 100)")
-    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default min(4, cores))")
+    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
     parser.add_argument("--checkpoint-every", type=_positive_int, default=None, metavar="N",
                         help="checkpoint every N steps (default 500)")
     parser.add_argument("--checkpoint-seconds", type=_positive_float, default=None, metavar="T",

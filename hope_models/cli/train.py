@@ -77,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate (default 1e-3)")
     parser.add_argument("--warmup", type=_non_negative_int, default=100,
                         help="warmup steps, at most a tenth of --steps (default 100)")
-    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: min(4, cores))")
+    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
     parser.add_argument("--checkpoint-every", type=_positive_int, default=500, metavar="N",
                         help="checkpoint every N steps (default 500)")
     parser.add_argument("--checkpoint-seconds", type=_positive_float, default=300.0, metavar="T",

@@ -44,7 +44,11 @@ class TrainSetupError(ValueError):
 
 
 def _default_threads() -> int:
-    return max(1, min(4, os.cpu_count() or 1))
+    # One: the seed models are small, so intra-op threads buy little even on idle cores, and on
+    # shared cores (the Pi runs the robot's services beside the job) they stall each other. Measured
+    # on the 2-core dev machine under load: mid_loop 200 steps took 54 s with 2 threads, 9.8 s with 1
+    # (the same weights). `--threads N` for a big model on a quiet machine.
+    return 1
 
 
 @dataclass
@@ -309,14 +313,11 @@ class _Trainer:
             raise TrainSetupError(f"cannot build {cfg.component}: {exc}") from None
 
     def _sampler(self, cache, component, split: str):
-        from hope_models.data.sampler import AnchorSampler
+        from hope_models.train.validation import anchor_sampler
 
-        win = component.window
-        horizon = getattr(component, "horizon_s", max(win.horizons_s, default=0.0))
-        return AnchorSampler(cache, self.cfg.batch_size, seed=self.cfg.seed, imagined_ratio=self.cfg.imagined_ratio,
-                             split=split, val_fraction=self.cfg.val_fraction,
-                             min_history_s=float(getattr(component, "min_history_s", 0.0)),
-                             horizon_s=float(horizon))
+        cfg = self.cfg
+        return anchor_sampler(cache, component, split, batch_size=cfg.batch_size, seed=cfg.seed,
+                              imagined_ratio=cfg.imagined_ratio, val_fraction=cfg.val_fraction)
 
     def _check_resume_matches(self, loaded: ckpt.LoadedCheckpoint) -> None:
         saved = loaded.config.get("train", {})
@@ -621,29 +622,14 @@ class _Trainer:
         return "completed", f"trained {cfg.component} to step {step}", step
 
     def _validate(self, cache) -> dict[str, float]:
-        """Mean evaluate() metrics over a few validation batches; the RNG is left as it was."""
-        import torch
-
-        from hope_models.data.windows import make_windows
+        """Mean evaluate() metrics over a few validation batches; the RNG is left as it was. The
+        promotion gate computes the same numbers with the same function (train/validation.py)."""
+        from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
 
         try:
-            val = self._sampler(cache, self.component, "val")
-        except ValueError:
+            return validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
+        except NoValidationSplit:
             return {}
-        rng = torch.get_rng_state()
-        sums: dict[str, float] = {}
-        self.model.eval()
-        try:
-            with torch.no_grad():
-                for b in range(self.cfg.val_batches):
-                    batch = make_windows(cache, val.batch(b), self.component.window,
-                                         frames=bool(self.component.wants_frames))
-                    for k, v in self.component.evaluate(batch).items():
-                        sums[k] = sums.get(k, 0.0) + float(v)
-        finally:
-            self.model.train()
-            torch.set_rng_state(rng)
-        return {k: v / self.cfg.val_batches for k, v in sums.items()}
 
 
 class _RunDirLock:
