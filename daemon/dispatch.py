@@ -14,6 +14,13 @@ again (not sooner than memory_retry_s after it paused, and not again when the la
 requeue got no step further: a job that hits its own limit at once must not spin; it then waits
 for a user's resume). Runs paused on other hosts' queues wait for a user's resume.
 
+How the job reports its run travels in the task: hope.train_run(run_id, attempt, report=...).
+A local queue's worker shares this host and writes the registry ("db"). Any other queue's worker
+may be on another machine, where the registry (SQLite WAL) cannot reach, so its job reports
+through Redis and daemon/remote.py applies the reports ("redis"). That needs Redis; with the
+embedded broker (no redis_url) every worker necessarily runs on this host (the broker is a
+SQLite file here), so every queue reports "db". `serve` runs the worker itself: all "db".
+
 Sending builds no torch: the Celery app only needs the task's name (workers.celery).
 """
 from __future__ import annotations
@@ -45,10 +52,12 @@ class Dispatched:
 class Dispatcher:
     def __init__(self, registry: Any, settings: Any, *, celery_app: Any = None,
                  local_queues: Iterable[str] = ("pi",), memory_retry_s: float = 60.0,
-                 send: Callable[[str, int, str, str], None] | None = None):
+                 remote_reports: bool = False, send: Callable[[str, int, str, str], None] | None = None):
         self.registry = registry
         self.settings = settings
         self.local_queues = set(local_queues)
+        # Runs on other queues report through Redis (see the module docstring).
+        self.remote_reports = bool(remote_reports and settings.redis_url)
         self.memory_retry_s = float(memory_retry_s)
         self._app = celery_app
         self._send = send  # tests may replace the broker; None = Celery send_task
@@ -63,13 +72,18 @@ class Dispatcher:
             self._app = create_celery(self.settings)
         return self._app
 
+    def report_mode(self, queue: str) -> str:
+        """How a job on `queue` reports its run: "db" (the registry, this host) or "redis"."""
+        return "redis" if self.remote_reports and queue not in self.local_queues else "db"
+
     def send(self, run_id: str, attempt: int, queue: str, task_id: str) -> None:
         if self._send is not None:
             self._send(run_id, attempt, queue, task_id)
             return
         from workers.celery import TASK_TRAIN_RUN
 
-        self.app.send_task(TASK_TRAIN_RUN, args=[run_id, attempt], queue=queue, task_id=task_id)
+        self.app.send_task(TASK_TRAIN_RUN, args=[run_id, attempt], kwargs={"report": self.report_mode(queue)},
+                           queue=queue, task_id=task_id)
 
     # -- dispatch --------------------------------------------------------------------------
 
@@ -105,7 +119,8 @@ class Dispatcher:
         except Exception as exc:  # noqa: BLE001 - broker down, bad URL: keep the run queued
             self._unsend(d, exc)
             return None
-        log.info("dispatched %s (attempt %d) to queue %s as task %s", d.run_id, d.attempt, queue, task_id)
+        log.info("dispatched %s (attempt %d) to queue %s as task %s, reporting via %s", d.run_id, d.attempt, queue,
+                 task_id, self.report_mode(queue))
         return d
 
     def _unsend(self, d: Dispatched, exc: BaseException) -> None:

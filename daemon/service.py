@@ -9,11 +9,18 @@ Each tick, in this order:
 1. monitor: memory, CPU, temperature; the throttle level (hysteresis, monitor.ThrottlePolicy);
    a level change is written on the active local run (+ a `throttle` run event) or, with no run,
    pushed as `system.throttle` directly;
-2. paused runs the daemon paused (thermal, memory) are requeued when the host allows;
-3. reconcile: runs whose worker child is gone are interrupted and requeued (reconcile.py);
-4. dispatch: the next queued run on every idle queue (dispatch.py), none on a hot host;
-5. events: new run_events rows to the sink; `system.stats` every stats_every_s;
-6. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
+2. remote reports: what the jobs of workers on other machines reported through Redis is applied
+   to the registry (remote.py), before anything judges their heartbeats;
+3. paused runs the daemon paused (thermal, memory) are requeued when the host allows;
+4. reconcile: runs whose worker child is gone are interrupted and requeued (reconcile.py);
+5. dispatch: the next queued run on every idle queue (dispatch.py), none on a hot host;
+6. remote control: the control state of every running remote run is published to Redis;
+7. events: new run_events rows to the sink; `system.stats` every stats_every_s;
+8. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
+
+Which runs are remote: with remote_reports=True (`run_trainer.py daemon`) and a Redis URL, those
+on a queue outside local_queues; their worker may be on another machine, where hope.db is out of
+reach. `serve` keeps the default False: it runs the worker itself, so every queue is local.
 A failing tick (the database locked past its busy timeout, a broker error) is logged and the next
 tick tries again; the state is all in the registry, so nothing is lost by skipping one.
 The daemon never imports torch.
@@ -33,9 +40,12 @@ from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, N
 from daemon.models import Run
 from daemon.monitor import SystemMonitor, ThrottleChange, ThrottlePolicy
 from daemon.reconcile import Reconciler
+from daemon.remote import RemoteReports
 from daemon.sdnotify import SdNotifier
 
 log = logging.getLogger(__name__)
+
+START_BATCHES = 200  # reports applied at start, in batches: a backlog of hours from a remote job
 
 
 class Daemon:
@@ -44,7 +54,7 @@ class Daemon:
                  memory_retry_s: float = 60.0, local_queues: Iterable[str] = ("pi",),
                  monitor: SystemMonitor | None = None, policy: ThrottlePolicy | None = None,
                  celery_app: Any = None, notifier: SdNotifier | None = None, host: str | None = None,
-                 registry: Any = None, send: Any = None):
+                 registry: Any = None, send: Any = None, remote_reports: bool = False, redis_client: Any = None):
         self.settings = settings
         self.sink = sink or NullSink()
         self.tick_s = float(tick_s)
@@ -53,6 +63,8 @@ class Daemon:
         self.claim_timeout_s = float(claim_timeout_s)
         self.memory_retry_s = float(memory_retry_s)
         self.local_queues = tuple(local_queues)
+        self.remote_reports = bool(remote_reports and settings.redis_url)
+        self._redis_client = redis_client  # tests may pass one (fakeredis); else built from settings.redis_url
         self.monitor = monitor or SystemMonitor(settings)
         self.policy = policy or ThrottlePolicy.from_settings(settings)
         self.notifier = notifier or SdNotifier()
@@ -64,6 +76,8 @@ class Daemon:
         self.dispatcher: Dispatcher | None = None
         self.reconciler: Reconciler | None = None
         self.tailer: EventTailer | None = None
+        self.remote: RemoteReports | None = None
+        self._remote_failures = 0
         self.last_sample: dict[str, Any] | None = None
         self._stats_at: float | None = None
         self._failures = 0
@@ -80,16 +94,27 @@ class Daemon:
             self.registry = Registry.open(self.settings, migrate=True)  # the daemon migrates once, here
         self.dispatcher = Dispatcher(self.registry, self.settings, celery_app=self._celery_app,
                                      local_queues=self.local_queues, memory_retry_s=self.memory_retry_s,
-                                     send=self._send)
+                                     remote_reports=self.remote_reports, send=self._send)
         self.reconciler = Reconciler(self.registry, host=self.host, heartbeat_timeout_s=self.heartbeat_timeout_s,
                                      claim_timeout_s=self.claim_timeout_s, resend=self.dispatcher.resend)
         self.tailer = EventTailer(self.registry, self.sink)
+        if self.remote_reports:
+            client = self._redis_client
+            if client is None:
+                import redis
+
+                client = redis.Redis.from_url(self.settings.redis_url, socket_timeout=10, socket_connect_timeout=10)
+            self.remote = RemoteReports(self.registry, client, local_queues=self.local_queues)
+            # What remote children said while we were down, before their heartbeats are judged.
+            self.remote_step(lambda: self.remote.poll(batches=START_BATCHES))
         # What a crash (ours or a worker's) left behind; a dispatch this daemon committed but may
         # not have sent before it died is re-sent after heartbeat_timeout_s, not claim_timeout_s.
         for action in self.reconciler.reconcile(claim_timeout_s=min(self.claim_timeout_s, self.heartbeat_timeout_s)):
             log.info("start: run %s %s (%s)", action.run_id, action.action, action.why)
-        log.info("daemon started: registry %s, queues local %s, broker %s", self.registry.path,
-                 ",".join(self.local_queues), "redis" if self.settings.redis_url else "embedded sqlite")
+        log.info("daemon started: registry %s, queues local %s, broker %s, %s", self.registry.path,
+                 ",".join(self.local_queues), "redis" if self.settings.redis_url else "embedded sqlite",
+                 "jobs on other queues report through Redis" if self.remote_reports
+                 else "every job writes the registry directly")
 
     def stop(self) -> None:
         self.notifier.stopping()
@@ -140,9 +165,13 @@ class Daemon:
         self.last_sample = sample
         change = self.policy.update_from_sample(sample)
         self.apply_throttle(change)
+        if self.remote is not None:
+            self.remote_step(self.remote.poll)
         self.dispatcher.requeue_paused(self.policy.level, sample.get("mem_available_mb"))
         self.reconciler.reconcile()
         self.dispatcher.dispatch(self.policy.level)
+        if self.remote is not None:
+            self.remote_step(self.remote.publish_running)
         self.tailer.poll()
         now = time.monotonic()
         if self._stats_at is None or now - self._stats_at >= self.stats_every_s:
@@ -150,6 +179,23 @@ class Daemon:
             self.tailer.push(STATS_EVENT, {**sample, "throttle_level": self.policy.level})
         self.ticks += 1
         self._update_status()
+
+    def remote_step(self, step) -> None:
+        """Redis being away must not stop the rest of the tick (local runs, monitors, events):
+        the reports wait in Redis, and the remote runs' heartbeats judge them meanwhile."""
+        import redis
+
+        try:
+            step()
+        except redis.RedisError as exc:
+            self._remote_failures += 1
+            if self._remote_failures == 1 or self._remote_failures % 100 == 0:
+                log.warning("remote workers: Redis unreachable (%d in a row): %s: %s", self._remote_failures,
+                            type(exc).__name__, exc)
+            return
+        if self._remote_failures:
+            log.info("remote workers: Redis reachable again after %d failures", self._remote_failures)
+        self._remote_failures = 0
 
     def apply_throttle(self, change: ThrottleChange | None) -> None:
         """Keep throttle_level of every running local run equal to the policy's level. Checked

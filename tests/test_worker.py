@@ -213,15 +213,21 @@ def _set(home: Home, rid: str, **values) -> None:
             setattr(run, k, v)
 
 
-def test_db_control_maps_the_row_to_commands(reg_home, tmp_path):
+def _channel(home: Home, rid: str, pid: int = 4242):
+    from workers.report import RegistryChannel
+
+    return RegistryChannel(home.registry, rid, "task-1", 1, pid, "host")
+
+
+def test_run_control_maps_the_row_to_commands(reg_home, tmp_path):
     import threading
 
-    from workers.job import THROTTLE_SLOW, DBControl
+    from workers.job import THROTTLE_SLOW, RunControl
 
     rid = _claimed_run(reg_home, tmp_path / "no-data")
     said = []
     shutdown = threading.Event()
-    ctl = DBControl(reg_home.registry, rid, 4242, shutdown=shutdown, emit=lambda k, p: said.append((k, p)))
+    ctl = RunControl(_channel(reg_home, rid), shutdown=shutdown, emit=lambda k, p: said.append((k, p)))
     assert ctl.poll(0).desired == "run" and ctl.poll(0).throttle == 0
     _set(reg_home, rid, throttle_level=1)
     assert ctl.poll(1).desired == "run" and ctl.poll(1).throttle == THROTTLE_SLOW
@@ -242,17 +248,20 @@ def test_db_control_maps_the_row_to_commands(reg_home, tmp_path):
 
     # the row taken over by another child: this one cancels itself (and says why, once)
     _set(reg_home, rid, worker_pid=999, desired_state="run", requested_reason=None)
-    other = DBControl(reg_home.registry, rid, 4242, emit=lambda k, p: said.append((k, p)))
+    other = RunControl(_channel(reg_home, rid), emit=lambda k, p: said.append((k, p)))
     assert other.poll(7).desired == "cancel" and other.poll(8).desired == "cancel" and other.lost.is_set()
     assert sum("no longer this child's" in p["message"] for _, p in said) == 1
+    # the same pid on another host is not this child either
+    _set(reg_home, rid, worker_pid=4242, worker_host="elsewhere")
+    assert RunControl(_channel(reg_home, rid)).poll(9).desired == "cancel"
 
 
 def test_thermal_pause_is_recorded_as_thermal_even_if_the_host_cooled_before_finish(reg_home, tmp_path):
     from daemon import runs
-    from workers.job import DBControl
+    from workers.job import RunControl
 
     rid = _claimed_run(reg_home, tmp_path / "no-data")
-    ctl = DBControl(reg_home.registry, rid, 4242)
+    ctl = RunControl(_channel(reg_home, rid))
     _set(reg_home, rid, throttle_level=2)
     assert ctl.poll(1).desired == "pause"
     _set(reg_home, rid, throttle_level=0)  # the daemon saw it cool down before the child reported
@@ -262,9 +271,9 @@ def test_thermal_pause_is_recorded_as_thermal_even_if_the_host_cooled_before_fin
     assert (run["state"], run["pause_reason"]) == ("paused", "thermal")
 
 
-def test_db_emitter_rate_limits_progress_and_keeps_the_last(reg_home, tmp_path):
+def test_emitter_rate_limits_progress_and_keeps_the_last(reg_home, tmp_path):
     from daemon.models import Run
-    from workers.job import LOG_MAX_CHARS, DBEmitter
+    from workers.job import LOG_MAX_CHARS, Emitter
 
     rid = _claimed_run(reg_home, tmp_path / "no-data")
     clock = [100.0]
@@ -275,7 +284,7 @@ def test_db_emitter_rate_limits_progress_and_keeps_the_last(reg_home, tmp_path):
         clock[0] += s
 
     # a clock in 1/16 s ticks (exact floats) and a 0.25 s gap: one event in four gets through
-    em = DBEmitter(reg_home.registry, rid, 4242, min_gap_s=0.25, clock=lambda: clock[0], sleep=sleep)
+    em = Emitter(_channel(reg_home, rid), min_gap_s=0.25, clock=lambda: clock[0], sleep=sleep)
     for step in range(1, 21):
         clock[0] += 1 / 16
         em("progress", {"step": step, "total": 20, "loss": 1.0 / step, "steps_per_s": 100.0, "eta_s": 0,
@@ -331,18 +340,27 @@ def test_build_train_config(reg_home, tmp_path):
 
 def test_vqvae_run_resolves_to_a_completed_vqvae_runs_dir(reg_home, tmp_path):
     from daemon import runs
-    from workers.job import JobConfigError, _vqvae_run_dir
+    from workers.job import JobConfigError, vqvae_dir_of
+    from workers.report import snapshot_of
 
     vq = create(reg_home, tmp_path / "d", steps=10, component="vqvae")
-    with pytest.raises(JobConfigError, match=f"run r-x: vqvae_run {vq} is a queued vqvae run, not a completed"):
-        _vqvae_run_dir(reg_home.registry, vq, "r-x")
-    with pytest.raises(JobConfigError, match="vqvae_run r-nope does not exist"):
-        _vqvae_run_dir(reg_home.registry, "r-nope", "r-x")
+    fast = create(reg_home, tmp_path / "d", steps=10, vqvae_run=vq)
+    nope = create(reg_home, tmp_path / "d", steps=10, vqvae_run="r-nope")
+
+    def resolve(rid):  # what the claim hands the job, then what the job makes of it
+        with reg_home.registry.session(readonly=True) as s:
+            snap = snapshot_of(s, runs.get_run(s, rid))
+        return vqvae_dir_of(snap)(snap.config["vqvae_run"])
+
+    with pytest.raises(JobConfigError, match=f"run {fast}: vqvae_run {vq} is a queued vqvae run, not a completed"):
+        resolve(fast)
+    with pytest.raises(JobConfigError, match=f"run {nope}: vqvae_run r-nope does not exist"):
+        resolve(nope)
     with reg_home.registry.session() as s:
         run = runs.get_run(s, vq)
         runs.transition(s, run, "running")
         runs.transition(s, run, "completed")
-    assert _vqvae_run_dir(reg_home.registry, vq, "r-x") == reg_home.run(vq)["run_dir"]
+    assert resolve(fast) == reg_home.run(vq)["run_dir"]
 
 
 # -- a real worker process -----------------------------------------------------------------------------

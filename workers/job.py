@@ -1,16 +1,19 @@
-"""One training job for a run in the registry: the body of the `hope.train_run` task.
+"""One training job for a run: the body of the `hope.train_run` task.
 
-    run_job(settings, run_id, attempt, task_id=...) -> {"status": "finished" | "stale" | ..., ...}
+    run_job(settings, run_id, attempt, task_id=..., report="db") -> {"status": "finished" | "stale" | ..., ...}
 
-It runs in the Celery worker's prefork child, which exits afterwards. In order:
-1. claim the run in the registry (refused for a stale or duplicate delivery: then it does not train);
+It runs in the Celery worker's prefork child, which exits afterwards. Everything it says about
+its run goes through a report channel (workers/report.py): "db" writes the registry on this
+host; "redis" (a worker on another machine) reports through Redis for the daemon to apply. The
+logic below is the same for both. In order:
+1. claim the run (refused for a stale or duplicate delivery: then it does not train);
 2. start a heartbeat thread at once, before torch is imported, so a slow start (torch import,
    dataset cache build) is not taken for a dead child;
-3. build the TrainConfig from the run's config and train through hope_models.train.loop.train with
-   - DBControl: the run row's desired_state / throttle_level, read between steps;
-   - DBEmitter: progress and metric events into run_events at most 5 a second each, checkpoint
-     events (+ runs.last_checkpoint), logs (capped), throttle events;
-4. record the outcome with finish() (pid-guarded: a superseded child changes nothing).
+3. build the TrainConfig from the claimed run and train through hope_models.train.loop.train with
+   - RunControl: the run's desired_state / throttle_level, read between steps;
+   - Emitter: progress and metric events at most 5 a second each, checkpoint events
+     (+ runs.last_checkpoint), logs (capped), throttle events;
+4. report the outcome with finish() (guarded: a superseded child changes nothing).
 SIGTERM (service stop) asks the loop to checkpoint and stop; finish() then requeues the run.
 
 Torch is imported only by the trainer, inside train(): importing this module stays torch-free.
@@ -30,14 +33,9 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable
 
-from sqlalchemy import select
-from sqlalchemy.exc import SQLAlchemyError
-
-from daemon import runs
-from daemon.db import Registry
-from daemon.models import Run
 from hope_models.train.contract import ControlCommand
 from hope_models.train.loop import TrainConfig, TrainSetupError, train
+from workers.report import ChannelError, RunSnapshot, StaleDelivery, open_channel
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +61,7 @@ class JobConfigError(ValueError):
 
 # -- config ---------------------------------------------------------------------------------------
 
-def build_train_config(settings, run: Run, run_dir_of: Callable[[str], str]) -> TrainConfig:
+def build_train_config(settings, run: RunSnapshot, run_dir_of: Callable[[str], str]) -> TrainConfig:
     """TrainConfig for `run`: its config overrides, run_dir and steps from the row, the memory
     budget and cache dir from settings unless the config sets them, and no thermal sources (the
     daemon watches the temperature and sets throttle_level). `run_dir_of(run_id)` resolves
@@ -100,39 +98,43 @@ def build_train_config(settings, run: Run, run_dir_of: Callable[[str], str]) -> 
                        thermal_zone=None, vcgencmd=None, **cfg)
 
 
-def _vqvae_run_dir(registry: Registry, run_id: str, for_run: str) -> str:
-    with registry.session(readonly=True) as s:
-        other = s.get(Run, run_id)
-        if other is None:
-            raise JobConfigError(f"run {for_run}: vqvae_run {run_id} does not exist")
-        if other.component != "vqvae" or other.state != "completed":
-            raise JobConfigError(f"run {for_run}: vqvae_run {run_id} is a {other.state} {other.component} run, "
-                                 "not a completed vqvae run")
-        return other.run_dir
+def vqvae_dir_of(run: RunSnapshot) -> Callable[[str], str]:
+    """build_train_config's resolver for "vqvae_run": the registry's side resolved it at claim
+    time (a remote child has no registry to look it up in)."""
+    def run_dir_of(vqvae_run: str) -> str:
+        if run.vqvae_error:
+            raise JobConfigError(run.vqvae_error)
+        if not run.vqvae_dir:
+            raise JobConfigError(f"run {run.id}: vqvae_run {vqvae_run} was not resolved when the run was claimed")
+        return run.vqvae_dir
+
+    return run_dir_of
 
 
 # -- control --------------------------------------------------------------------------------------
 
-class DBControl:
-    """The trainer's Control, read from the run's row (a cheap SELECT; the loop polls at most every
-    control_interval_s). desired_state pause/cancel pass through; throttle_level 1 slows each step
-    by THROTTLE_SLOW; throttle_level >= 2 pauses (finish() records it as a thermal pause).
+class RunControl:
+    """The trainer's Control, read from the run through the channel (a cheap read; the loop polls
+    at most every control_interval_s). desired_state pause/cancel pass through; throttle_level 1
+    slows each step by THROTTLE_SLOW; throttle_level >= 2 pauses (finish() records it as a
+    thermal pause).
 
-    The row must still be this child's (state running, worker_pid = ours): if the daemon gave the
-    run up and requeued it (e.g. after a missed heartbeat), this child cancels itself, leaving a
-    checkpoint for the one that took over. A SIGTERM (`shutdown` set) becomes desired pause +
-    requested_reason "shutdown" on the row, so finish() puts the run back in the queue.
-    A registry error keeps the last answer (training does not stop for a busy database)."""
+    The run must still be this child's (state running, worker pid and host its own): if the
+    daemon gave the run up and requeued it (e.g. after a missed heartbeat), this child cancels
+    itself, leaving a checkpoint for the one that took over. A SIGTERM (`shutdown` set) becomes a
+    "shutdown" request (desired pause + requested_reason shutdown on the row), so finish() puts
+    the run back in the queue. No answer (a busy database, Redis or the daemon away) keeps the
+    last one: training does not stop for that."""
 
-    def __init__(self, registry: Registry, run_id: str, pid: int, *, shutdown: threading.Event | None = None,
-                 lost: threading.Event | None = None, emit: Callable[[str, dict], None] | None = None):
-        self.registry, self.run_id, self.pid = registry, run_id, pid
+    def __init__(self, channel, *, shutdown: threading.Event | None = None, lost: threading.Event | None = None,
+                 emit: Callable[[str, dict], None] | None = None):
+        self.channel = channel
+        self.run_id, self.pid, self.host = channel.run_id, channel.pid, channel.host
         self.shutdown = shutdown or threading.Event()
         self.lost = lost or threading.Event()
         self._emit = emit
         self._last = ControlCommand()
-        self._shutdown_written = False
-        self._thermal_written = False
+        self._requested: set[str] = set()
         self._said: set[str] = set()
 
     def _say(self, key: str, message: str, level: str = "warning") -> None:
@@ -143,48 +145,30 @@ class DBControl:
         if self._emit is not None:
             self._emit("log", {"level": level, "message": message})
 
-    def _write_shutdown(self) -> None:
-        self._shutdown_written = True
-        try:
-            with self.registry.session() as s:
-                run = s.get(Run, self.run_id)
-                if (run is not None and run.state == "running" and run.worker_pid == self.pid
-                        and run.desired_state != "cancel"):
-                    runs.request_shutdown(s, run)
-        except (SQLAlchemyError, runs.RunError) as exc:
-            log.warning("run %s: could not record the shutdown request: %s", self.run_id, exc)
-
-    def _write_thermal(self) -> None:
-        """Record why we pause on the row now: if the host cools below the resume limit before
-        finish(), throttle_level is back at 0 and the pause would read as a user's (never resumed
-        automatically)."""
-        if self._thermal_written:
+    def _request(self, what: str) -> None:
+        """Say once why we are about to pause: "shutdown" (finish() then requeues the run), or
+        "thermal" (if the host cools below the resume limit before finish(), throttle_level is
+        back at 0 and the pause would otherwise read as a user's, never resumed automatically)."""
+        if what in self._requested:
             return
-        self._thermal_written = True
+        self._requested.add(what)
         try:
-            with self.registry.session() as s:
-                run = s.get(Run, self.run_id)
-                if (run is not None and run.state == "running" and run.worker_pid == self.pid
-                        and run.requested_reason is None):
-                    run.requested_reason = "thermal"
-        except SQLAlchemyError as exc:
-            log.warning("run %s: could not record the thermal pause: %s", self.run_id, exc)
+            self.channel.request(what)
+        except ChannelError as exc:
+            log.warning("run %s: could not record the %s request: %s", self.run_id, what, exc)
 
     def poll(self, step: int) -> ControlCommand:
-        if self.shutdown.is_set() and not self._shutdown_written:
-            self._write_shutdown()
+        if self.shutdown.is_set():
+            self._request("shutdown")
         try:
-            with self.registry.session(readonly=True) as s:
-                row = s.execute(select(Run.state, Run.worker_pid, Run.desired_state, Run.throttle_level)
-                                .where(Run.id == self.run_id)).one_or_none()
-        except SQLAlchemyError as exc:
-            self._say("db", f"cannot read the run's control state ({type(exc).__name__}: {exc}); "
-                            "keeping the last one")
+            row = self.channel.control()
+        except ChannelError as exc:
+            self._say("no-answer", f"cannot read the run's control state ({exc}); keeping the last one")
             return self._last
-        if row is None or row.state != "running" or row.worker_pid != self.pid or self.lost.is_set():
+        if self.lost.is_set() or not row.owned_by(self.pid, self.host):
             self.lost.set()
-            where = "gone" if row is None else f"{row.state}, worker pid {row.worker_pid}"
-            self._say("lost", f"the run is no longer this child's ({where}); pid {self.pid} checkpoints and stops")
+            self._say("lost", f"the run is no longer this child's ({row.describe()}); pid {self.pid} checkpoints "
+                              "and stops")
             cmd = ControlCommand(desired="cancel")
         elif row.desired_state == "cancel":
             cmd = ControlCommand(desired="cancel")
@@ -193,7 +177,7 @@ class DBControl:
         elif row.throttle_level >= 2:
             self._say("hot", f"throttle level {row.throttle_level}: pausing until the daemon sees it cool down",
                       "info")
-            self._write_thermal()
+            self._request("thermal")
             cmd = ControlCommand(desired="pause")
         elif row.throttle_level == 1:
             cmd = ControlCommand(throttle=THROTTLE_SLOW)
@@ -225,20 +209,20 @@ def _describe(kind: str, payload: dict) -> tuple[str, str]:
     return "info", f"{kind}: {json.dumps(payload, default=str)}"
 
 
-class DBEmitter:
-    """The trainer's emit(kind, payload) -> run_events rows (and the run row's live fields).
+class Emitter:
+    """The trainer's emit(kind, payload) -> run events through the channel (and the run row's
+    live fields).
 
     progress: at most one event per EVENT_MIN_GAP_S (5/s), plus runs.step/loss/steps_per_s and
     the heartbeat; the newest skipped one is kept and written by flush() at the end of the job,
     so the last progress always lands. metric: the same limit (every record is in the run dir's
     metrics.jsonl anyway). checkpoint: an event + runs.last_checkpoint. log: capped in size and
     count. throttle: as is. Other trainer events (resume, memory, state) become log events.
-    A registry error drops the event (logged): it never stops training."""
+    A channel error drops the event (logged): it never stops training."""
 
-    def __init__(self, registry: Registry, run_id: str, pid: int, *, lost: threading.Event | None = None,
-                 min_gap_s: float = EVENT_MIN_GAP_S, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep):
-        self.registry, self.run_id, self.pid = registry, run_id, pid
+    def __init__(self, channel, *, lost: threading.Event | None = None, min_gap_s: float = EVENT_MIN_GAP_S,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep):
+        self.channel, self.run_id = channel, channel.run_id
         self.lost = lost or threading.Event()
         self.min_gap_s, self._clock, self._sleep = min_gap_s, clock, sleep
         self._last_write: dict[str, float] = {}
@@ -296,13 +280,9 @@ class DBEmitter:
 
     def _write(self, kind: str, payload: dict, heartbeat: dict | None = None) -> None:
         try:
-            with self.registry.session() as s:
-                runs.add_event(s, self.run_id, kind, payload)
-                if heartbeat is not None:
-                    values = {k: v for k, v in heartbeat.items() if v is not None}
-                    if not runs.heartbeat(s, self.run_id, self.pid, **values):
-                        self.lost.set()
-        except (SQLAlchemyError, runs.RunError) as exc:
+            if not self.channel.event(kind, payload, heartbeat):
+                self.lost.set()
+        except ChannelError as exc:
             self.dropped += 1
             log.warning("run %s: %s event not recorded: %s", self.run_id, kind, exc)
 
@@ -310,14 +290,13 @@ class DBEmitter:
 # -- heartbeat ------------------------------------------------------------------------------------
 
 class Heartbeat:
-    """A daemon thread touching runs.heartbeat_at every `interval_s` while the job runs (setup
-    included). It stops, and sets `lost`, once the row is no longer this child's."""
+    """A daemon thread saying "alive" every `interval_s` while the job runs (setup included). It
+    stops, and sets `lost`, once the run is no longer this child's."""
 
-    def __init__(self, registry: Registry, run_id: str, pid: int, lost: threading.Event,
-                 interval_s: float = HEARTBEAT_S):
-        self.registry, self.run_id, self.pid, self.lost, self.interval_s = registry, run_id, pid, lost, interval_s
+    def __init__(self, channel, lost: threading.Event, interval_s: float = HEARTBEAT_S):
+        self.channel, self.lost, self.interval_s = channel, lost, interval_s
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{run_id}", daemon=True)
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{channel.run_id}", daemon=True)
 
     def start(self) -> "Heartbeat":
         self._thread.start()
@@ -326,10 +305,9 @@ class Heartbeat:
     def _beat(self) -> None:
         while not self._stop.wait(self.interval_s):
             try:
-                with self.registry.session() as s:
-                    mine = runs.heartbeat(s, self.run_id, self.pid)
-            except SQLAlchemyError as exc:
-                log.warning("run %s: heartbeat not recorded: %s", self.run_id, exc)
+                mine = self.channel.heartbeat()
+            except ChannelError as exc:
+                log.warning("run %s: heartbeat not recorded: %s", self.channel.run_id, exc)
                 continue
             if not mine:
                 self.lost.set()
@@ -344,7 +322,7 @@ class Heartbeat:
 
 def _wait_run_dir_free(run_dir: Path, timeout_s: float, give_up: threading.Event) -> None:
     """Wait while another process holds the run dir's training lock: a child the daemon gave up
-    on stops at its next control poll (DBControl sees the row is no longer its own) and leaves a
+    on stops at its next control poll (RunControl sees the run is no longer its own) and leaves a
     checkpoint this job resumes from. The trainer takes the lock itself right after."""
     lock = run_dir / ".lock"
     deadline = time.monotonic() + timeout_s
@@ -374,18 +352,18 @@ def _install_sigterm(flag: threading.Event):
 
 
 class _Job:
-    def __init__(self, registry: Registry, settings, run: Run, pid: int, shutdown: threading.Event):
-        self.registry, self.settings, self.run, self.pid = registry, settings, run, pid
+    def __init__(self, channel, settings, run: RunSnapshot, shutdown: threading.Event):
+        self.channel, self.settings, self.run = channel, settings, run
         self.lost = threading.Event()
         self.shutdown = shutdown
-        self.emitter = DBEmitter(registry, run.id, pid, lost=self.lost)
-        self.control = DBControl(registry, run.id, pid, shutdown=self.shutdown, lost=self.lost, emit=self.emitter)
+        self.emitter = Emitter(channel, lost=self.lost)
+        self.control = RunControl(channel, shutdown=self.shutdown, lost=self.lost, emit=self.emitter)
 
     def train(self) -> tuple[str, str, int | None, str | None]:
         """(outcome, message, step, last checkpoint) of the trainer, or failed with why."""
         run = self.run
         try:
-            cfg = build_train_config(self.settings, run, lambda rid: _vqvae_run_dir(self.registry, rid, run.id))
+            cfg = build_train_config(self.settings, run, vqvae_dir_of(run))
             _wait_run_dir_free(Path(cfg.run_dir), RUN_DIR_WAIT_S, self.shutdown)
             # Asked to stop before training began (SIGTERM or a request during setup): do not start.
             first = self.control.poll(run.step)
@@ -402,60 +380,50 @@ class _Job:
             return "failed", f"{type(exc).__name__}: {exc}", None, None
 
     def __call__(self) -> dict[str, Any]:
-        run, pid = self.run, self.pid
-        heartbeat = Heartbeat(self.registry, run.id, pid, self.lost).start()
+        run, pid = self.run, self.channel.pid
+        heartbeat = Heartbeat(self.channel, self.lost).start()
         try:
             outcome, message, step, checkpoint = self.train()
             self.emitter.flush()
         finally:
             heartbeat.stop()
-        with self.registry.session() as s:
-            final = runs.finish(s, run.id, pid, outcome, message, step=step, last_checkpoint=checkpoint)
-        out = {"run_id": run.id, "attempt": run.attempt, "outcome": outcome, "step": step, "message": message}
+        final = self.channel.finish(outcome, message, step=step, last_checkpoint=checkpoint)
+        out = {"run_id": run.id, "attempt": run.attempt, "outcome": outcome, "step": step, "message": message,
+               "report": self.channel.mode}
         if final is None:
             log.warning("run %s: pid %d was superseded; its outcome %s is not recorded", run.id, pid, outcome)
             return {"status": "superseded", **out}
-        log.info("run %s: %s -> %s at step %s", run.id, outcome, final.state, final.step)
-        return {"status": "finished", "state": final.state, **out}
+        if final == "reported":  # through Redis: the daemon applies it
+            log.info("run %s: %s at step %s, reported to the daemon", run.id, outcome, step)
+            return {"status": "reported", **out}
+        log.info("run %s: %s -> %s at step %s", run.id, outcome, final, step)
+        return {"status": "finished", "state": final, **out}
 
 
-def _note_stale(registry: Registry, run_id: str, task_id: str, attempt: int) -> str:
-    try:
-        with registry.session() as s:
-            run = s.get(Run, run_id)
-            if run is None:
-                log.warning("task %s: no run %s in the registry; nothing to train", task_id, run_id)
-                return "missing"
-            message = (f"ignored a stale delivery (task {task_id}, attempt {attempt}): the run is {run.state}, "
-                       f"attempt {run.attempt}, task {run.celery_task_id}, pid {run.worker_pid}; it did not train")
-            runs.add_event(s, run_id, "log", {"level": "warning", "message": message})
-    except SQLAlchemyError as exc:
-        message = f"stale delivery of task {task_id} (the registry could not be read: {exc})"
-    log.warning("run %s: %s", run_id, message)
-    return "stale"
-
-
-def run_job(settings, run_id: str, attempt: int, *, task_id: str, host: str | None = None,
+def run_job(settings, run_id: str, attempt: int, *, task_id: str, report: str = "db", host: str | None = None,
             pid: int | None = None) -> dict[str, Any]:
-    """Claim run `run_id` for delivery (task_id, attempt) and train it in this process; a small
-    JSON-able summary. Stale deliveries return {"status": "stale"} without training."""
+    """Claim run `run_id` for delivery (task_id, attempt) and train it in this process, reporting
+    through `report` ("db": the registry on this host; "redis": the daemon, from another
+    machine); a small JSON-able summary. Stale deliveries return {"status": "stale"} (or
+    "missing", "no_answer") without training."""
     host = host or socket.gethostname()
     pid = pid or os.getpid()
     # From the start of the task: a SIGTERM during setup is served at the first control poll.
     shutdown = threading.Event()
     previous = _install_sigterm(shutdown)
     try:
-        registry = Registry.open(settings, migrate=False)
+        channel = open_channel(settings, report, run_id, task_id, attempt, pid, host)
         try:
-            with registry.session() as s:
-                run = runs.claim(s, run_id, task_id, attempt, host, pid)
-            if run is None:
-                status = _note_stale(registry, run_id, task_id, attempt)
-                return {"status": status, "run_id": run_id, "attempt": attempt, "task_id": task_id}
-            log.info("run %s: claimed by pid %d on %s (task %s, attempt %d)", run_id, pid, host, task_id, attempt)
-            return _Job(registry, settings, run, pid, shutdown)()
+            try:
+                run = channel.claim()
+            except StaleDelivery as exc:
+                log.warning("run %s: %s", run_id, exc.why)
+                return {"status": exc.status, "run_id": run_id, "attempt": attempt, "task_id": task_id}
+            log.info("run %s: claimed by pid %d on %s (task %s, attempt %d, reports via %s)", run_id, pid, host,
+                     task_id, attempt, channel.mode)
+            return _Job(channel, settings, run, shutdown)()
         finally:
-            registry.close()
+            channel.close()
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -10,6 +10,10 @@ sd_notify: READY=1 once started, WATCHDOG=1 at half WatchdogSec after ticks that
 STATUS= the active run, STOPPING=1 on SIGTERM/SIGINT, which stop it cleanly (exit 0). Stopping the
 daemon does not stop a training job: the worker is its own service, and a restarted daemon finds
 the run where it is.
+
+Queues outside --local-queues are served by workers that may run on other machines (a desktop
+with `run_trainer.py worker -Q gpu`): with a Redis URL, their jobs report through Redis and this
+daemon writes their reports into the registry (docs/scale-out.md).
 """
 from __future__ import annotations
 
@@ -40,8 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stats-every-s", type=_positive_float, default=5.0, metavar="S",
                         help="system.stats event interval (default 5)")
     parser.add_argument("--local-queues", default="pi", metavar="LIST",
-                        help="queues whose worker runs on this host: this host's temperature and memory "
-                             "govern them (default pi)")
+                        help="comma-separated queues whose worker runs on this host: this host's temperature "
+                             "and memory govern them, and their jobs write the registry directly. Jobs on "
+                             "other queues report through Redis, from any machine (default pi)")
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
 
 
@@ -71,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     notifier = SdNotifier()
     daemon = Daemon(settings, sink, tick_s=args.tick_s, stats_every_s=args.stats_every_s,
                     heartbeat_timeout_s=args.heartbeat_timeout_s, claim_timeout_s=args.claim_timeout_s,
-                    local_queues=queues, notifier=notifier)
+                    local_queues=queues, notifier=notifier, remote_reports=True)
     stop = threading.Event()
 
     def on_signal(signum, frame):
