@@ -1,0 +1,97 @@
+"""Validation metrics of a component on a dataset's validation split: one function, two users.
+
+The trainer reports them at the end of a completed job (loop._Trainer._validate) and the promotion
+gate compares a candidate with the promoted model on them (hope_models/promote/gate.py). Both call
+`validation_metrics`, so a gate's "val loss" is the number the run reported, measured on the same
+episodes and the same batches:
+
+- the split is by episode (sampler.is_validation_episode: the hash of the episode id against
+  val_fraction), so it depends only on the data and val_fraction;
+- the batches are AnchorSampler(split="val").batch(0 .. batches-1), a pure function of
+  (seed, batch_size, imagined_ratio, val_fraction) and the component's window (its history and
+  horizon decide which anchors are eligible);
+- the metrics are the mean of component.evaluate() over those batches, with torch's RNG restored
+  afterwards and the model back in the mode it was in.
+
+`ValidationSetup.from_train_config` reads those numbers from a TrainConfig, or from the "train"
+block a checkpoint's config.json holds, so the gate re-creates a finished run's split exactly.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+
+class NoValidationSplit(ValueError):
+    """The dataset has no anchors in the validation split (too few episodes for val_fraction)."""
+
+
+@dataclass(frozen=True)
+class ValidationSetup:
+    batch_size: int
+    seed: int = 0
+    imagined_ratio: float = 0.0
+    val_fraction: float = 0.1
+    batches: int = 4  # TrainConfig.val_batches
+
+    @classmethod
+    def from_train_config(cls, cfg: Any) -> "ValidationSetup":
+        """From a TrainConfig or a checkpoint's config.json "train" dict (TrainConfig.to_json_obj)."""
+        get = cfg.get if isinstance(cfg, Mapping) else (lambda k, d=None: getattr(cfg, k, d))
+        try:
+            return cls(batch_size=int(get("batch_size")), seed=int(get("seed", 0)),
+                       imagined_ratio=float(get("imagined_ratio", 0.0)), val_fraction=float(get("val_fraction", 0.1)),
+                       batches=int(get("val_batches", 4)))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"the training config has no usable validation settings: {exc}") from None
+
+
+def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, imagined_ratio: float,
+                   val_fraction: float):
+    """The AnchorSampler the trainer draws `split` ("train", "val", "all") from for this component."""
+    from hope_models.data.sampler import AnchorSampler
+
+    win = component.window
+    horizon = getattr(component, "horizon_s", max(win.horizons_s, default=0.0))
+    return AnchorSampler(cache, batch_size, seed=seed, imagined_ratio=imagined_ratio, split=split,
+                         val_fraction=val_fraction, min_history_s=float(getattr(component, "min_history_s", 0.0)),
+                         horizon_s=float(horizon))
+
+
+def validation_metrics(component, cache, setup: ValidationSetup, *, anchors_from=None) -> dict[str, float]:
+    """Mean component.evaluate() metrics over setup.batches validation batches.
+
+    `anchors_from` (default: `component`) is the component whose window picks the anchors: the
+    gate passes the candidate's, so a promoted model is scored on exactly the candidate's batches.
+    `cache` may be a view of the dataset with another model's normalisation (gate.py); the anchors
+    do not depend on it. Raises NoValidationSplit when the split has no anchors.
+    """
+    import torch
+
+    from hope_models.data.windows import make_windows
+
+    if setup.batches < 1:
+        raise ValueError(f"val_batches={setup.batches} must be >= 1")
+    try:
+        val = anchor_sampler(cache, anchors_from or component, "val", batch_size=setup.batch_size, seed=setup.seed,
+                             imagined_ratio=setup.imagined_ratio, val_fraction=setup.val_fraction)
+    except ValueError as exc:
+        raise NoValidationSplit(str(exc)) from None
+    rng = torch.get_rng_state()
+    model = component.model
+    was_training = model.training
+    sums: dict[str, float] = {}
+    model.eval()
+    try:
+        with torch.no_grad():
+            for b in range(setup.batches):
+                batch = make_windows(cache, val.batch(b), component.window, frames=bool(component.wants_frames))
+                for k, v in component.evaluate(batch).items():
+                    sums[k] = sums.get(k, 0.0) + float(v)
+    finally:
+        model.train(was_training)
+        torch.set_rng_state(rng)
+    return {k: v / setup.batches for k, v in sums.items()}
+
+
+__all__ = ["ValidationSetup", "NoValidationSplit", "anchor_sampler", "validation_metrics"]
