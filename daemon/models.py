@@ -1,4 +1,4 @@
-"""The registry's tables: runs, their events, and trained models.
+"""The registry's tables: runs, their events, and trained models (candidates and promotions).
 
 Times are timezone-aware UTC datetimes in Python. SQLite has no datetime type, so they are stored
 as naive UTC text ("YYYY-MM-DD HH:MM:SS.ffffff", SQLAlchemy's format), which sorts in time order.
@@ -94,6 +94,10 @@ class Run(Base):
     heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     loss: Mapped[float | None] = mapped_column(Float)  # last progress loss
     steps_per_s: Mapped[float | None] = mapped_column(Float)
+    # The loop closure: when a served model made by this run first answered an inference, and
+    # how long after the run finished that was (daemon.promotion.record_first_inference).
+    first_inference_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    loop_closure_s: Mapped[float | None] = mapped_column(Float)
 
     __table_args__ = (Index("ix_runs_dispatch", "state", "queue", "priority", "created_at"),)
 
@@ -131,6 +135,8 @@ class Run(Base):
             "finished_at": iso(self.finished_at),
             "updated_at": iso(self.updated_at),
             "heartbeat_at": iso(self.heartbeat_at),
+            "first_inference_at": iso(self.first_inference_at),
+            "loop_closure_s": self.loop_closure_s,
             "config": self.config,
         }
 
@@ -152,15 +158,26 @@ class RunEvent(Base):
 
 
 class Model(Base):
+    """One candidate checkpoint of a component, gated once; promoted_at is set while it is served.
+
+    The history of a component is its rows: refused candidates keep their gate_result (why), a
+    demoted one its demoted_at, and previous_model_id says what was served before this one was
+    promoted, which is what a rollback goes back to (daemon/promotion.py)."""
+
     __tablename__ = "models"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     component: Mapped[str] = mapped_column(String(32))
     checkpoint_path: Mapped[str] = mapped_column(Text)
+    # "<run>@<step>:<sha12>" (hope_models.promote.pointers.checkpoint_version); null only for rows
+    # written before revision 0002
+    version: Mapped[str | None] = mapped_column(String(200))
     run_id: Mapped[str | None] = mapped_column(ForeignKey("runs.id", ondelete="SET NULL"), index=True)
     metrics: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
     gate_result: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
     promoted_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    demoted_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    previous_model_id: Mapped[int | None] = mapped_column(ForeignKey("models.id", ondelete="SET NULL"))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
     # At most one promoted model per component (the BrainService loads that one).
@@ -181,9 +198,13 @@ class Model(Base):
             "id": self.id,
             "component": self.component,
             "checkpoint_path": self.checkpoint_path,
+            "version": self.version,
             "run_id": self.run_id,
             "metrics": self.metrics,
             "gate_result": self.gate_result,
+            "promoted": self.promoted_at is not None,
             "promoted_at": iso(self.promoted_at),
+            "demoted_at": iso(self.demoted_at),
+            "previous_model_id": self.previous_model_id,
             "created_at": iso(self.created_at),
         }

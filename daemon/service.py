@@ -35,6 +35,7 @@ from typing import Any, Iterable
 from sqlalchemy import select
 
 from daemon import runs
+from daemon.autopromote import AutoPromoter
 from daemon.dispatch import Dispatcher
 from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, NullSink
 from daemon.models import Run
@@ -77,6 +78,7 @@ class Daemon:
         self.reconciler: Reconciler | None = None
         self.tailer: EventTailer | None = None
         self.remote: RemoteReports | None = None
+        self.autopromoter: AutoPromoter | None = None
         self._remote_failures = 0
         self.last_sample: dict[str, Any] | None = None
         self._stats_at: float | None = None
@@ -98,6 +100,7 @@ class Daemon:
         self.reconciler = Reconciler(self.registry, host=self.host, heartbeat_timeout_s=self.heartbeat_timeout_s,
                                      claim_timeout_s=self.claim_timeout_s, resend=self.dispatcher.resend)
         self.tailer = EventTailer(self.registry, self.sink)
+        self.autopromoter = AutoPromoter(self.settings, self.registry)
         if self.remote_reports:
             client = self._redis_client
             if client is None:
@@ -118,6 +121,8 @@ class Daemon:
 
     def stop(self) -> None:
         self.notifier.stopping()
+        if self.autopromoter is not None:
+            self.autopromoter.close()  # stops a gate still running (its child has its own session)
         if self.registry is not None and self._own_registry:
             self.registry.close()
             self.registry = None
@@ -172,6 +177,7 @@ class Daemon:
         self.dispatcher.dispatch(self.policy.level)
         if self.remote is not None:
             self.remote_step(self.remote.publish_running)
+        self.autopromoter.tick()  # returns at once; one promote child at a time
         self.tailer.poll()
         now = time.monotonic()
         if self._stats_at is None or now - self._stats_at >= self.stats_every_s:

@@ -32,6 +32,11 @@ class Settings:
     data_roots: list[str] = field(default_factory=list)  # extra roots API requests may read from
     max_file_mb: int = 512  # reader guard: larger episode files are refused
     max_line_kb: int = 64 * 1024  # reader guard: a JSONL line longer than this is refused
+    # promotion (hope_models/promote/gate.py, daemon/autopromote.py)
+    auto_promote: bool = True  # gate (and promote when it passes) every run that completes
+    gate_val_tolerance: float = 0.05  # candidate val loss may be at most this fraction above the promoted one's
+    gate_reflex_tolerance: float = 50.0  # sim reflex: mean return may be at most this many points below
+    gate_reflex_episodes: int = 5  # held-out reacher seeds the reflex check runs
 
     @property
     def datasets_dir(self) -> Path:
@@ -57,17 +62,39 @@ _ENV = {
     "HOPE_THERMAL_SOFT_C": "thermal_soft_c",
     "HOPE_THERMAL_HARD_C": "thermal_hard_c",
     "HOPE_THERMAL_RESUME_C": "thermal_resume_c",
+    "HOPE_AUTO_PROMOTE": "auto_promote",
+    "HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance",
+    "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
+    "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
 }
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+# field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
+_MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1}
 
 
 def _coerce(name: str, value, where: str):
     types = {f.name: f.type for f in fields(Settings)}
     kind = types[name]
     try:
+        if kind == "bool":
+            if isinstance(value, bool):
+                return value
+            text = str(value).strip().lower()
+            if text in _TRUE or text in _FALSE:
+                return text in _TRUE
+            raise ValueError(value)
         if kind == "int":
-            return int(value)
+            if isinstance(value, bool):
+                raise ValueError(value)
+            return _at_least(name, int(value), where)
         if kind == "float":
-            return float(value)
+            if isinstance(value, bool):
+                raise ValueError(value)
+            v = float(value)
+            if v != v or v in (float("inf"), float("-inf")):
+                raise ValueError(value)
+            return _at_least(name, v, where)
         if kind == "list[str]":
             if isinstance(value, str):
                 return [v for v in value.split(os.pathsep) if v]
@@ -75,8 +102,17 @@ def _coerce(name: str, value, where: str):
         if kind == "str | None":
             return str(value) if value not in (None, "") else None
         return str(value)
+    except SettingsError:
+        raise
     except (TypeError, ValueError):
         raise SettingsError(f"{where}: setting {name!r} = {value!r} is not a valid {kind}") from None
+
+
+def _at_least(name: str, value, where: str):
+    low = _MINIMUM.get(name)
+    if low is not None and value < low:
+        raise SettingsError(f"{where}: setting {name!r} = {value!r} must be >= {low}")
+    return value
 
 
 def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | None = None) -> Settings:

@@ -56,7 +56,10 @@ class Home:
                          # No thermal sources unless a test sets them: this machine's zone must not
                          # throttle the jobs.
                          "HOPE_THERMAL_ZONE": str(path / "no-thermal-zone"), "HOPE_VCGENCMD": "",
-                         "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+                         "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                         # Gating imports torch in a child per completed run; tests of promotion
+                         # turn it back on.
+                         "HOPE_AUTO_PROMOTE": "0"})
         self.env.pop("NOTIFY_SOCKET", None)
         self.env.pop("WATCHDOG_USEC", None)
         if redis_url:

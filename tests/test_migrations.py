@@ -175,3 +175,45 @@ def test_alembic_config_points_at_the_package(engine):
     with engine.connect() as c:
         cfg = _alembic_config(c)
     assert Path(cfg.get_main_option("script_location")) == Path(migrations.__file__).resolve().parent
+
+
+def _columns(engine, table: str) -> set[str]:
+    return {c["name"] for c in inspect(engine).get_columns(table)}
+
+
+def test_0002_promotion_columns_up_and_down_keep_the_data(engine):
+    """0002 adds the promotion history and loop-closure columns; up and down keep every row (the
+    downgrade must not copy `runs`: with foreign keys on that would cascade-delete run_events)."""
+    import sqlalchemy as sa
+
+    migrate(engine, "0001")
+    with engine.begin() as c:
+        c.exec_driver_sql("INSERT INTO runs (id, component, config, state, total_steps, run_dir, created_at, updated_at) "
+                          "VALUES ('r1', 'fast_loop', '{}', 'completed', 5, '/r', '2026-01-01', '2026-01-01')")
+        c.exec_driver_sql("INSERT INTO run_events (run_id, time, kind, payload) VALUES ('r1', '2026-01-01', 'log', '{}')")
+        c.exec_driver_sql("INSERT INTO models (component, checkpoint_path, run_id, promoted_at, created_at) "
+                          "VALUES ('fast_loop', '/c', 'r1', '2026-01-01', '2026-01-01')")
+    migrate(engine, "0002")
+    assert {"version", "demoted_at", "previous_model_id"} <= _columns(engine, "models")
+    assert {"first_inference_at", "loop_closure_s"} <= _columns(engine, "runs")
+    fks = {fk["name"]: fk for fk in inspect(engine).get_foreign_keys("models")}
+    assert fks["fk_models_previous_model_id_models"]["referred_table"] == "models"
+    with engine.begin() as c:
+        assert c.exec_driver_sql("SELECT run_id, promoted_at IS NOT NULL, version FROM models").all() == [("r1", 1, None)]
+        assert c.exec_driver_sql("SELECT count(*) FROM run_events").scalar() == 1
+        sql = c.exec_driver_sql("SELECT sql FROM sqlite_master WHERE name='uq_models_promoted_component'").scalar()
+        assert "WHERE promoted_at IS NOT NULL" in sql  # survived the table copy
+        c.exec_driver_sql("INSERT INTO models (component, checkpoint_path, created_at, previous_model_id) "
+                          "VALUES ('fast_loop', '/d', '2026-01-02', 1)")
+    with pytest.raises(sa.exc.IntegrityError), engine.begin() as c:  # still one promoted model per component
+        c.exec_driver_sql("UPDATE models SET promoted_at = '2026-01-02' WHERE id = 2")
+    downgrade(engine, "0001")
+    assert "version" not in _columns(engine, "models") and "loop_closure_s" not in _columns(engine, "runs")
+    with engine.begin() as c:
+        assert c.exec_driver_sql("SELECT count(*) FROM run_events").scalar() == 1
+        assert c.exec_driver_sql("SELECT run_id FROM models ORDER BY id").all() == [("r1",), (None,)]
+        sql = c.exec_driver_sql("SELECT sql FROM sqlite_master WHERE name='uq_models_promoted_component'").scalar()
+        assert "WHERE promoted_at IS NOT NULL" in sql
+    migrate(engine)
+    assert current_revision(engine) == head() == "0002"
+    assert diffs(engine, Base.metadata) == []

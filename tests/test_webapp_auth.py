@@ -77,6 +77,41 @@ def test_health_is_open_everything_else_needs_the_token(webapp):
     assert ok.status_code == 200 and ok.get_json() == {"runs": []}
 
 
+def _api_routes(app) -> list[tuple[str, str]]:
+    """(method, path) of every API route of the app, path parameters filled in."""
+    import re
+
+    out = []
+    for rule in app.url_map.iter_rules():
+        if not rule.rule.startswith("/api/"):
+            continue
+        path = re.sub(r"<[^>]+>", "x-1", rule.rule)
+        for method in sorted(rule.methods - {"HEAD", "OPTIONS"}):
+            out.append((method, path))
+    return out
+
+
+def test_every_api_route_but_health_needs_the_token(webapp):
+    """Default deny: each route the app has (issue 6's included, and any added later) answers 401
+    without the token or with a wrong one, before it looks at the request."""
+    app, _socketio, token = webapp
+    client = app.test_client()
+    routes = _api_routes(app)
+    expected = {("POST", "/api/brain/infer"), ("POST", "/api/brain/promote"), ("POST", "/api/brain/rollback"),
+                ("GET", "/api/brain"), ("GET", "/api/system"), ("POST", "/api/training/sequential"),
+                ("GET", "/api/runs/x-1/metrics"), ("POST", "/api/sim/reflex"), ("GET", "/api/sim/reflex/x-1"),
+                ("GET", "/api/runs"), ("POST", "/api/runs"), ("GET", "/api/health")}
+    assert expected <= set(routes), sorted(expected - set(routes))
+    for method, path in routes:
+        for headers in ({}, bearer("wrong-token-of-some-length"), {"Authorization": f"Basic {token}"}):
+            response = client.open(path, method=method, headers=headers, json={"component": "fast_loop"})
+            if path == "/api/health":
+                assert response.status_code == 200
+                continue
+            assert response.status_code == 401, (method, path, headers, response.get_data(as_text=True))
+            assert "token" in response.get_json()["error"]
+
+
 def test_runs_api_create_control_and_4xx(webapp, settings):
     app, _socketio, token = webapp
     client = app.test_client()
@@ -119,7 +154,7 @@ def test_runs_api_create_control_and_4xx(webapp, settings):
         assert response.status_code == 400, (body, response.get_data(as_text=True))
         assert needle in response.get_json()["error"], (body, response.get_json())
     not_json = client.post("/api/runs", headers=h, data="component=fast_loop")
-    assert not_json.status_code == 400 and "JSON" in not_json.get_json()["error"]
+    assert not_json.status_code == 415 and "application/json" in not_json.get_json()["error"]
     assert client.get("/api/runs?state=sleeping", headers=h).status_code == 400
     assert client.get("/api/runs?limit=abc", headers=h).status_code == 400
     missing = client.get("/api/runs/r-missing", headers=h)

@@ -7,11 +7,17 @@ Two ways it runs:
   into this SocketIO (daemon.events.SocketIOSink); `daemon=` lets the API wake it at once;
 - production (`run_trainer.py webapp`, systemd): `message_queue=settings.redis_url`, so events the
   daemon process emits through Redis reach this process's browsers.
-Never imports torch (issue 6's BrainService loads models lazily in its own module).
+`brain=` is the BrainService this process hosts (hope_models.runtime.brain_service: NumPy, no
+torch) or None; create_app wires its callbacks: a swap is pushed to browsers as `brain.reloaded`
+{component, version, checkpoint}, and the first inference on a version records the loop-closure
+time of the run that produced it (daemon.promotion.record_first_inference). The caller starts and
+stops it. Whatever needs torch (the promotion gate, the sim reflex) runs as a `run_trainer.py`
+child (webapp/commands.py). Never imports torch (tests/test_api.py checks it).
 """
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,7 +33,16 @@ class HopeState:
     registry: Any
     token: str
     daemon: Any = None
+    brain: Any = None  # BrainService | None
+    children: Any = None  # webapp.commands.ChildProcesses: promote / eval-reflex children
+    reflex_jobs: Any = None  # webapp.api.sim.ReflexJobs
+    monitor: Any = None  # daemon.monitor.SystemMonitor, made on the first GET /api/system without a daemon
     started: float = field(default_factory=time.monotonic)
+
+    def close(self) -> None:
+        """Stop the children this app started (a running promotion gate or sim reflex)."""
+        if self.children is not None:
+            self.children.close()
 
     def wake_daemon(self) -> None:
         """Ask an embedded daemon to look at the queue now rather than at its next tick."""
@@ -36,14 +51,20 @@ class HopeState:
             wake()
 
 
+RELOADED_EVENT = "brain.reloaded"
+MAX_BODY_BYTES = 1 << 20  # 1 MiB: an observation of 4096 floats is ~100 kB of JSON
+
+
 def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None,
-               message_queue: str | None = None):
+               message_queue: str | None = None, brain: Any = None):
     """(Flask app, SocketIO). `registry` defaults to Registry.open(settings) (migrated)."""
     from flask import Flask
     from flask_socketio import SocketIO
 
     from webapp import auth, errors
     from webapp.api import register
+    from webapp.api.sim import ReflexJobs
+    from webapp.commands import ChildProcesses
 
     if not isinstance(token, str) or len(token) < auth.MIN_TOKEN_CHARS:
         raise ValueError(f"create_app: the token must be a string of at least {auth.MIN_TOKEN_CHARS} characters")
@@ -52,25 +73,84 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
 
         registry = Registry.open(settings)
     app = Flask("webapp")
-    app.config.update(JSON_SORT_KEYS=False, MAX_CONTENT_LENGTH=1 << 20)
+    app.config.update(JSON_SORT_KEYS=False, MAX_CONTENT_LENGTH=MAX_BODY_BYTES)
     app.json.sort_keys = False
-    app.extensions["hope"] = HopeState(settings=settings, registry=registry, token=token, daemon=daemon)
+    children = ChildProcesses(settings)
+    app.extensions["hope"] = HopeState(settings=settings, registry=registry, token=token, daemon=daemon,
+                                       brain=brain, children=children, reflex_jobs=ReflexJobs(children))
     # threading mode: no eventlet/gevent monkey-patching; WebSocket through simple-websocket.
     socketio = SocketIO(app, async_mode="threading", message_queue=message_queue, logger=False,
                         engineio_logger=False)
-    errors.install(app)
+    errors.install(app)  # first: the body size is checked before the token
     auth.install(app, socketio)
     register(app)
+    if brain is not None:
+        wire_brain(brain, socketio, registry)
 
     @app.get("/")
     def index():
-        # Placeholder until the Robot Editor pages (issue 6): say where the API is.
+        # Placeholder until the Robot Editor pages (issue 7): say where the API is.
         return ("HOPE Seed Trainer\n\nAPI (Authorization: Bearer <token from $HOPE_HOME/token>):\n"
                 "  GET /api/health (open)\n  GET|POST /api/runs\n  GET /api/runs/<id>\n"
-                "  POST /api/runs/<id>/cancel|pause|resume\nSocket.IO events: run.state, run.progress, "
-                "run.log, system.stats, system.throttle\n", 200, {"Content-Type": "text/plain; charset=utf-8"})
+                "  GET /api/runs/<id>/metrics\n  POST /api/runs/<id>/cancel|pause|resume\n"
+                "  POST /api/training/sequential\n  GET /api/brain\n  POST /api/brain/infer\n"
+                "  POST /api/brain/promote|rollback\n  GET /api/system\n  POST /api/sim/reflex\n"
+                "  GET /api/sim/reflex/<job>\n"
+                "Socket.IO events: run.state, run.progress, run.log, system.stats, system.throttle, "
+                "brain.reloaded\n", 200, {"Content-Type": "text/plain; charset=utf-8"})
 
     return app, socketio
 
 
-__all__ = ["HopeState", "create_app"]
+def _chain(previous: Any, fn):
+    """fn, then whatever callback the caller had set (so wiring never drops one)."""
+    if not callable(previous):
+        return fn
+
+    def both(*args):
+        fn(*args)
+        previous(*args)
+
+    return both
+
+
+def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
+    """BrainService callbacks -> Socket.IO and the registry. They run on BrainService's threads;
+    a failure is logged, never raised into a request or the watcher."""
+    from daemon.models import iso
+
+    def on_swap(component, version, checkpoint=None, *_rest):
+        try:
+            socketio.emit(RELOADED_EVENT, {"component": component, "version": version,
+                                           "checkpoint": None if checkpoint is None else str(checkpoint)})
+        except Exception:  # noqa: BLE001 - a browser push must not disturb the swap
+            log.exception("could not push %s", RELOADED_EVENT)
+        log.info("brain: %s now serves %s", component, version)
+
+    def record(component, version, checkpoint, when):
+        from daemon.promotion import record_first_inference
+
+        try:
+            with registry.session() as s:
+                run = record_first_inference(s, str(checkpoint), when)
+                if run is not None and run.loop_closure_s is not None:
+                    log.info("loop closed: run %s (%s) finished %s, first inference on %s at %s: %.1f s",
+                             run.id, component, iso(run.finished_at), version, iso(when), run.loop_closure_s)
+        except Exception:  # noqa: BLE001 - the inference itself succeeded; only the record failed
+            log.exception("could not record the first inference on %s %s", component, version)
+
+    def on_first_inference(component, version, checkpoint, when, *_rest):
+        # Called on the request's thread: the registry write (which may wait for the database
+        # lock while a job writes) happens beside it, so that first answer is not delayed.
+        threading.Thread(target=record, args=(component, version, checkpoint, when), name="loop-closure",
+                         daemon=True).start()
+
+    def on_error(component, message, *_rest):
+        log.warning("brain: %s: %s (the previous model keeps serving)", component, message)
+
+    brain.on_swap = _chain(getattr(brain, "on_swap", None), on_swap)
+    brain.on_first_inference = _chain(getattr(brain, "on_first_inference", None), on_first_inference)
+    brain.on_error = _chain(getattr(brain, "on_error", None), on_error)
+
+
+__all__ = ["HopeState", "MAX_BODY_BYTES", "RELOADED_EVENT", "create_app", "wire_brain"]

@@ -1,14 +1,20 @@
-"""JSON errors for the API: {"error": message} with the HTTP status, never an HTML page.
+"""JSON errors: {"error": message} with the HTTP status, never an HTML page.
 
-Bad input is a 4xx naming the field; an unexpected exception is logged with its traceback and
-answered 500 {"error": ...} (the API contract says bad input never gets a 500: those are bugs).
+Bad input is a 4xx naming the field (views raise ApiError); Werkzeug's own errors (404 unknown
+route, 405, 413 body too large, 415) get a message that says what to do. An unexpected exception
+is logged with its traceback and answered 500 {"error": ...}: the API contract says bad input never
+gets a 500, so a 500 is a bug to fix.
+
+The body size limit (app.config["MAX_CONTENT_LENGTH"]) is checked from the Content-Length header
+before anything else runs, so a 20 MB upload is refused without reading it (or asking for the
+token first); a chunked body without a length is cut at the limit while it is read.
 """
 from __future__ import annotations
 
 import logging
 
-from flask import Flask, jsonify, request
-from werkzeug.exceptions import HTTPException
+from flask import Flask, current_app, jsonify, request
+from werkzeug.exceptions import HTTPException, MethodNotAllowed, NotFound, RequestEntityTooLarge
 
 log = logging.getLogger(__name__)
 
@@ -22,22 +28,43 @@ class ApiError(Exception):
         self.status = status
 
 
-def error_response(message: str, status: int):
-    response = jsonify({"error": message})
+def error_response(message: str, status: int, **extra):
+    response = jsonify({"error": message, **extra})
     response.status_code = status
     return response
 
 
+def _too_large_message() -> str:
+    limit = current_app.config.get("MAX_CONTENT_LENGTH")
+    size = request.content_length
+    got = f"{size} bytes" if size is not None else "more"
+    return f"request body too large: {got}; the limit is {limit} bytes"
+
+
 def install(app: Flask) -> None:
+    @app.before_request
+    def _body_size_first():
+        # Before the token check and before any view reads the body.
+        limit = app.config.get("MAX_CONTENT_LENGTH")
+        if limit is not None and request.content_length is not None and request.content_length > limit:
+            return error_response(_too_large_message(), 413)
+        return None
+
     @app.errorhandler(ApiError)
     def _api_error(exc: ApiError):
         return error_response(exc.message, exc.status)
 
     @app.errorhandler(HTTPException)
     def _http_error(exc: HTTPException):
-        if not request.path.startswith("/api/"):
-            return exc
-        return error_response(exc.description or exc.name, exc.code or 500)
+        if isinstance(exc, RequestEntityTooLarge):
+            return error_response(_too_large_message(), 413)
+        if isinstance(exc, NotFound):
+            return error_response(f"no such endpoint: {request.method} {request.path}", 404)
+        if isinstance(exc, MethodNotAllowed):
+            allowed = ", ".join(sorted(m for m in (exc.valid_methods or []) if m not in ("HEAD", "OPTIONS")))
+            return error_response(f"{request.method} is not allowed on {request.path} (allowed: {allowed})", 405)
+        response = error_response(exc.description or exc.name, exc.code or 500)
+        return response
 
     @app.errorhandler(Exception)
     def _unexpected(exc: Exception):

@@ -14,7 +14,9 @@ SIGKILL after 20 s); a job that could not finish in time is recorded as interrup
 The next `serve` finds the runs as they were left and resumes the queued one from its checkpoint.
 A second Ctrl-C skips the waiting. Exit 0 after a clean stop, 2 when it cannot start (port taken,
 unreadable token), 1 when the daemon loop died.
-Nothing in this process imports torch: only the worker's job child does.
+BrainService (the promoted models, hot-reloaded from $HOPE_HOME/promoted/) runs in this process
+behind POST /api/brain/infer; promoting and the sim reflex run as `run_trainer.py` children.
+Nothing in this process imports torch: only the worker's job child and those children do.
 """
 from __future__ import annotations
 
@@ -173,24 +175,31 @@ class Serve:
         self.daemon = None
         self.daemon_thread: threading.Thread | None = None
         self.worker: WorkerSupervisor | None = None
+        self.app = None
+        self.brain = None  # BrainService: the promoted models, answering POST /api/brain/infer
         self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
 
     def start(self) -> str:
         from daemon.db import Registry
         from daemon.events import SocketIOSink
         from daemon.service import Daemon
+        from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
         from webapp import create_app
         from webapp.auth import load_or_create_token
         from webapp.server import HttpServer
 
         self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
         token = load_or_create_token(self.settings)
-        app, socketio = create_app(self.settings, token=token, registry=self.registry)
+        self.brain = BrainService(self.settings.home)
+        app, socketio = create_app(self.settings, token=token, registry=self.registry, brain=self.brain)
+        self.app = app
         self.server = HttpServer(app, self.settings.host, self.settings.port)  # bind before anything runs
+        # remote_reports=False: serve's own worker child trains every run, on this host.
         self.daemon = Daemon(self.settings, SocketIOSink(socketio), tick_s=self.args.tick, registry=self.registry,
-                             local_queues=(self.args.queue,))
+                             local_queues=(self.args.queue,), remote_reports=False)
         app.extensions["hope"].daemon = self.daemon
         self.daemon.start()  # reconcile what the last stop (or crash) left
+        self.brain.start()  # loads what is promoted now, then watches the pointers
         self.server.start()
         self.daemon_thread = threading.Thread(target=self._run_daemon, name="daemon", daemon=True)
         self.daemon_thread.start()
@@ -268,10 +277,27 @@ class Serve:
                     log.info("run %s %s (%s)", action.run_id, action.action, action.why)
         if self.server is not None:
             self.server.stop()
+        if self.app is not None:
+            self.app.extensions["hope"].close()  # a promotion gate or sim reflex child still running
+        if self.brain is not None:
+            self.brain.stop()
         if self.daemon is not None:
             self.daemon.stop()
         if self.registry is not None:
             self.registry.close()
+
+
+def brain_summary(brain: Any) -> str:
+    """One line: what BrainService serves per component (or why not)."""
+    parts = []
+    for component, st in sorted(brain.status().items()):
+        if st.get("version"):
+            parts.append(f"{component} {st['version']}")
+        elif st.get("last_error"):
+            parts.append(f"{component} not served: {st['last_error']}")
+        else:
+            parts.append(f"{component} nothing promoted yet (run_trainer.py promote RUN)")
+    return "brain: " + ("; ".join(parts) or "no components")
 
 
 def _setup_logging(home: Path) -> None:
@@ -328,6 +354,7 @@ def run(args: argparse.Namespace) -> int:
         worker = "no worker (--no-worker)" if args.no_worker else f"worker queue {args.queue}"
         print(f"Robot Editor: {serve.server.url}  token: {token}", flush=True)
         print(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop", flush=True)
+        print(brain_summary(serve.brain), flush=True)
         while not serve.shutdown.is_set():
             serve.shutdown.wait(0.5)
         serve.stop()

@@ -3,6 +3,10 @@
 Without RUN: every run that has not ended plus the most recent ones (`--all`: every run), newest
 first. `--json` prints {"runs": [Run.to_json_obj(), ...]}. Reads the database only, so it works
 whether the daemon is up or not.
+
+CLOSURE is the run's loop-closure time: from the run completing to the first inference BrainService
+answered with its weights (promotion gate and hot reload included; recorded by the webapp that hosts
+BrainService). "-" until that happened.
 """
 from __future__ import annotations
 
@@ -48,15 +52,28 @@ def _num(v: Any, fmt: str) -> str:
     return "-" if not isinstance(v, (int, float)) or not math.isfinite(v) else format(v, fmt)
 
 
+def closure_text(seconds: Any) -> str:
+    """Loop-closure seconds, short: 8.4s, 12m05s, 3h20m."""
+    if not isinstance(seconds, (int, float)) or not math.isfinite(seconds):
+        return "-"
+    if seconds < 60:
+        return f"{seconds:.1f}s"
+    s = int(seconds)
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
 def format_table(runs: list[dict[str, Any]]) -> str:
     if not runs:
         return "no runs (queue one with: run_trainer.py enqueue --component fast_loop --data DS)"
-    header = ("RUN", "COMPONENT", "QUEUE", "STATE", "STEP", "LOSS", "STEPS/S", "ATTEMPT", "AGE")
+    header = ("RUN", "COMPONENT", "QUEUE", "STATE", "STEP", "LOSS", "STEPS/S", "ATTEMPT", "AGE", "CLOSURE")
     rows = [header]
     for r in runs:
         rows.append((r["id"], r["component"], r["queue"], state_text(r), f"{r['step']}/{r['total_steps']}",
                      _num(r.get("loss"), ".4g"), _num(r.get("steps_per_s"), ".1f"),
-                     f"{r['attempt']}/{r['max_attempts']}", age_text(r.get("created_at"))))
+                     f"{r['attempt']}/{r['max_attempts']}", age_text(r.get("created_at")),
+                     closure_text(r.get("loop_closure_s"))))
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
     for r in runs:  # why a run failed or was cancelled, under the table

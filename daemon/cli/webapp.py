@@ -7,6 +7,9 @@ relays events. With HOPE_REDIS_URL set (production), Socket.IO uses Redis as its
 so the events the daemon process emits reach this process's browsers. Without Redis it tails the
 registry's run events itself (same host only; no system.stats, which only the daemon samples).
 
+It hosts BrainService (the promoted models behind POST /api/brain/infer, hot-reloaded from
+$HOPE_HOME/promoted/), so production's inference lives here, next to the Robot Editor.
+
 Under systemd (Type=notify) it sends READY=1 once the port is bound and WATCHDOG=1 only while its
 own GET /api/health answers, so a wedged server is restarted. SIGTERM stops it cleanly.
 """
@@ -19,7 +22,7 @@ import signal
 import sys
 import threading
 
-from daemon.cli.serve import _port
+from daemon.cli.serve import _port, brain_summary
 
 log = logging.getLogger("hope.webapp")
 
@@ -60,6 +63,7 @@ def _tail_events(registry, socketio, stop: threading.Event) -> None:
 def run(args: argparse.Namespace) -> int:
     from daemon.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
+    from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError, load_settings
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
@@ -82,9 +86,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     threads: list[threading.Thread] = []
+    brain = BrainService(settings.home)
     try:
         token = load_or_create_token(settings)
-        app, socketio = create_app(settings, token=token, registry=registry, message_queue=settings.redis_url)
+        app, socketio = create_app(settings, token=token, registry=registry, message_queue=settings.redis_url,
+                                   brain=brain)
         server = HttpServer(app, settings.host, settings.port)
     except (TokenError, ServerError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -96,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        brain.start()  # loads what is promoted now, then watches the pointers
         server.start()
         if settings.redis_url:
             log.info("events from the daemon through Redis (Socket.IO message queue)")
@@ -106,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
             t.start()
             threads.append(t)
         print(f"Robot Editor: {server.url}  token in {token_path(settings)}", flush=True)
+        print(brain_summary(brain), flush=True)
         notifier.ready(f"listening on {server.url}")
         ping_every = notifier.watchdog_s / 2 if notifier.watchdog_s else 5.0
         while not stop.wait(ping_every):
@@ -113,10 +121,12 @@ def run(args: argparse.Namespace) -> int:
                 notifier.watchdog()
         notifier.stopping("stopping")
         server.stop()
+        app.extensions["hope"].close()  # a promotion gate or sim reflex child still running
         for t in threads:
             t.join(2.0)
         return 0
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        brain.stop()
         registry.close()

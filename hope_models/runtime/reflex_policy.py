@@ -20,11 +20,11 @@ action_bounds=None to use it for another robot).
 
 `.version` names the weights: "<run name>@<step>:<first 12 hex of sha256(model.safetensors)>"
 (the run name is the run dir's name; a bare checkpoint dir gives its own name), so every action
-can be traced to the file that produced it.
+can be traced to the file that produced it. The rule is hope_models.promote.pointers.checkpoint_version,
+shared with the promotion pointers and BrainService.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -110,7 +110,7 @@ class ReflexPolicy:
                         expect_observation: Sequence[tuple[str, int]] | None = SIM_OBSERVATION,
                         expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
                         action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
-        from hope_models.durable import file_sha256
+        from hope_models.promote.pointers import checkpoint_version
         from hope_models.train.checkpoint import CheckpointError as CkptError
         from hope_models.train.checkpoint import resolve_checkpoint_dir
         from hope_models.train.components import CheckpointError, component_from_checkpoint
@@ -133,15 +133,7 @@ class ReflexPolicy:
             raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "
                                     "the reflex runtime drives state-only fast_loops")
         check_spec(comp.spec, where, expect_observation, expect_action)
-        try:
-            step = json.loads((ckpt / "config.json").read_text(encoding="utf-8")).get("checkpoint", {}).get("step")
-        except (OSError, ValueError, AttributeError):
-            step = None
-        if step is None:
-            step = int(ckpt.name) if ckpt.name.isdigit() else 0
-        run_name = ckpt.parent.parent.name if ckpt.parent.name == "checkpoints" else ckpt.name
-        sha = file_sha256(ckpt / "model.safetensors")[:12]
-        version = f"{run_name}@{int(step)}:{sha}"
+        version, _sha = checkpoint_version(ckpt)  # the one naming rule (promotion pointers use it too)
         return cls(comp.model, comp.spec, version, action_bounds, ckpt)
 
     # -- the tick -------------------------------------------------------------------------------

@@ -4,6 +4,8 @@
     POST /api/runs  {"component", "data", "steps", ...}  -> 201 {"run": {...}}
     GET  /api/runs/<id>                                -> {"run": {...}}
     POST /api/runs/<id>/cancel|pause|resume            -> {"run": {...}}
+    GET  /api/runs/<id>/metrics[?after=STEP][&limit=N][&events=1]
+         -> {"run_id", "records": [...], "next_after": STEP | null, "more": bool}
 
 POST /api/runs takes the fields of `run_trainer.py enqueue` (daemon/run_request.py: component,
 data, steps, queue, priority, max_attempts, vqvae_dir | vqvae_run and the TrainConfig overrides
@@ -11,6 +13,13 @@ such as seed, batch_size, lr, threads, checkpoint_every_steps, model_config). `d
 inside $HOPE_HOME (relative paths are taken from $HOPE_HOME/datasets) or one of the configured
 data_roots. Errors: 400 bad input (the message names the field), 404 unknown run, 409 a control
 request the run's state refuses.
+
+Metrics are the rows of the run's metrics.jsonl (docs/training.md): metric records {"type":
+"metric", "step", "wall_time", "loss", ...} with step > `after`, in step order, at most `limit`
+(default 1000, at most 5000), with the steps a resume trained again counted once. `events=1` adds
+the event records (checkpoint, resume, throttle, ...) in the same step range. A client pages with
+after=next_after while "more" is true; it is how the Robot Editor rebuilds a loss chart after a
+page reload, before the live `run.progress` events take over.
 """
 from __future__ import annotations
 
@@ -18,23 +27,17 @@ from pathlib import Path
 
 from flask import Blueprint, current_app, jsonify, request
 
+from webapp.api.validation import json_body, query_int
 from webapp.errors import ApiError
 
 bp = Blueprint("runs", __name__, url_prefix="/api/runs")
 MAX_LIMIT = 1000
+METRICS_DEFAULT = 1000
+METRICS_MAX = 5000
 
 
 def _state():
     return current_app.extensions["hope"]
-
-
-def _json_body() -> dict:
-    body = request.get_json(silent=True)
-    if body is None:
-        raise ApiError("the request body must be JSON (Content-Type: application/json)", 400)
-    if not isinstance(body, dict):
-        raise ApiError("the request body must be a JSON object", 400)
-    return body
 
 
 def _get(s, run_id: str):
@@ -56,14 +59,7 @@ def list_runs():
         unknown = [x for x in states if x not in runs.STATES]
         if unknown:
             raise ApiError(f"state: unknown {', '.join(unknown)} (states: {', '.join(runs.STATES)})", 400)
-    limit = None
-    if request.args.get("limit"):
-        try:
-            limit = int(request.args["limit"])
-        except ValueError:
-            raise ApiError(f"limit: {request.args['limit']!r} is not an integer", 400) from None
-        if not 1 <= limit <= MAX_LIMIT:
-            raise ApiError(f"limit: must be between 1 and {MAX_LIMIT}", 400)
+    limit = query_int("limit", default=None, minimum=1, maximum=MAX_LIMIT)
     with _state().registry.session(readonly=True) as s:
         items = [r.to_json_obj() for r in runs.list_runs(s, states=states, limit=limit)]
     return jsonify({"runs": items})
@@ -77,7 +73,7 @@ def create_run():
     settings = state.settings
     roots = [Path(settings.home)] + [Path(r) for r in settings.data_roots]
     try:
-        req = request_from_json(_json_body(), allowed_roots=roots, base=Path(settings.datasets_dir))
+        req = request_from_json(json_body(), allowed_roots=roots, base=Path(settings.datasets_dir))
         with state.registry.session() as s:
             obj = submit(s, settings, req).to_json_obj()
     except RunRequestError as exc:
@@ -93,6 +89,49 @@ def create_run():
 def get_run(run_id: str):
     with _state().registry.session(readonly=True) as s:
         return jsonify({"run": _get(s, run_id).to_json_obj()})
+
+
+@bp.get("/<run_id>/metrics")
+def metrics(run_id: str):
+    from hope_models.train.metrics import read_metrics
+
+    after = query_int("after", default=None, minimum=0)
+    limit = query_int("limit", default=METRICS_DEFAULT, minimum=1, maximum=METRICS_MAX)
+    events = request.args.get("events", "0")
+    if events not in ("0", "1", "true", "false"):
+        raise ApiError(f"events: {events[:20]!r} is not 0 or 1", 400)
+    with _state().registry.session(readonly=True) as s:
+        run_dir = _get(s, run_id).run_dir
+    floor = -1 if after is None else after
+    with_events = events in ("1", "true")
+    rows = []
+    for step, record in _stepped(read_metrics(Path(run_dir))):
+        if step > floor and (record.get("type") == "metric" or (with_events and record.get("type") == "event")):
+            rows.append((step, record))
+            if len(rows) > limit:
+                break
+    page = rows[:limit]
+    if len(rows) > limit and page[0][0] != rows[limit][0]:
+        # never split one step's records across pages: the next page starts after next_after
+        page = [r for r in page if r[0] != rows[limit][0]]
+    return jsonify({"run_id": run_id, "records": [r for _, r in page],
+                     "next_after": page[-1][0] if page else after, "more": len(rows) > limit})
+
+
+def _stepped(records: list[dict]):
+    """(step, record) in file order, steps ascending: an event counts at the step it names in its
+    payload, else at the step of the metric record before it (a run's steps only go up once
+    read_metrics dropped what a resume repeated)."""
+    last = 0
+    for record in records:
+        step = record.get("step")
+        if record.get("type") == "metric" and isinstance(step, int):
+            last = step
+            yield step, record
+        elif record.get("type") == "event":
+            payload = record.get("payload")
+            named = payload.get("step") if isinstance(payload, dict) else None
+            yield (named if isinstance(named, int) and named >= last else last), record
 
 
 def _control(run_id: str, action: str):

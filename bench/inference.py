@@ -1,0 +1,456 @@
+"""Inference benchmark: the fast_loop's one-tick latency, the hot-swap pause, the loop-closure time.
+
+1. One tick at batch 1, every form in the same run, interleaved in blocks so machine noise falls
+   on all of them alike (default model size: d_model 128, d_state 256, K=5, trained briefly):
+   - the recurrent NumPy form BrainService runs (FastLoopNumpy.act: normalise, step, denormalise),
+   - the whole service call (BrainService.infer with a session: validation, lock, state, answer),
+   - torch's recurrent form (FastLoop.step), for reference,
+   - re-running the whole window each tick: torch FastLoop.forward on the last K observations,
+     and the NumPy FastLoopNumpy.forward on them.
+   Targets: p99 < 1 ms, and the recurrent form >= 5x faster than the window re-run.
+   --k-scaling adds a K=20 model (same width) to show how both forms grow with the window.
+2. The swap pause: a client thread calls BrainService.infer in a tight loop while the pointer is
+   rewritten --swaps times (alternating two checkpoints); requests between a pointer write and 50 ms
+   after the first answer from the new version are "during a swap", the rest "normal".
+   Target (the test's): p99 during swaps <= 3x the normal p99, no failed request.
+3. The loop-closure time, in-process: a fresh $HOPE_HOME with the registry; a queued run is
+   created as `enqueue` does (daemon.run_request.submit), marked running, trained in this process
+   through hope_models.train.loop.train (the worker's code path, minus the broker), and finished
+   with daemon.runs.finish (finished_at). Then `run_trainer.py promote RUN --auto --json` runs as
+   a child process, exactly what the daemon's auto-promotion spawns (the gate: torch import,
+   validation loss of the candidate, and of the promoted model on the same split for the second
+   run); BrainService (poll 0.2 s) follows the pointer, and a "robot" thread asks for an action
+   every 20 ms (a 50 Hz control loop); on_first_inference records first_inference_at and
+   loop_closure_s through daemon.promotion.record_first_inference, as the webapp does. The figure
+   is the registry's loop_closure_s. With the daemon, add up to one daemon tick (0.5 s) before the
+   auto-promotion starts.
+4. The RSS of a fresh process holding BrainService with the model loaded (no torch imported).
+
+    .venv/bin/python bench/inference.py                 # --ticks 4000 --swaps 6 --closures 2
+    .venv/bin/python bench/inference.py --k-scaling --json
+
+It prints figures; it is not a test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable
+
+# One BLAS thread, set before numpy loads OpenBLAS: torch runs with one thread here too, and on 2
+# shared cores a second BLAS thread only adds scheduling tails to the batched (window) products.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+TARGET_P99_MS = 1.0
+TARGET_SPEEDUP = 5.0
+TARGET_SWAP_RATIO = 3.0
+CONTROL_PERIOD_S = 0.02
+
+
+# -- fixtures --------------------------------------------------------------------------------------
+
+def make_dataset(root: Path) -> Path:
+    from hope_models.data.synthetic import generate_dataset
+
+    ds = root / "ds"
+    if not ds.exists():  # the reacher's sizes: 6 observation values, 2 action values
+        generate_dataset(ds, 3000, obs_dim=6, act_dim=2, episode_seconds=(10, 30), seed=0)
+    return ds
+
+
+def train_run(data: Path, run_dir: Path, cache: Path, steps: int, every: int, model_config: dict | None = None) -> Path:
+    from hope_models.train.loop import TrainConfig, train
+
+    res = train(TrainConfig(component="fast_loop", data=str(data), run_dir=str(run_dir), steps=steps, seed=0,
+                            batch_size=32, threads=1, checkpoint_every_steps=every, log_every=50,
+                            cache_dir=str(cache), thermal_zone=None, vcgencmd=None,
+                            model_config=model_config or {}, val_batches=2))
+    if res.outcome != "completed":
+        raise SystemExit(f"training {run_dir} did not complete: {res.outcome}: {res.message}")
+    return Path(res.checkpoint)
+
+
+def write_pointer(home: Path, ckpt: Path, model_id: int = 1) -> None:
+    from datetime import datetime, timezone
+
+    from hope_models.promote.pointers import checkpoint_version, write_pointer as write
+
+    version, sha = checkpoint_version(ckpt)
+    write(home, "fast_loop", {"component": "fast_loop", "checkpoint": str(ckpt.resolve()), "version": version,
+                              "sha256": sha, "model_id": model_id, "run_id": None,
+                              "promoted_at": datetime.now(timezone.utc).isoformat()})
+
+
+def pct(values, q: float) -> float:
+    return float(np.percentile(np.asarray(values), q))
+
+
+def summary_ms(lat_s: list[float]) -> dict[str, float]:
+    ms = np.asarray(lat_s) * 1e3
+    return {"p50_ms": round(pct(ms, 50), 4), "p99_ms": round(pct(ms, 99), 4), "mean_ms": round(float(ms.mean()), 4),
+            "max_ms": round(float(ms.max()), 3), "n": int(ms.size)}
+
+
+# -- 1. one tick ---------------------------------------------------------------------------------------
+
+def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[str, Any]:
+    import torch
+
+    from hope_models.runtime.brain_service import BrainService
+    from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
+    from hope_models.train.components import component_from_checkpoint
+
+    torch.set_num_threads(1)
+    model = FastLoopNumpy.from_checkpoint(ckpt)
+    tmodel = component_from_checkpoint(ckpt).model.eval()
+    k = model.window_k
+    rng = np.random.default_rng(0)
+    raw = rng.normal(0, 1, (ticks + k, model.obs_dim))
+    raw_lists = raw.tolist()
+    write_pointer(home, ckpt)
+    brain = BrainService(home)
+    brain.check_now()
+
+    # Each form keeps its own rolling context, so every call is a real tick of a running episode.
+    np_state = [model.init_state()]
+    t_state = [tmodel.init_state(1)]
+    window = np.zeros((k, model.obs_dim), np.float32)  # the last K normalised observations, oldest first
+
+    def numpy_recurrent(i):
+        _, np_state[0] = model.act(raw[i], np_state[0])
+
+    def service(i):
+        brain.infer("fast_loop", raw_lists[i], session="bench")
+
+    def torch_recurrent(i):
+        xn = torch.from_numpy(model.normalise(raw[i])[None, :])
+        with torch.inference_mode():
+            a, t_state[0] = tmodel.step(xn, t_state[0])
+        model.denormalise(a[0].numpy())
+
+    def push(i):
+        window[:-1] = window[1:]
+        window[-1] = model.normalise(raw[i])
+
+    def torch_window(i):
+        push(i)
+        with torch.inference_mode():
+            a = tmodel(torch.from_numpy(window[None]))
+        model.denormalise(a[0].numpy())
+
+    def numpy_window(i):
+        push(i)
+        model.denormalise(model.forward(window[None])[0])
+
+    forms: dict[str, Callable[[int], None]] = {
+        "numpy recurrent (FastLoopNumpy.act)": numpy_recurrent,
+        "BrainService.infer (session)": service,
+        "torch recurrent (FastLoop.step)": torch_recurrent,
+        "torch window re-run (FastLoop.forward)": torch_window,
+        "numpy window re-run (FastLoopNumpy.forward)": numpy_window,
+    }
+    lat: dict[str, list[float]] = {name: [] for name in forms}
+    for fn in forms.values():  # warm-up
+        for i in range(50):
+            fn(i)
+    perf = time.perf_counter
+    for start in range(0, ticks, block):
+        for name, fn in forms.items():
+            out = lat[name]
+            for i in range(start, min(start + block, ticks)):
+                t0 = perf()
+                fn(i)
+                out.append(perf() - t0)
+    res = {name: summary_ms(v) for name, v in lat.items()}
+    return {"model": repr(model), "k": k, "d_model": model.d_model, "d_state": model.d_state, "forms": res}
+
+
+# -- 2. the swap pause ---------------------------------------------------------------------------------
+
+def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, Any]:
+    from hope_models.promote.pointers import checkpoint_version
+    from hope_models.runtime.brain_service import BrainService
+
+    va, vb = checkpoint_version(ckpt_a)[0], checkpoint_version(ckpt_b)[0]
+    write_pointer(home, ckpt_a)
+    results: list[tuple[float, float, str]] = []
+    failures: list[str] = []
+    stop = threading.Event()
+    brain = BrainService(home).start()
+    rng = np.random.default_rng(1)
+    obs = rng.normal(0, 1, (1024, 6)).tolist()
+
+    def client():
+        i = 0
+        perf = time.perf_counter
+        while not stop.is_set():
+            t0 = perf()
+            try:
+                out = brain.infer("fast_loop", obs[i & 1023], session="robot")
+            except Exception as exc:  # noqa: BLE001 - every failure counts
+                failures.append(repr(exc))
+                continue
+            finally:
+                i += 1
+            results.append((t0, perf() - t0, out["model_version"]))
+
+    thread = threading.Thread(target=client, daemon=True)
+    thread.start()
+    writes: list[tuple[float, str]] = []
+    load_ms = []
+    try:
+        time.sleep(1.0)
+        for n in range(swaps):
+            ckpt, want = (ckpt_b, vb) if n % 2 == 0 else (ckpt_a, va)
+            t_write = time.perf_counter()
+            write_pointer(home, ckpt, model_id=n + 2)
+            writes.append((t_write, want))
+            deadline = time.monotonic() + 5
+            while brain.version("fast_loop") != want and time.monotonic() < deadline:
+                time.sleep(0.002)
+            load_ms.append((time.perf_counter() - t_write) * 1e3)
+            time.sleep(0.8)
+    finally:
+        stop.set()
+        thread.join(10)
+        brain.stop()
+    windows = []
+    for t_write, want in writes:
+        first_new = next((t for t, _, v in results if t >= t_write and v == want), None)
+        windows.append((t_write, (first_new if first_new is not None else t_write + 1.0) + 0.05))
+    during, normal = [], []
+    for t, lat, _ in results:
+        (during if any(a <= t <= b for a, b in windows) else normal).append(lat)
+    versions = [v for _, _, v in results]
+    switches = sum(1 for a, b in zip(versions, versions[1:]) if a != b)
+    out = {"requests": len(results), "failures": len(failures), "swaps": swaps, "version_switches": switches,
+           "normal": summary_ms(normal), "during_swaps": summary_ms(during),
+           "pointer_to_swap_ms": {"median": round(statistics.median(load_ms), 1), "max": round(max(load_ms), 1)}}
+    out["p99_ratio"] = round(out["during_swaps"]["p99_ms"] / out["normal"]["p99_ms"], 2)
+    return out
+
+
+# -- 3. the loop-closure time ---------------------------------------------------------------------------
+
+def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
+    from daemon import promotion, runs
+    from daemon.db import Registry
+    from daemon.models import Run
+    from daemon.run_request import build_request, submit
+    from hope_models.runtime.brain_service import BrainError, BrainService
+    from hope_models.settings import load_settings
+    from hope_models.train.loop import TrainConfig, train
+
+    home = root / "home"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
+    env.update(HOPE_HOME=str(home), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    settings = load_settings(home, env=env)
+    registry = Registry.open(settings)
+
+    def record(component, version, checkpoint, when):
+        with registry.session() as s:
+            promotion.record_first_inference(s, checkpoint, when)
+
+    brain = BrainService(home, on_first_inference=record).start()
+    seen: dict[str, float] = {}  # version -> wall time of the robot's first answer from it
+    stop = threading.Event()
+
+    def robot():
+        obs = [0.1, -0.2, 0.3, 0.05, -0.4, 0.2]
+        while not stop.is_set():
+            try:
+                v = brain.infer("fast_loop", obs, session="robot")["model_version"]
+                seen.setdefault(v, time.time())
+            except BrainError:  # 503 until the first promotion
+                pass
+            stop.wait(CONTROL_PERIOD_S)
+
+    thread = threading.Thread(target=robot, daemon=True)
+    thread.start()
+    out = []
+    try:
+        for n in range(closures):
+            # each run trains longer than the last, so the gate (no worse than the promoted model's
+            # validation loss + 5%) has a real reason to pass it
+            run_steps = steps * (n + 1)
+            req = build_request(component="fast_loop", data=str(data), steps=run_steps)
+            with registry.session() as s:
+                run = submit(s, settings, req)
+                runs.transition(s, run, "running")
+                run.worker_pid, run.worker_host = os.getpid(), "bench"
+                run_id, run_dir = run.id, run.run_dir
+            res = train(TrainConfig(component="fast_loop", data=str(data), run_dir=run_dir, steps=run_steps, seed=0,
+                                    threads=1, batch_size=32, log_every=50, checkpoint_every_steps=10 ** 6,
+                                    cache_dir=str(settings.cache_dir), thermal_zone=None, vcgencmd=None))
+            with registry.session() as s:
+                runs.finish(s, run_id, os.getpid(), res.outcome, res.message or "", step=res.steps,
+                            last_checkpoint=res.checkpoint)
+            t_finished = time.time()
+            proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "promote", run_id, "--auto", "--json"],
+                                  cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+            t_promoted = time.time()
+            try:
+                verdict = json.loads(proc.stdout.strip().splitlines()[-1])
+            except (ValueError, IndexError):
+                raise SystemExit(f"promote {run_id}: no JSON answer (exit {proc.returncode}): {proc.stderr[-2000:]}")
+            if not verdict.get("promoted"):
+                out.append({"run": run_id, "version": verdict.get("version"), "refused": verdict.get("reasons"),
+                            "loop_closure_s": None})
+                continue
+            version = verdict["version"]
+            deadline = time.monotonic() + 10
+            while version not in seen and time.monotonic() < deadline:
+                time.sleep(0.005)
+            swapped = brain.status()["fast_loop"]["loaded_at"]
+            deadline = time.monotonic() + 5
+            closure = None
+            while closure is None and time.monotonic() < deadline:
+                with registry.session(readonly=True) as s:
+                    closure = s.get(Run, run_id).loop_closure_s
+                time.sleep(0.02)
+            t_loaded = datetime.fromisoformat(swapped).timestamp() if swapped else float("nan")
+            out.append({"run": run_id, "version": version, "train_s": round(res.elapsed_s, 1),
+                        "compared_with_promoted": n > 0,
+                        "loop_closure_s": closure,
+                        "promote_process_s": round(t_promoted - t_finished, 2),
+                        "finished_to_loaded_s": round(t_loaded - t_finished, 3),
+                        "loaded_to_first_inference_s": round(seen.get(version, float("nan")) - t_loaded, 3),
+                        "val_loss": (verdict.get("metrics") or {}).get("candidate_val_loss")})
+    finally:
+        stop.set()
+        thread.join(5)
+        brain.stop()
+        registry.close()
+    return {"closures": out}
+
+
+# -- 4. memory -------------------------------------------------------------------------------------------
+
+def service_rss(home: Path) -> dict[str, Any]:
+    code = f"""
+import json, sys, psutil
+before = psutil.Process().memory_info().rss
+from hope_models.runtime.brain_service import BrainService
+brain = BrainService({str(home)!r}).start()
+brain.infer("fast_loop", [0.0] * brain.status()["fast_loop"]["obs_dim"], session="s")
+after = psutil.Process().memory_info().rss
+brain.stop()
+print(json.dumps({{"python_mb": before / 2**20, "with_brain_mb": after / 2**20,
+                  "torch_imported": "torch" in sys.modules}}))
+"""
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    if proc.returncode != 0:
+        raise SystemExit(f"RSS probe failed: {proc.stderr[-2000:]}")
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {k: (round(v, 1) if isinstance(v, float) else v) for k, v in got.items()}
+
+
+# -- main ------------------------------------------------------------------------------------------------
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ticks", type=int, default=4000, help="ticks per form (default 4000)")
+    ap.add_argument("--swaps", type=int, default=6, help="pointer rewrites under load (default 6)")
+    ap.add_argument("--closures", type=int, default=2, help="runs trained, promoted and first used (default 2)")
+    ap.add_argument("--train-steps", type=int, default=60, help="steps of each trained run (default 60)")
+    ap.add_argument("--k-scaling", action="store_true", help="also time a K=20 fast_loop")
+    ap.add_argument("--out", type=Path, default=None, help="work dir (default a temp dir)")
+    ap.add_argument("--json", action="store_true", help="print the result as JSON")
+    args = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    root = args.out or Path(tempfile.mkdtemp(prefix="hope-bench-inference-"))
+    root.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    data = make_dataset(root)
+    cache = root / "cache"
+    ckpt_b = train_run(data, root / "runs" / "main", cache, args.train_steps, args.train_steps // 2)
+    ckpt_a = ckpt_b.parent / f"{args.train_steps // 2:08d}"
+    result: dict[str, Any] = {"tick": {"K=5": tick_latency(ckpt_b, root / "home-tick", args.ticks)}}
+    if args.k_scaling:
+        ck20 = train_run(data, root / "runs" / "k20", cache, 20, 20, {"window": {"k": 20, "duration_s": 0.1}})
+        result["tick"]["K=20"] = tick_latency(ck20, root / "home-tick20", args.ticks)
+    result["swap"] = swap_pause(ckpt_a, ckpt_b, root / "home-swap", args.swaps)
+    result["rss"] = service_rss(root / "home-swap")
+    result["loop_closure"] = loop_closure(root, data, args.closures, args.train_steps)
+    result["elapsed_s"] = round(time.perf_counter() - started, 1)
+    result["targets"] = targets(result)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        report(result)
+    return 0
+
+
+def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
+    forms = r["tick"]["K=5"]["forms"]
+    rec = forms["numpy recurrent (FastLoopNumpy.act)"]
+    svc = forms["BrainService.infer (session)"]
+    out = []
+    for name, f in (("FastLoopNumpy.act", rec), ("BrainService.infer", svc)):
+        out.append({"target": f"{name} p99 < {TARGET_P99_MS:g} ms", "value": f"{f['p99_ms']:.3f} ms",
+                    "pass": f["p99_ms"] < TARGET_P99_MS})
+    for other in ("torch window re-run (FastLoop.forward)", "numpy window re-run (FastLoopNumpy.forward)"):
+        for q in ("p50_ms", "p99_ms"):
+            ratio = forms[other][q] / rec[q]
+            out.append({"target": f"recurrent >= {TARGET_SPEEDUP:g}x faster than the {other.split(' (')[0]} ({q[:3]})",
+                        "value": f"{ratio:.1f}x", "pass": ratio >= TARGET_SPEEDUP})
+    sw = r["swap"]
+    out.append({"target": f"swap: p99 during swaps <= {TARGET_SWAP_RATIO:g}x normal, 0 failures, one switch per swap",
+                "value": f"{sw['p99_ratio']}x, {sw['failures']} failures, {sw['version_switches']}/{sw['swaps']}",
+                "pass": sw["p99_ratio"] <= TARGET_SWAP_RATIO and sw["failures"] == 0
+                and sw["version_switches"] == sw["swaps"]})
+    return out
+
+
+def report(r: dict[str, Any]) -> None:
+    for key, t in r["tick"].items():
+        print(f"\nOne tick, batch 1, {key}: {t['model']} (d_model {t['d_model']}, d_state {t['d_state']})")
+        print(f"  {'form':46s} {'p50 ms':>8s} {'p99 ms':>8s} {'mean ms':>8s} {'max ms':>8s}")
+        for name, f in t["forms"].items():
+            print(f"  {name:46s} {f['p50_ms']:8.3f} {f['p99_ms']:8.3f} {f['mean_ms']:8.3f} {f['max_ms']:8.2f}")
+    sw = r["swap"]
+    print(f"\nSwap pause: {sw['requests']} requests, {sw['failures']} failed, {sw['swaps']} swaps, "
+          f"{sw['version_switches']} version switches; pointer write -> serving the new version "
+          f"median {sw['pointer_to_swap_ms']['median']} ms, max {sw['pointer_to_swap_ms']['max']} ms")
+    for name in ("normal", "during_swaps"):
+        f = sw[name]
+        print(f"  {name:14s} n={f['n']:7d}  p50 {f['p50_ms']:.3f} ms  p99 {f['p99_ms']:.3f} ms  "
+              f"max {f['max_ms']:.2f} ms")
+    print(f"  p99 ratio during/normal: {sw['p99_ratio']}x")
+    rss = r["rss"]
+    print(f"\nRSS of a process with BrainService serving: {rss['with_brain_mb']} MB (bare python + psutil "
+          f"before the import: {rss['python_mb']} MB); torch imported: {rss['torch_imported']}")
+    print("\nLoop closure (run completed -> first inference on its weights), in-process, 50 Hz robot loop:")
+    for c in r["loop_closure"]["closures"]:
+        if c.get("refused"):
+            print(f"  {c['version']:28s} refused by the gate: {'; '.join(c['refused'])}")
+            continue
+        print(f"  {c['version']:28s} loop_closure_s {c['loop_closure_s']}  (completed -> promote process exited "
+              f"{c['promote_process_s']} s, completed -> new weights loaded {c['finished_to_loaded_s']} s, loaded -> "
+              f"first inference {c['loaded_to_first_inference_s']} s; gate compared with a promoted model: "
+              f"{c['compared_with_promoted']})")
+    print("\nTargets:")
+    for t in r["targets"]:
+        print(f"  {'PASS' if t['pass'] else 'MISS'}  {t['target']}: {t['value']}")
+    print(f"\nelapsed {r['elapsed_s']} s")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""`run_trainer.py infer`: one tick of the promoted model, from the shell.
+
+    run_trainer.py infer --observation '[0.1, -0.2, 0.3, 0.05, -0.4, 0.2]' [--component fast_loop]
+                         [--session S] [--reset] [--json] [--local] [--timeout 5]
+
+By default it asks the running service (`run_trainer.py serve` or `webapp`): POST /api/brain/infer
+on the configured host/port with the token from $HOPE_HOME/token, so the answer comes from the
+BrainService the robot uses (and a --session there keeps its recurrent state between calls).
+When nothing answers it says so and suggests `serve`, or --local, which loads BrainService in this
+process from the promotion pointer and answers one tick (torch-free, like the service; a --session
+then lasts only this command, so every --local call is an episode's first tick).
+
+Prints the action, the model version that produced it and the latency (--json: the service's
+answer {"action", "model_version", "latency_ms", "session"} plus "via": "http" | "local").
+Exit 0 answered; 1 nothing could answer (no service running, or no promoted model yet); 2 bad
+input (the message says what is wrong: wrong length, NaN, not a list of numbers, unknown component).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+NOT_ANSWERED_EXIT = 1
+USAGE_EXIT = 2
+
+
+class InferFailure(Exception):
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < v <= 600:
+        raise argparse.ArgumentTypeError(f"{v} must be within (0, 600] seconds")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--component", default="fast_loop", metavar="C",
+                        help="the component to run (default fast_loop, the one with an inference runtime)")
+    parser.add_argument("--observation", required=True, metavar="JSON",
+                        help="the observation as a JSON list of numbers, in the model's feature order "
+                             "(GET /api/brain or `infer --json` of a wrong length lists the fields)")
+    parser.add_argument("--session", default=None, metavar="S",
+                        help="keep recurrent state under this name between calls (on the service)")
+    parser.add_argument("--reset", action="store_true", help="start the session's episode again with this tick")
+    parser.add_argument("--local", action="store_true",
+                        help="answer in this process from the promoted pointer instead of asking the service")
+    parser.add_argument("--timeout", type=_positive_float, default=5.0, help="HTTP timeout in seconds (default 5)")
+    parser.add_argument("--json", action="store_true", help="print the answer as JSON on stdout")
+
+
+def _observation(text: str) -> list[float]:
+    from hope_models.runtime.brain_service import BrainError, observation_values
+
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InferFailure(f"--observation is not valid JSON ({exc}); give a list like '[0.1, -0.2]'",
+                           USAGE_EXIT) from None
+    try:
+        return observation_values(obj)
+    except BrainError as exc:
+        raise InferFailure(f"--observation: {exc}", USAGE_EXIT) from None
+
+
+def _base_url(settings) -> str:
+    host = settings.host
+    if host in ("", "0.0.0.0", "::"):  # bound to every interface: this machine answers on loopback
+        host = "127.0.0.1"
+    if ":" in host:
+        host = f"[{host}]"
+    return f"http://{host}:{settings.port}"
+
+
+def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+    import urllib.error
+    import urllib.request
+
+    from webapp.auth import TokenError, read_token, token_path
+
+    base = _base_url(settings)
+    hint = ("start the service with `python run_trainer.py serve`, or answer in this process with --local")
+    path = token_path(settings)
+    if not path.exists():
+        raise InferFailure(f"no API token at {path}: the service has never run with HOPE_HOME={settings.home}; "
+                           f"{hint}", NOT_ANSWERED_EXIT)
+    try:
+        token = read_token(path)
+    except TokenError as exc:
+        raise InferFailure(str(exc), USAGE_EXIT) from None
+    req = urllib.request.Request(f"{base}/api/brain/infer", data=json.dumps(body).encode("utf-8"), method="POST",
+                                 headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as resp:
+            return json.loads(resp.read().decode("utf-8"))
+    except urllib.error.HTTPError as exc:
+        try:
+            message = json.loads(exc.read().decode("utf-8")).get("error") or exc.reason
+        except (ValueError, AttributeError, UnicodeDecodeError):
+            message = exc.reason
+        if exc.code == 401:
+            raise InferFailure(f"{base} refused the token in {path} (is that service running with another "
+                               "HOPE_HOME?)", USAGE_EXIT) from None
+        code = NOT_ANSWERED_EXIT if exc.code in (404, 503) and "component" not in str(message) else USAGE_EXIT
+        if exc.code == 404 and "component" not in str(message):
+            message = f"{message} (is the service at {base} a HOPE serve/webapp with the brain API?)"
+        raise InferFailure(f"{base}: {exc.code}: {message}", code) from None
+    except (urllib.error.URLError, ConnectionError, TimeoutError, OSError) as exc:
+        reason = getattr(exc, "reason", exc)
+        raise InferFailure(f"nothing answers at {base} ({reason}); {hint}", NOT_ANSWERED_EXIT) from None
+    except ValueError as exc:
+        raise InferFailure(f"{base}: the answer is not JSON ({exc})", NOT_ANSWERED_EXIT) from None
+
+
+def _record_first_inference(settings):
+    """on_first_inference for --local: the loop-closure time goes into the registry as with serve."""
+    def record(component: str, version: str, checkpoint: str, when) -> None:
+        from daemon import promotion
+        from daemon.db import Registry
+
+        with Registry.open(settings) as registry, registry.session() as s:
+            promotion.record_first_inference(s, checkpoint, when)
+
+    return record
+
+
+def _via_local(settings, body: dict[str, Any]) -> dict[str, Any]:
+    from hope_models.runtime.brain_service import BrainError, BrainService
+
+    try:
+        brain = BrainService(settings.home, on_first_inference=_record_first_inference(settings))
+    except ValueError as exc:
+        raise InferFailure(str(exc), USAGE_EXIT) from None
+    brain.check_now()  # load the promoted model once; no watcher thread for one answer
+    try:
+        return brain.infer(body["component"], body["observation"], body.get("session"), body.get("reset", False))
+    except BrainError as exc:
+        raise InferFailure(str(exc), NOT_ANSWERED_EXIT if exc.status == 503 else USAGE_EXIT) from None
+    finally:
+        brain.stop()  # runs the queued first-inference record before the process exits
+
+
+def run(args: argparse.Namespace) -> int:
+    from hope_models.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings()
+        body: dict[str, Any] = {"component": args.component, "observation": _observation(args.observation)}
+        if args.session is not None:
+            body["session"] = args.session
+        if args.reset:
+            body["reset"] = True
+        via = "local" if args.local else "http"
+        out = _via_local(settings, body) if args.local else _via_http(settings, body, args.timeout)
+    except SettingsError as exc:
+        return _fail(args, str(exc), USAGE_EXIT)
+    except InferFailure as exc:
+        return _fail(args, str(exc), exc.code)
+    out = {**out, "via": via}
+    if args.json:
+        print(json.dumps(out), flush=True)
+    else:
+        action = ", ".join(f"{v:.6g}" for v in out.get("action", []))
+        print(f"action [{action}]  version {out.get('model_version')}  latency {out.get('latency_ms', 0):.3f} ms"
+              f"  ({'in this process' if via == 'local' else 'from the service'})")
+    return 0
+
+
+def _fail(args: argparse.Namespace, message: str, code: int) -> int:
+    if args.json:
+        print(json.dumps({"error": message}), flush=True)
+    print(f"error: {message}", file=sys.stderr)
+    return code

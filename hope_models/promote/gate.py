@@ -1,0 +1,375 @@
+"""The promotion gate: may this candidate checkpoint replace the promoted one of its component?
+
+    result = gate_candidate("runs/r2/checkpoints/00002000", "runs/r1/checkpoints/00002000",
+                            data=None, settings=settings)
+    result.passed, result.reasons, result.metrics
+
+Checks, in order (the later ones only when the earlier ones could run):
+1. finite: every floating tensor of model.safetensors is finite (a NaN anywhere refuses).
+2. val_loss: the candidate's validation loss on its own run's validation split (the same episodes
+   and batches the trainer reported: hope_models/train/validation.py), against the promoted
+   model's loss on that SAME split and batches; refused when candidate > promoted x (1 +
+   gate_val_tolerance). Skipped, with the reason, when nothing is promoted, when the promoted
+   model cannot read this data (other component, fields, frame or window: "does not fit"), or when
+   the data has no validation split.
+3. reflex: a fast_loop trained on the sim reacher (its feature spec reads the reacher's observation
+   and writes its action) is run in closed loop on gate_reflex_episodes held-out seeds (0..N-1;
+   demos are recorded from seed 100000 up), and so is the promoted one; refused when the
+   candidate's mean return is below the promoted one's minus gate_reflex_tolerance.
+
+Each model sees the data normalised with its own feature spec's statistics (what it was trained
+with; the anchors do not depend on it). When the two specs' statistics differ, the losses are in
+each model's own normalised units and a note says so; likewise when two mid_loops predict the codes
+of different frozen VQ-VAEs.
+
+`passed` is True only if no check failed. `reasons` holds the failures when refused, otherwise the
+notes about skipped checks; `checks` has every check with its status and detail. Needs torch; it
+runs in its own process (`run_trainer.py promote`), never in the daemon or the webapp.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
+# The first episodes' metadata read to decide the sim task (metadata.environment_id).
+_TASK_PROBE_EPISODES = 3
+
+
+class GateError(ValueError):
+    """The candidate cannot be gated at all (not a complete checkpoint, an unreadable config);
+    the message names the path. A gate that ran and said no is a GateResult, not this."""
+
+
+@dataclass
+class GateResult:
+    passed: bool
+    reasons: list[str]
+    metrics: dict[str, Any]
+    checks: list[dict[str, str]] = field(default_factory=list)
+
+    def to_json_obj(self) -> dict[str, Any]:
+        return _json_safe(asdict(self))
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+class _Gate:
+    def __init__(self, settings: Any):
+        self.settings = settings
+        self.checks: list[dict[str, str]] = []
+        self.notes: list[str] = []
+
+    def record(self, check: str, status: str, detail: str) -> None:
+        self.checks.append({"check": check, "status": status, "detail": detail})
+
+    def result(self, metrics: dict[str, Any]) -> GateResult:
+        failed = [c["detail"] for c in self.checks if c["status"] == FAILED]
+        skipped = [c["detail"] for c in self.checks if c["status"] == SKIPPED]
+        reasons = (failed if failed else skipped) + self.notes
+        return GateResult(not failed, reasons, metrics, self.checks)
+
+
+# -- loading -------------------------------------------------------------------------------------
+
+def _read_config(ckpt: Path) -> dict[str, Any]:
+    try:
+        obj = json.loads((ckpt / "config.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise GateError(f"{ckpt / 'config.json'}: not readable JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise GateError(f"{ckpt / 'config.json'}: must be a JSON object")
+    return obj
+
+
+def resolve_candidate(path: str | Path) -> Path:
+    """A complete checkpoint dir from a checkpoint dir or a run dir; GateError otherwise."""
+    from hope_models.train.checkpoint import CheckpointError, resolve_checkpoint_dir
+
+    p = Path(path)
+    if not p.exists():
+        raise GateError(f"{p}: no such checkpoint or run dir")
+    try:
+        return resolve_checkpoint_dir(p).resolve()
+    except CheckpointError as exc:
+        raise GateError(str(exc)) from None
+
+
+def non_finite_tensors(ckpt: Path) -> list[str]:
+    """Names of the floating tensors of model.safetensors holding NaN or Inf (safetensors only)."""
+    import torch
+
+    from hope_models.train.checkpoint import CheckpointError, load_tensors
+
+    try:
+        tensors = load_tensors(ckpt / "model.safetensors")
+    except CheckpointError as exc:
+        raise GateError(str(exc)) from None
+    return sorted(name for name, t in tensors.items()
+                  if t.is_floating_point() and not bool(torch.isfinite(t).all()))
+
+
+def _load_component(ckpt: Path):
+    from hope_models.train.components import CheckpointError, component_from_checkpoint
+
+    try:
+        return component_from_checkpoint(ckpt)
+    except CheckpointError as exc:
+        raise GateError(str(exc)) from None
+
+
+# -- data ------------------------------------------------------------------------------------------
+
+def _open_data(data: str, train_cfg: dict[str, Any], settings: Any):
+    """The candidate run's dataset cache (built like the trainer builds it); ValueError with the reason."""
+    from hope_models.data.cache import CacheError, load_or_build
+    from hope_models.data.features import FeatureSpecError
+    from hope_models.train.loop import TrainSetupError, dataset_dir_for
+
+    cache_root = Path(train_cfg.get("cache_dir") or settings.cache_dir)
+    try:
+        data_dir = dataset_dir_for(data, cache_root)
+        cache, _info = load_or_build(data_dir, cache_root, train_cfg.get("spec_path"))
+    except (TrainSetupError, CacheError, FeatureSpecError) as exc:
+        raise ValueError(str(exc)) from None
+    except OSError as exc:
+        raise ValueError(f"{exc.filename or data}: {exc.strerror or exc}") from None
+    return cache
+
+
+def _fields(group) -> list[tuple[str, int]]:
+    return [(f.path, f.size) for f in group.fields]
+
+
+def fit_problem(component, cache_spec, candidate) -> str | None:
+    """Why `component` cannot be scored on the candidate's batches of this data (None: it can)."""
+    spec = component.spec
+    if component.name != candidate.name:
+        return f"it is a {component.name}, the candidate a {candidate.name}"
+    if _fields(spec.observation) != _fields(cache_spec.observation):
+        return f"it reads observation {_fields(spec.observation)}, the data has {_fields(cache_spec.observation)}"
+    if _fields(spec.action) != _fields(cache_spec.action):
+        return f"its action is {_fields(spec.action)}, the data's is {_fields(cache_spec.action)}"
+    frame = None if spec.frame is None else spec.frame.to_json_obj()
+    data_frame = None if cache_spec.frame is None else cache_spec.frame.to_json_obj()
+    if component.wants_frames and frame != data_frame:
+        return f"it reads frames {frame}, the data has {data_frame}"
+    if component.window.to_json_obj() != candidate.window.to_json_obj():
+        return f"its window is {component.window.to_json_obj()}, the candidate's {candidate.window.to_json_obj()}"
+    return None
+
+
+def normalised_view(cache, spec):
+    """The same cache read with another spec's normalisation statistics (a shallow copy: the
+    mapped arrays are shared; only the two per-column vectors make_windows applies differ)."""
+    view = copy.copy(cache)
+    obs_mean, obs_std, act_mean, act_std = spec.normalizer()
+    view.spec = spec
+    view.x_inv_std = (1.0 / np.concatenate([obs_std, act_std])).astype(np.float32)
+    view.x_shift = (np.concatenate([obs_mean, act_mean]) * view.x_inv_std).astype(np.float32)
+    return view
+
+
+def _same_stats(a, b) -> bool:
+    return a.to_json_obj(with_notes=False) == b.to_json_obj(with_notes=False)
+
+
+def _vqvae_weights(component) -> str | None:
+    ref = getattr(component, "vqvae_ref", None)
+    return ref.get("weights_sha256") if isinstance(ref, dict) else None
+
+
+def sim_task(cache) -> str | None:
+    """The reacher task ("reach", "track") the dataset was recorded on, from its episodes'
+    metadata (robot_model dmc-reacher, environment_id dm_control/reacher-<task>); None if not sim."""
+    from hope_models.sim.reacher import ROBOT_MODEL, TASKS
+
+    for ep in cache.episodes[:_TASK_PROBE_EPISODES]:
+        src = Path(str(ep.get("source", "")))
+        meta_file = src / "metadata.json" if src.is_dir() else src.parent / "metadata.json"
+        try:
+            meta = json.loads(meta_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if not isinstance(meta, dict) or meta.get("robot_model") != ROBOT_MODEL:
+            continue
+        env_id = str(meta.get("environment_id", ""))
+        task = env_id.rsplit("-", 1)[-1] if env_id.startswith("dm_control/reacher-") else None
+        if task in TASKS:
+            return task
+    return None
+
+
+# -- the gate -------------------------------------------------------------------------------------
+
+def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, data: str | Path | None = None,
+                   settings: Any) -> GateResult:
+    """Run the checks of the module doc. `data` overrides the dataset the candidate was trained
+    on (default: its config.json "train"."data"). Raises GateError only when the candidate itself
+    cannot be read; every other problem is a failed or skipped check in the result."""
+    gate = _Gate(settings)
+    cand_dir = resolve_candidate(candidate_ckpt)
+    cand_cfg = _read_config(cand_dir)
+    metrics: dict[str, Any] = {"candidate": str(cand_dir), "promoted": None, "candidate_val_loss": None,
+                               "promoted_val_loss": None, "ratio": None,
+                               "val_tolerance": float(settings.gate_val_tolerance), "finite": None, "reflex": None}
+
+    # 1. finite weights
+    bad = non_finite_tensors(cand_dir)
+    metrics["finite"] = not bad
+    if bad:
+        gate.record("finite", FAILED, f"non-finite weights (NaN or Inf) in {len(bad)} tensor(s): "
+                                      f"{', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}")
+        for check in ("val_loss", "reflex"):
+            gate.record(check, SKIPPED, f"{check}: not measured (the weights are not finite)")
+        return gate.result(metrics)
+    gate.record("finite", PASSED, "every weight is finite")
+    cand = _load_component(cand_dir)
+
+    prom = prom_dir = prom_problem = None
+    if promoted_ckpt is not None:
+        metrics["promoted"] = str(promoted_ckpt)
+        try:
+            prom_dir = resolve_candidate(promoted_ckpt)
+            prom = _load_component(prom_dir)
+        except GateError as exc:
+            prom_problem = f"the promoted model cannot be loaded: {exc}"
+    else:
+        prom_problem = "nothing promoted yet to compare with"
+
+    # 2. validation loss on the candidate's split, 3. the sim reflex (fast_loop on reacher data)
+    train_cfg = cand_cfg.get("train") if isinstance(cand_cfg.get("train"), dict) else {}
+    cache = _val_check(gate, metrics, cand, cand_dir, prom, prom_problem, train_cfg,
+                       str(data) if data is not None else train_cfg.get("data"))
+    _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, cache)
+    return gate.result(metrics)
+
+
+def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_problem: str | None,
+               train_cfg: dict[str, Any], data: str | None):
+    """The val_loss check; returns the candidate's dataset cache (None when it cannot be opened)."""
+    from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
+
+    tol = float(gate.settings.gate_val_tolerance)
+    if not data:
+        gate.record("val_loss", FAILED, f"{cand_dir / 'config.json'} names no training data ('train'.'data'); "
+                                        "the validation loss cannot be measured (pass data=)")
+        return None
+    try:
+        cache = _open_data(data, train_cfg, gate.settings)
+        setup = ValidationSetup.from_train_config(train_cfg or {"batch_size": 64})
+    except ValueError as exc:
+        gate.record("val_loss", FAILED, f"cannot measure the validation loss on {data}: {exc}")
+        return None
+    problem = fit_problem(cand, cache.spec, cand)
+    if problem is not None:
+        gate.record("val_loss", FAILED, f"the candidate cannot be scored on {data} any more: {problem}")
+        return cache
+    metrics["val_batches"], metrics["val_data"] = setup.batches, data
+    try:
+        cand_val = validation_metrics(cand, normalised_view(cache, cand.spec), setup)
+    except NoValidationSplit as exc:
+        gate.record("val_loss", SKIPPED, f"val_loss: not compared: {data} has no validation split ({exc})")
+        return cache
+    metrics["candidate_val"] = cand_val
+    c_loss = metrics["candidate_val_loss"] = cand_val.get("loss")
+    if c_loss is None or not math.isfinite(c_loss):
+        gate.record("val_loss", FAILED, f"the candidate's validation loss is {c_loss}")
+        return cache
+    if prom is None:
+        gate.record("val_loss", SKIPPED, f"val_loss: {c_loss:.6g}; not compared: {prom_problem}")
+        return cache
+    problem = fit_problem(prom, cache.spec, cand)
+    if problem is not None:
+        gate.record("val_loss", SKIPPED,
+                    f"val_loss: not compared: the promoted model does not fit this data: {problem}")
+        return cache
+    if not _same_stats(prom.spec, cand.spec):
+        gate.notes.append("the promoted model normalises with other statistics than the candidate; each loss is "
+                          "in its own model's normalised units")
+    if _vqvae_weights(prom) != _vqvae_weights(cand):
+        gate.notes.append("the two models read codes of different frozen VQ-VAEs; for a mid_loop each loss is "
+                          "measured against its own VQ-VAE's codes")
+    p_val = validation_metrics(prom, normalised_view(cache, prom.spec), setup, anchors_from=cand)
+    metrics["promoted_val"] = p_val
+    p_loss = metrics["promoted_val_loss"] = p_val.get("loss")
+    if p_loss is None or not math.isfinite(p_loss):
+        gate.record("val_loss", SKIPPED, f"val_loss: not compared: the promoted model's loss is {p_loss}")
+        return cache
+    ratio = c_loss / p_loss if p_loss > 0 else (1.0 if c_loss <= 0 else math.inf)
+    metrics["ratio"] = ratio
+    text = (f"validation loss {c_loss:.6g} vs the promoted model's {p_loss:.6g} on the same {setup.batches} "
+            f"batches (ratio {ratio:.4g}, limit {1.0 + tol:.4g})")
+    if c_loss > p_loss * (1.0 + tol) + 1e-12:
+        gate.record("val_loss", FAILED, f"{text}: worse by more than {tol:.0%}")
+    else:
+        gate.record("val_loss", PASSED, text)
+    return cache
+
+
+def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
+    from hope_models.runtime.reflex_policy import (
+        SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec,
+    )
+    from hope_models.sim.evaluate import evaluate_policy
+
+    if cand.name != "fast_loop":
+        return
+    try:
+        check_spec(cand.spec, str(cand_dir), SIM_OBSERVATION, SIM_ACTION)
+    except ReflexPolicyError:
+        return  # not trained on the sim reacher: no reflex to check
+    if cand.wants_frames:
+        gate.record("reflex", SKIPPED, "reflex: not measured: this fast_loop reads camera frames")
+        return
+    settings = gate.settings
+    n = int(settings.gate_reflex_episodes)
+    tol = float(settings.gate_reflex_tolerance)
+    task = (sim_task(cache) if cache is not None else None) or "reach"
+    seeds = list(range(n))
+    reflex: dict[str, Any] = {"task": task, "seeds": [seeds[0], seeds[-1]], "episodes": n, "tolerance": tol,
+                              "candidate_mean_return": None, "promoted_mean_return": None}
+    metrics["reflex"] = reflex
+    try:
+        res = evaluate_policy(ReflexPolicy.from_checkpoint(cand_dir), seeds, task)
+    except (ReflexPolicyError, ValueError) as exc:
+        gate.record("reflex", FAILED, f"reflex: the candidate cannot run the {task} task: {exc}")
+        return
+    reflex["candidate_mean_return"] = res.mean_return
+    reflex["candidate_success_rate"] = res.success_rate
+    where = f"{task}, seeds {seeds[0]}-{seeds[-1]}"
+    if prom is None:
+        gate.record("reflex", SKIPPED, f"reflex: mean return {res.mean_return:.1f} ({where}); not compared: "
+                                       f"{prom_problem}")
+        return
+    try:
+        p_res = evaluate_policy(ReflexPolicy.from_checkpoint(prom_dir), seeds, task)
+    except (ReflexPolicyError, ValueError) as exc:
+        gate.record("reflex", SKIPPED, f"reflex: not compared: the promoted model cannot run the {task} task: {exc}")
+        return
+    reflex["promoted_mean_return"] = p_res.mean_return
+    reflex["promoted_success_rate"] = p_res.success_rate
+    text = (f"reflex mean return {res.mean_return:.1f} vs the promoted model's {p_res.mean_return:.1f} ({where}, "
+            f"tolerance {tol:g})")
+    if res.mean_return < p_res.mean_return - tol:
+        gate.record("reflex", FAILED, f"{text}: worse by more than the tolerance")
+    else:
+        gate.record("reflex", PASSED, text)
+
+
+__all__ = ["GateResult", "GateError", "gate_candidate", "resolve_candidate", "non_finite_tensors", "fit_problem",
+           "normalised_view", "sim_task"]

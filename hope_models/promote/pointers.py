@@ -1,0 +1,155 @@
+"""Promotion pointer files: which checkpoint each component serves, one small JSON file each.
+
+    $HOPE_HOME/promoted/<component>.json
+    {"component": "fast_loop", "checkpoint": "/abs/.../checkpoints/00002000",
+     "version": "<run>@<step>:<sha12>", "sha256": "<hex of model.safetensors>",
+     "model_id": 7, "run_id": "r-..." | null, "promoted_at": "<ISO 8601 UTC>"}
+
+The pointer is what the serving side reads (BrainService watches it; `eval-reflex --checkpoint
+promoted` resolves it); the models table in the registry is the history. A pointer is replaced
+atomically (a temp file in the same dir, fsynced, renamed over the old one, the dir fsynced), so
+a reader sees the old pointer or the new one, never half of one, even across a power cut.
+
+`checkpoint_version` is the one rule that names a set of weights; ReflexPolicy, BrainService and
+the promotion records all use it, so a response's version always matches the pointer's.
+Torch-free (the daemon and the webapp import this).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+from hope_models.durable import file_sha256, fsync_path
+
+POINTER_DIR = "promoted"
+MODEL_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+# The fields a pointer must hold, and their JSON types (None allowed where the tuple says so).
+POINTER_FIELDS: dict[str, tuple[type, ...]] = {
+    "component": (str,),
+    "checkpoint": (str,),
+    "version": (str,),
+    "sha256": (str,),
+    "model_id": (int,),
+    "run_id": (str, type(None)),
+    "promoted_at": (str,),
+}
+# A component name becomes a file name: keep it to a safe alphabet (no separators, no dots).
+_COMPONENT_RE = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
+_SHA_RE = re.compile(r"^[0-9a-f]{64}$")
+
+
+class PointerError(ValueError):
+    """A pointer file cannot be read or written as asked; the message names the file and why."""
+
+
+def _check_component(component: Any) -> str:
+    if not isinstance(component, str) or not _COMPONENT_RE.match(component):
+        raise PointerError(f"component {component!r} is not a valid component name ([a-z][a-z0-9_]*)")
+    return component
+
+
+def pointer_path(home: str | os.PathLike, component: str) -> Path:
+    """$HOPE_HOME/promoted/<component>.json (the file need not exist)."""
+    return Path(home) / POINTER_DIR / f"{_check_component(component)}.json"
+
+
+def _validate(obj: Any, where: str, component: str | None = None) -> dict[str, Any]:
+    if not isinstance(obj, dict):
+        raise PointerError(f"{where}: must be a JSON object, got {type(obj).__name__}")
+    for key, types in POINTER_FIELDS.items():
+        if key not in obj:
+            raise PointerError(f"{where}: field {key!r} is missing")
+        value = obj[key]
+        if isinstance(value, bool) or not isinstance(value, types):
+            want = " or ".join("null" if t is type(None) else t.__name__ for t in types)
+            raise PointerError(f"{where}: field {key!r} must be {want}, got {value!r}")
+    if component is not None and obj["component"] != component:
+        raise PointerError(f"{where}: names component {obj['component']!r}, expected {component!r}")
+    if not Path(obj["checkpoint"]).is_absolute():
+        raise PointerError(f"{where}: field 'checkpoint' must be an absolute path, got {obj['checkpoint']!r}")
+    if not _SHA_RE.match(obj["sha256"]):
+        raise PointerError(f"{where}: field 'sha256' must be 64 lowercase hex digits, got {obj['sha256']!r}")
+    return obj
+
+
+def read_pointer(home: str | os.PathLike, component: str) -> dict[str, Any] | None:
+    """The pointer of `component`, or None when nothing has been promoted yet.
+
+    PointerError (naming the file) when the file exists but is not a valid pointer: a corrupt
+    pointer must be noticed, not read as "no model"."""
+    path = pointer_path(home, component)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise PointerError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        obj = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PointerError(f"{path}: not valid JSON: {exc}") from None
+    return _validate(obj, str(path), component)
+
+
+def write_pointer(home: str | os.PathLike, component: str, obj: dict[str, Any]) -> Path:
+    """Replace the pointer of `component` atomically with `obj` (validated first). Returns the path."""
+    path = pointer_path(home, component)
+    obj = _validate(dict(obj), f"pointer for {component}", component)
+    data = (json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n").encode("utf-8")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{os.urandom(3).hex()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise PointerError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    fsync_path(path.parent)
+    return path
+
+
+def remove_pointer(home: str | os.PathLike, component: str) -> bool:
+    """Delete the pointer (nothing promoted any more). True if there was one."""
+    path = pointer_path(home, component)
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        return False
+    fsync_path(path.parent)
+    return True
+
+
+def checkpoint_version(ckpt_dir: str | os.PathLike) -> tuple[str, str]:
+    """(version, sha256 of model.safetensors) of a checkpoint dir.
+
+    version = "<run name>@<step>:<first 12 hex of the sha256>": the run name is the run dir's name
+    (checkpoints/<step> sits in <run dir>/checkpoints), a bare checkpoint dir gives its own name;
+    the step comes from config.json's "checkpoint"."step", else from a numeric dir name, else 0.
+    """
+    ckpt = Path(ckpt_dir)
+    weights = ckpt / MODEL_FILE
+    try:
+        sha = file_sha256(weights)
+    except FileNotFoundError:
+        raise PointerError(f"{weights}: not found (a checkpoint dir holds {MODEL_FILE})") from None
+    except OSError as exc:
+        raise PointerError(f"{weights}: cannot read: {exc.strerror or exc}") from None
+    try:
+        step = json.loads((ckpt / CONFIG_FILE).read_text(encoding="utf-8")).get("checkpoint", {}).get("step")
+    except (OSError, ValueError, AttributeError):
+        step = None
+    if not isinstance(step, int) or isinstance(step, bool):
+        step = int(ckpt.name) if ckpt.name.isdigit() else 0
+    run_name = ckpt.parent.parent.name if ckpt.parent.name == "checkpoints" else ckpt.name
+    return f"{run_name}@{int(step)}:{sha[:12]}", sha
+
+
+__all__ = ["PointerError", "pointer_path", "read_pointer", "write_pointer", "remove_pointer", "checkpoint_version",
+           "POINTER_DIR", "POINTER_FIELDS"]

@@ -1,0 +1,427 @@
+"""BrainService: serves the promoted model of each component and follows promotions without a restart.
+
+    brain = BrainService(settings.home, on_swap=..., on_first_inference=..., on_error=...)
+    brain.start()                                   # loads what is promoted now, then watches
+    brain.infer("fast_loop", [0.1, ...], session="arm-1")
+        -> {"action": [...], "model_version": "reach@2500:1a2b3c4d5e6f", "latency_ms": 0.08, "session": "arm-1"}
+    brain.status()["fast_loop"]                     # version, checkpoint, loaded_at, last_error, sessions
+    brain.stop()
+
+The promoted model of a component is named by its pointer file $HOPE_HOME/promoted/<component>.json
+(hope_models.promote.pointers). A watcher thread reads the pointer every poll_s (0.2 s) and compares
+its bytes with the last seen, so a promotion or a rollback is noticed within a poll. The new
+checkpoint is then loaded on the watcher thread, off the request path: its manifest verified, its
+weights' sha256 checked against the pointer's, its config checked to fit (a fast_loop this runtime
+can run, with the same observation and action layout as the model being served), warmed with one
+tick, and only then swapped in by assigning one reference. A request reads that reference once at
+its start and finishes on the object it read, so requests in flight complete on the old weights and
+none fail. A checkpoint that does not fit is refused: the old model keeps serving, and the reason
+is in status()["<component>"]["last_error"] and passed to on_error.
+
+Hooks (plain attributes, read each time they are called, so the webapp can wire them after
+construction): on_swap(component, version, checkpoint) and on_error(component, message) run on the
+watcher thread (or in start()/check_now()); on_first_inference(component, version, checkpoint, when)
+fires once per loaded version on a hook thread of its own, so the request that triggered it never
+waits for the webapp's registry write (`wait_hooks()` waits for it; `stop()` runs what is queued).
+A hook that raises is logged, never propagated. A refused pointer is not retried until it changes.
+
+Torch-free (the webapp hosts this in the `serve` process, whose memory budget has no room for torch):
+the fast_loop runs as FastLoopNumpy, tested equal to torch's FastLoop within 1e-5.
+
+Recurrent state: a request with `session` steps that session's state (window-exact: the action is
+FastLoop.forward over the session's last K observations); without one the call is stateless (a
+fresh state, i.e. a 1-point window). Sessions are kept per component in an LRU of `max_sessions`;
+`reset=True` starts the session's episode again, and a version change resets every session (a state
+computed by other weights means nothing to the new ones).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from hope_models.runtime.fast_loop_numpy import FastLoopNumpy, FastLoopNumpyError, NumpyWindowState
+
+log = logging.getLogger(__name__)
+
+RUNTIMES = {"fast_loop": FastLoopNumpy}  # component -> its torch-free inference runtime
+MAX_SESSIONS = 256
+MAX_SESSION_CHARS = 128
+MAX_OBSERVATION = 4096  # longer lists are refused before any conversion
+
+
+class BrainError(ValueError):
+    """A request BrainService cannot answer; `.status` is the HTTP status that fits (400 bad input,
+    404 unknown component, 503 no model to serve yet)."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
+
+
+def _utcnow() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+@dataclass(eq=False)
+class _Served:
+    """One loaded version of a component: never mutated after it is swapped in (apart from the
+    once-only first-inference flag)."""
+    model: FastLoopNumpy
+    checkpoint: Path
+    pointer: dict[str, Any]
+    loaded_at: datetime
+    first_inference_done: bool = False
+
+    @property
+    def version(self) -> str:
+        return self.model.version
+
+
+@dataclass(eq=False)
+class _Session:
+    version: str
+    state: NumpyWindowState
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    ticks: int = 0
+
+
+@dataclass(eq=False)
+class _Slot:
+    """Per component: the served model (one reference, swapped whole), its sessions, the watcher's view."""
+    component: str
+    served: _Served | None = None
+    last_error: str | None = None
+    pointer_bytes: bytes | None = None  # what the pointer file held when last looked at
+    pointer_version: str | None = None
+    sessions: "OrderedDict[str, _Session]" = field(default_factory=OrderedDict)
+    lock: threading.Lock = field(default_factory=threading.Lock)  # sessions and first-inference flag
+
+
+class BrainService:
+    def __init__(self, home: str | Path, *, components: Iterable[str] = ("fast_loop",), poll_s: float = 0.2,
+                 on_swap: Callable[[str, str, str], Any] | None = None,
+                 on_first_inference: Callable[[str, str, str, datetime], Any] | None = None,
+                 on_error: Callable[[str, str], Any] | None = None, max_sessions: int = MAX_SESSIONS):
+        comps = tuple(components)
+        unknown = [c for c in comps if c not in RUNTIMES]
+        if unknown or not comps:
+            raise ValueError(f"BrainService: no inference runtime for {unknown or 'no component'}; it serves "
+                             f"{', '.join(RUNTIMES)}")
+        if not (isinstance(poll_s, (int, float)) and 0 < poll_s <= 1.0):
+            raise ValueError(f"BrainService: poll_s={poll_s!r} must be within (0, 1] (changes are noticed within 1 s)")
+        if max_sessions < 1:
+            raise ValueError(f"BrainService: max_sessions={max_sessions} must be >= 1")
+        self.home = Path(home)
+        self.poll_s = float(poll_s)
+        self.max_sessions = int(max_sessions)
+        self.on_swap, self.on_first_inference, self.on_error = on_swap, on_first_inference, on_error
+        self._slots = {c: _Slot(c) for c in comps}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._check_lock = threading.Lock()  # one pointer check at a time (watcher vs check_now)
+        # on_first_inference runs on its own thread: the webapp's hook writes to SQLite, which may
+        # wait for the daemon's write lock, and a robot's request must never wait for that.
+        self._hooks: queue.SimpleQueue = queue.SimpleQueue()
+        self._hooks_pending = 0
+        self._hooks_cond = threading.Condition()
+        self._hooks_thread: threading.Thread | None = None
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return tuple(self._slots)
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> "BrainService":
+        """Load what is promoted now (so infer answers right after start), then watch in a thread."""
+        if self._thread is not None:
+            return self
+        self._stop.clear()
+        self.check_now()
+        self._thread = threading.Thread(target=self._watch, name="brain-watcher", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop watching; hooks already queued (first-inference records) still run, within timeout."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout)
+        self.wait_hooks(timeout)
+        with self._hooks_cond:
+            hooks, self._hooks_thread = self._hooks_thread, None
+        if hooks is not None:
+            self._hooks.put(None)
+            hooks.join(timeout)
+
+    def __enter__(self) -> "BrainService":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _watch(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            try:
+                self.check_now()
+            except Exception:  # never let the watcher die: the next poll tries again
+                log.exception("BrainService: pointer check failed")
+
+    # -- following the pointers -----------------------------------------------------------------
+    def check_now(self) -> None:
+        """Look at every pointer once and load what changed (the watcher calls this each poll)."""
+        with self._check_lock:
+            for slot in self._slots.values():
+                self._check(slot)
+
+    def _check(self, slot: _Slot) -> None:
+        from hope_models.promote.pointers import PointerError, pointer_path, read_pointer
+
+        path = pointer_path(self.home, slot.component)
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            raw = None
+        except OSError as exc:
+            self._fail(slot, f"{path}: cannot read the pointer: {exc.strerror or exc}")
+            return
+        if raw == slot.pointer_bytes:
+            return
+        slot.pointer_bytes = raw
+        if raw is None:
+            if slot.served is not None:
+                # Keep the robot's reflex running: a missing pointer is not a reason to stop serving.
+                self._fail(slot, f"{path} was removed; still serving {slot.served.version}")
+            return
+        try:
+            pointer = read_pointer(self.home, slot.component)
+        except PointerError as exc:
+            self._fail(slot, str(exc))
+            return
+        if pointer is None:  # removed between our read and read_pointer's: the next poll sees it
+            slot.pointer_bytes = None
+            return
+        slot.pointer_version = pointer.get("version") if isinstance(pointer.get("version"), str) else None
+        try:
+            served = self._load(slot, pointer, path)
+        except (FastLoopNumpyError, BrainError) as exc:
+            self._fail(slot, str(exc))
+            return
+        if served is None:  # the same weights as served now (e.g. the pointer rewritten): nothing to do
+            slot.last_error = None
+            return
+        self._swap(slot, served)
+
+    def _load(self, slot: _Slot, pointer: dict[str, Any], path: Path) -> _Served | None:
+        from hope_models.train.checkpoint import CheckpointError, resolve_checkpoint_dir
+
+        target = pointer.get("checkpoint")
+        if not isinstance(target, str) or not target:
+            raise BrainError(f"{path}: 'checkpoint' is missing or not a path")
+        ckpt = Path(target) if Path(target).is_absolute() else self.home / target
+        sha = pointer.get("sha256")
+        if sha is not None and not isinstance(sha, str):
+            raise BrainError(f"{path}: 'sha256' must be a hex string")
+        current = slot.served
+        if current is not None and current.checkpoint == ckpt and sha == current.model.sha256:
+            return None
+        try:
+            ckpt = resolve_checkpoint_dir(ckpt)  # verifies the manifest: a torn or altered checkpoint is refused
+        except CheckpointError as exc:
+            raise BrainError(f"promoted {slot.component} ({path}): {exc}") from None
+        model = RUNTIMES[slot.component].from_checkpoint(ckpt, expected_sha256=sha)
+        if current is not None:
+            self._check_fits(slot, current.model, model)
+        # warm: one tick, so the first real request after the swap pays no first-call costs
+        model.step(np.zeros((1, model.obs_dim), np.float32), model.init_state())
+        return _Served(model=model, checkpoint=ckpt, pointer=dict(pointer), loaded_at=_utcnow())
+
+    @staticmethod
+    def _check_fits(slot: _Slot, old: FastLoopNumpy, new: FastLoopNumpy) -> None:
+        """The robot sends what the served model reads: a model with another observation or action
+        layout would fail every request, so it is refused while the old one keeps serving."""
+        if new.observation_fields != old.observation_fields or new.action_fields != old.action_fields:
+            def fmt(fields):
+                return ", ".join(f"{p}[{n}]" for p, n in fields)
+
+            raise BrainError(
+                f"{new.checkpoint}: does not fit the {slot.component} being served ({old.version}): it reads "
+                f"{fmt(new.observation_fields)} -> {fmt(new.action_fields)}, the served model reads "
+                f"{fmt(old.observation_fields)} -> {fmt(old.action_fields)}; still serving {old.version} "
+                "(restart the service to switch to a robot with another layout)")
+
+    def _swap(self, slot: _Slot, served: _Served) -> None:
+        old = slot.served
+        slot.served = served  # the swap: one reference; in-flight requests keep the object they read
+        with slot.lock:
+            slot.sessions.clear()  # a state made by other weights means nothing to these
+        slot.last_error = None
+        log.info("BrainService: %s now serves %s (was %s)", slot.component, served.version,
+                 old.version if old else "nothing")
+        self._callback(self.on_swap, slot.component, served.version, str(served.checkpoint))
+
+    def _fail(self, slot: _Slot, message: str) -> None:
+        if slot.served is not None and "still serving" not in message:
+            message = f"{message} (still serving {slot.served.version})"
+        if message == slot.last_error:  # a read error that persists: say it once
+            return
+        slot.last_error = message
+        log.warning("BrainService: %s: %s", slot.component, message)
+        self._callback(self.on_error, slot.component, message)
+
+    @staticmethod
+    def _callback(fn: Callable | None, *args) -> None:
+        if fn is None:
+            return
+        try:
+            fn(*args)
+        except Exception:  # a hook must never fail a request or kill the watcher
+            log.exception("BrainService: callback %r failed", fn)
+
+    # -- inference ------------------------------------------------------------------------------
+    def infer(self, component: Any, observation: Any, session: Any = None, reset: Any = False) -> dict[str, Any]:
+        """One tick of `component` on `observation` (a list of finite numbers, the model's spec order)."""
+        started = time.perf_counter()
+        slot = self._slots.get(component) if isinstance(component, str) else None
+        if slot is None:
+            raise BrainError(f"unknown component {component!r}; BrainService serves {', '.join(self._slots)}", 404)
+        values = observation_values(observation)
+        if session is not None and (not isinstance(session, str) or not 0 < len(session) <= MAX_SESSION_CHARS):
+            raise BrainError(f"session must be a string of 1 to {MAX_SESSION_CHARS} characters (or omitted)")
+        if not isinstance(reset, bool):
+            raise BrainError(f"reset must be true or false, got {reset!r}")
+        served = slot.served  # read once: this request finishes on this object, whatever swaps meanwhile
+        if served is None:
+            why = f" (the promoted checkpoint was refused: {slot.last_error})" if slot.last_error else ""
+            raise BrainError(f"no promoted {component} to serve yet{why}; promote a checkpoint first "
+                             f"(run_trainer.py promote RUN)", 503)
+        model = served.model
+        if len(values) != model.obs_dim:
+            raise BrainError(f"observation has {len(values)} values, {served.version} needs {model.obs_dim} "
+                             f"({model.describe_observation()})")
+        xn = model.normalise(np.asarray(values, dtype=np.float64))
+        if session is None:
+            a, _ = model.tick(xn, model.init_state())
+        else:
+            sess = self._session(slot, session, served.version, model, reset)
+            with sess.lock:
+                if sess.version != served.version:  # a swap happened since: start afresh on these weights
+                    sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
+                a, sess.state = model.tick(xn, sess.state)
+                sess.ticks += 1
+        action = model.denormalise(a)
+        latency_ms = (time.perf_counter() - started) * 1000.0
+        out = {"action": [float(v) for v in action], "model_version": served.version,
+               "latency_ms": round(latency_ms, 4), "session": session}
+        if not served.first_inference_done:
+            self._first_inference(slot, served)
+        return out
+
+    def _session(self, slot: _Slot, name: str, version: str, model: FastLoopNumpy, reset: bool) -> _Session:
+        with slot.lock:
+            sess = slot.sessions.get(name)
+            if sess is None:
+                sess = _Session(version, model.init_state())
+                slot.sessions[name] = sess
+                while len(slot.sessions) > self.max_sessions:
+                    slot.sessions.popitem(last=False)  # least recently used
+            else:
+                slot.sessions.move_to_end(name)
+        if reset:
+            with sess.lock:
+                sess.version, sess.state, sess.ticks = version, model.init_state(), 0
+        return sess
+
+    def _first_inference(self, slot: _Slot, served: _Served) -> None:
+        with slot.lock:
+            if served.first_inference_done:
+                return
+            served.first_inference_done = True
+        # Once per loaded version; `when` is now (the answer exists), the hook runs on the hook thread.
+        self._post_hook("on_first_inference", slot.component, served.version, str(served.checkpoint), _utcnow())
+
+    # -- the hook thread ------------------------------------------------------------------------
+    def _post_hook(self, name: str, *args) -> None:
+        with self._hooks_cond:
+            self._hooks_pending += 1
+            if self._hooks_thread is None:
+                self._hooks_thread = threading.Thread(target=self._run_hooks, name="brain-hooks", daemon=True)
+                self._hooks_thread.start()
+        self._hooks.put((name, args))
+
+    def _run_hooks(self) -> None:
+        while True:
+            item = self._hooks.get()
+            if item is None:
+                return
+            name, args = item
+            try:
+                self._callback(getattr(self, name), *args)  # the attribute as it is now (the webapp rewires)
+            finally:
+                with self._hooks_cond:
+                    self._hooks_pending -= 1
+                    self._hooks_cond.notify_all()
+
+    def wait_hooks(self, timeout: float = 5.0) -> bool:
+        """Wait until every queued hook has run (tests; `infer --local` before it exits). True if so."""
+        with self._hooks_cond:
+            return self._hooks_cond.wait_for(lambda: self._hooks_pending == 0, timeout)
+
+    # -- status ---------------------------------------------------------------------------------
+    def status(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        for name, slot in self._slots.items():
+            served = slot.served
+            model = served.model if served else None
+            out[name] = {
+                "version": served.version if served else None,
+                "checkpoint": str(served.checkpoint) if served else None,
+                "loaded_at": served.loaded_at.isoformat() if served else None,
+                "last_error": slot.last_error,
+                "sessions": len(slot.sessions),
+                "pointer_version": slot.pointer_version,
+                "obs_dim": model.obs_dim if model else None,
+                "act_dim": model.act_dim if model else None,
+                "observation_fields": model.spec.observation.dim_names() if model else None,
+                "action_fields": model.spec.action.dim_names() if model else None,
+            }
+        return out
+
+    def version(self, component: str) -> str | None:
+        slot = self._slots.get(component)
+        return slot.served.version if slot and slot.served else None
+
+
+def observation_values(observation: Any) -> list[float]:
+    """A JSON list of finite numbers -> floats; BrainError(400) naming what is wrong otherwise."""
+    if not isinstance(observation, (list, tuple)):
+        raise BrainError(f"observation must be a list of numbers, got {type(observation).__name__}")
+    if not observation:
+        raise BrainError("observation is empty; it must be a list of numbers")
+    if len(observation) > MAX_OBSERVATION:
+        raise BrainError(f"observation has {len(observation)} values; at most {MAX_OBSERVATION} are accepted")
+    values = []
+    for i, v in enumerate(observation):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise BrainError(f"observation[{i}] = {v!r} is not a number")
+        try:
+            f = float(v)
+        except OverflowError:  # a huge JSON integer
+            raise BrainError(f"observation[{i}] is too large for a float") from None
+        if not math.isfinite(f):
+            raise BrainError(f"observation[{i}] = {f} is not finite (NaN and Inf are refused)")
+        values.append(f)
+    return values
+
+
+__all__ = ["BrainService", "BrainError", "RUNTIMES", "MAX_SESSIONS", "observation_values"]

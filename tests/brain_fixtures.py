@@ -1,0 +1,86 @@
+"""Tiny real fast_loop checkpoints for the inference-runtime tests (BrainService, the NumPy fast_loop).
+
+Trained once per test session (module cache) with the real trainer, one thread, on small synthetic
+datasets; about 10 s in all on an idle core:
+
+    runs = brain_runs(tmp_path_factory)
+    runs["alpha15"], runs["alpha30"]   two versions of one run (obs 6 -> act 2), d_model 16
+    runs["big"]                        default model size (d_model 128, d_state 256), same data
+    runs["vq"]                         a vector VQ-VAE checkpoint (not a fast_loop)
+    runs["alpha_vq"]                   a fast_loop reading that VQ-VAE's codes
+    runs["other"]                      a fast_loop for another robot (obs 8 -> act 3)
+
+`promote_pointer(home, ckpt)` writes $HOPE_HOME/promoted/fast_loop.json the way the gate does
+(hope_models.promote.pointers), and `rewrite_manifest(ckpt)` re-hashes a checkpoint dir a test has
+edited, so the edit reaches the check under test instead of stopping at the manifest.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from datetime import datetime, timezone
+from pathlib import Path
+
+_RUNS: dict[str, Path] = {}
+SMALL = {"d_model": 16, "d_state": 32}
+
+
+def _train(data: Path, run_dir: Path, cache: Path, component: str, steps: int, every: int,
+           model_config: dict, vqvae_dir: Path | None = None) -> Path:
+    from hope_models.train.loop import TrainConfig, train
+
+    result = train(TrainConfig(component=component, data=str(data), run_dir=str(run_dir), steps=steps, seed=0,
+                               batch_size=16, threads=1, checkpoint_every_steps=every, log_every=10,
+                               cache_dir=str(cache), thermal_zone=None, vcgencmd=None, model_config=model_config,
+                               vqvae_dir=None if vqvae_dir is None else str(vqvae_dir), val_batches=1))
+    assert result.outcome == "completed", result.message
+    return Path(result.checkpoint)
+
+
+def brain_runs(tmp_path_factory) -> dict[str, Path]:
+    if _RUNS:
+        return _RUNS
+    import torch
+
+    from hope_models.data.synthetic import generate_dataset
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        root = tmp_path_factory.mktemp("brain")
+        generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
+        generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
+        cache = root / "cache"
+        alpha30 = _train(root / "ds6", root / "runs" / "alpha", cache, "fast_loop", 30, 15, SMALL)
+        runs = {"alpha30": alpha30, "alpha15": alpha30.parent / "00000015"}
+        runs["big"] = _train(root / "ds6", root / "runs" / "big", cache, "fast_loop", 10, 10, {})
+        runs["vq"] = _train(root / "ds6", root / "runs" / "vq", cache, "vqvae", 20, 20,
+                            {"n_codes": 16, "code_dim": 8, "hidden": 16})
+        runs["alpha_vq"] = _train(root / "ds6", root / "runs" / "alpha_vq", cache, "fast_loop", 20, 20, SMALL,
+                                  vqvae_dir=runs["vq"])
+        runs["other"] = _train(root / "ds8", root / "runs" / "other", cache, "fast_loop", 10, 10, SMALL)
+    finally:
+        torch.set_num_threads(threads)
+    assert (runs["alpha15"] / "model.safetensors").is_file()
+    _RUNS.update(runs)
+    return _RUNS
+
+
+def promote_pointer(home: Path, ckpt: Path, component: str = "fast_loop", model_id: int = 1) -> dict:
+    """Write the component's pointer to `ckpt` as the promotion code does; returns the pointer."""
+    from hope_models.promote.pointers import checkpoint_version, write_pointer
+
+    version, sha = checkpoint_version(ckpt)
+    obj = {"component": component, "checkpoint": str(Path(ckpt).resolve()), "version": version, "sha256": sha,
+           "model_id": model_id, "run_id": None, "promoted_at": datetime.now(timezone.utc).isoformat()}
+    write_pointer(home, component, obj)
+    return obj
+
+
+def rewrite_manifest(ckpt: Path) -> None:
+    """Re-hash every file of an edited checkpoint dir into its manifest.json."""
+    manifest = json.loads((ckpt / "manifest.json").read_text())
+    for name in manifest["files"]:
+        data = (ckpt / name).read_bytes()
+        manifest["files"][name] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+    (ckpt / "manifest.json").write_text(json.dumps(manifest))

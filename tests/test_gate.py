@@ -1,0 +1,236 @@
+"""The promotion gate on tiny real checkpoints, and `run_trainer.py promote` (exit codes, records).
+
+The models (promote_fixtures.build_models): fast_loops trained on 12 sim reacher demos for 150
+("good") and 3 ("weak") steps, and one on synthetic data whose fields do not fit the reacher.
+The reflex check runs 2 held-out episodes here (HOPE_GATE_REFLEX_EPISODES) to stay fast.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from promote_fixtures import build_models, completed_run, copy_run, poison_with_nan
+
+import run_trainer
+from daemon import promotion
+from daemon.db import Registry
+from daemon.models import Model
+from hope_models.promote.gate import GateError, gate_candidate, sim_task
+from hope_models.promote.pointers import checkpoint_version, read_pointer
+from hope_models.settings import load_settings
+
+ENV = {"HOPE_GATE_REFLEX_EPISODES": "2"}
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("gate")
+    yield {"root": root, **build_models(root)}
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def home(tmp_path, monkeypatch):
+    """A fresh $HOPE_HOME for in-process CLI calls (the CLI reads the environment)."""
+    h = tmp_path / "home"
+    monkeypatch.setenv("HOPE_HOME", str(h))
+    for k, v in ENV.items():
+        monkeypatch.setenv(k, v)
+    return h
+
+
+def settings(**env) -> object:
+    return load_settings("/nonexistent-home-for-gate-tests", env={**ENV, **env})
+
+
+def cli(capsys, *argv) -> tuple[int, dict]:
+    code = run_trainer.main(list(argv))
+    out = capsys.readouterr().out.strip().splitlines()
+    return code, (json.loads(out[-1]) if out else {})
+
+
+# -- the gate itself -------------------------------------------------------------------------------
+
+def test_candidate_val_loss_is_the_one_the_trainer_reported(models):
+    """Same split, same batches, same function: the gate's number equals result.json's val loss."""
+    res = gate_candidate(models["good"], None, settings=settings())
+    reported = json.loads((models["good"].parent.parent / "result.json").read_text())["summary"]["val"]["loss"]
+    assert res.metrics["candidate_val_loss"] == reported
+    assert res.passed and res.metrics["finite"] is True
+    # nothing promoted: both comparisons are skipped, and the reasons say so
+    assert [c["status"] for c in res.checks] == ["passed", "skipped", "skipped"]
+    assert any("nothing promoted yet" in r for r in res.reasons)
+    assert res.metrics["reflex"]["task"] == "reach" and res.metrics["reflex"]["candidate_mean_return"] > 0
+
+
+def test_same_model_compares_equal_on_the_same_batches(models):
+    res = gate_candidate(models["good"], models["good"], settings=settings())
+    assert res.passed, res.reasons
+    assert res.metrics["ratio"] == 1.0
+    assert res.metrics["reflex"]["candidate_mean_return"] == res.metrics["reflex"]["promoted_mean_return"]
+
+
+def test_clearly_worse_val_loss_is_refused_with_the_reason(models):
+    res = gate_candidate(models["weak"], models["good"], settings=settings())
+    assert not res.passed
+    assert res.metrics["ratio"] > 1.05
+    val = next(c for c in res.checks if c["check"] == "val_loss")
+    assert val["status"] == "failed" and "worse by more than 5%" in val["detail"]
+    assert val["detail"] in res.reasons
+
+
+def test_worse_reflex_is_refused_even_when_the_val_loss_is_tolerated(models):
+    res = gate_candidate(models["weak"], models["good"], settings=settings(HOPE_GATE_VAL_TOLERANCE="100"))
+    statuses = {c["check"]: c["status"] for c in res.checks}
+    assert statuses == {"finite": "passed", "val_loss": "passed", "reflex": "failed"}, res.checks
+    r = res.metrics["reflex"]
+    assert r["candidate_mean_return"] < r["promoted_mean_return"] - 50
+    assert not res.passed and len(res.reasons) == 1 and "reflex mean return" in res.reasons[0]
+
+
+def test_better_candidate_passes(models):
+    res = gate_candidate(models["good"], models["weak"], settings=settings())
+    assert res.passed, res.reasons
+    assert res.metrics["ratio"] < 1.0
+    assert {c["check"]: c["status"] for c in res.checks} == {"finite": "passed", "val_loss": "passed",
+                                                             "reflex": "passed"}
+
+
+def test_nan_weights_are_refused_and_nothing_else_is_measured(models, tmp_path):
+    bad = copy_run(models["good"], tmp_path, "nan_run")
+    name = poison_with_nan(bad)
+    res = gate_candidate(bad, models["good"], settings=settings())
+    assert not res.passed and res.metrics["finite"] is False
+    assert "non-finite" in res.reasons[0] and name in res.reasons[0]
+    assert [c["status"] for c in res.checks] == ["failed", "skipped", "skipped"]
+
+
+def test_a_promoted_model_that_does_not_fit_the_data_is_skipped_not_a_crash(models):
+    res = gate_candidate(models["good"], models["synthetic"], settings=settings())
+    assert res.passed, res.reasons
+    checks = {c["check"]: c for c in res.checks}
+    assert checks["val_loss"]["status"] == "skipped"
+    assert "does not fit" in checks["val_loss"]["detail"] and "observation" in checks["val_loss"]["detail"]
+    assert checks["reflex"]["status"] == "skipped"
+    assert res.metrics["promoted_val_loss"] is None and math.isfinite(res.metrics["candidate_val_loss"])
+
+
+def test_a_promoted_checkpoint_that_is_gone_is_skipped_with_the_reason(models, tmp_path):
+    res = gate_candidate(models["good"], tmp_path / "pruned", settings=settings())
+    assert res.passed
+    assert [c["status"] for c in res.checks] == ["passed", "skipped", "skipped"]
+    assert all("the promoted model cannot be loaded" in r and "pruned" in r for r in res.reasons)
+
+
+def test_missing_training_data_refuses_with_the_path(models, tmp_path):
+    res = gate_candidate(models["good"], models["weak"], data=tmp_path / "gone", settings=settings())
+    val = next(c for c in res.checks if c["check"] == "val_loss")
+    assert val["status"] == "failed" and str(tmp_path / "gone") in val["detail"]
+    assert not res.passed
+
+
+def test_not_a_checkpoint_is_a_gate_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(GateError, match="no complete checkpoint"):
+        gate_candidate(tmp_path / "empty", None, settings=settings())
+    with pytest.raises(GateError, match="no such"):
+        gate_candidate(tmp_path / "nope", None, settings=settings())
+
+
+def test_sim_task_comes_from_the_dataset_metadata(models):
+    from hope_models.data.cache import load_or_build
+
+    cache, _ = load_or_build(models["demos"], models["root"] / "cache")
+    assert sim_task(cache) == "reach"
+
+
+# -- run_trainer.py promote -----------------------------------------------------------------------------
+
+def test_promote_cli_promotes_refuses_and_records_why(models, home, capsys):
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["weak"]), "--json")
+    assert code == 0 and out["promoted"] is True, out
+    weak_id = out["model_id"]
+    pointer = read_pointer(home, "fast_loop")
+    assert pointer["version"] == checkpoint_version(models["weak"])[0] == out["version"]
+    assert pointer["checkpoint"] == str(models["weak"].resolve())
+
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")
+    assert code == 0 and out["promoted"] is True, out
+    good_id = out["model_id"]
+    assert read_pointer(home, "fast_loop")["model_id"] == good_id
+
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["weak"].parent.parent), "--json")  # a run dir
+    assert code == 1 and out["promoted"] is False
+    assert any("worse by more than 5%" in r for r in out["reasons"])
+    assert read_pointer(home, "fast_loop")["model_id"] == good_id  # unchanged
+
+    with Registry.open(load_settings(home, env={})) as reg, reg.session(readonly=True) as s:
+        refused = s.get(Model, out["model_id"])
+        assert refused.promoted_at is None and refused.gate_result["passed"] is False
+        assert any("worse by more than 5%" in r for r in refused.gate_result["reasons"])
+        assert refused.metrics["ratio"] > 1.05
+        good = s.get(Model, good_id)
+        assert good.promoted_at is not None and good.previous_model_id == weak_id
+        assert s.get(Model, weak_id).demoted_at is not None
+
+
+def test_promote_cli_force_and_nan(models, home, capsys, tmp_path):
+    assert cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")[0] == 0
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["weak"]), "--force", "--json")
+    assert code == 0 and out["promoted"] is True and out["forced"] is True
+    bad = copy_run(models["good"], tmp_path, "nan_run")
+    poison_with_nan(bad)
+    code, out = cli(capsys, "promote", "--checkpoint", str(bad), "--force", "--json")
+    assert code == 1 and out["promoted"] is False and out["forced"] is False
+    assert any("non-finite" in r for r in out["reasons"])
+    assert any("--force ignored" in r for r in out["reasons"])
+    assert read_pointer(home, "fast_loop")["version"] == checkpoint_version(models["weak"])[0]
+    with Registry.open(load_settings(home, env={})) as reg, reg.session(readonly=True) as s:
+        row = s.get(Model, out["model_id"])
+        assert row.promoted_at is None and row.metrics["finite"] is False
+        assert any("non-finite" in r for r in row.gate_result["reasons"])
+
+
+def test_promote_cli_by_run_id_and_usage_errors(models, home, capsys):
+    st = load_settings(home, env={})
+    with Registry.open(st) as reg:
+        run_id = completed_run(reg, models["good"].parent.parent)
+        from daemon import runs
+        with reg.session() as s:
+            queued = runs.create_run(s, component="fast_loop", config={}, total_steps=5, run_dir="/nowhere").id
+    code, out = cli(capsys, "promote", run_id, "--component", "fast_loop", "--json")
+    assert code == 0 and out["run_id"] == run_id and out["promoted"] is True
+    # again: already the promoted one
+    code, out = cli(capsys, "promote", run_id, "--json")
+    assert code == 0 and out.get("already") is True
+    # --auto on a run that already has a candidate row: skipped, nothing new recorded
+    code, out = cli(capsys, "promote", run_id, "--auto", "--json")
+    assert code == 0 and out["promoted"] is False and "already has a candidate" in out["skipped"]
+
+    for argv, expect in [
+        (["promote", "r-missing", "--json"], "no run r-missing"),
+        (["promote", queued, "--json"], "is queued; only a completed run"),
+        (["promote", run_id, "--checkpoint", str(models["good"]), "--json"], "exactly one"),
+        (["promote", "--json"], "exactly one"),
+        (["promote", run_id, "--component", "vqvae", "--json"], "not a vqvae"),
+        (["promote", "--checkpoint", str(home / "nope"), "--json"], "no such checkpoint"),
+    ]:
+        code, out = cli(capsys, *argv)
+        assert code == 2, (argv, out)
+        assert out["promoted"] is False and expect in out["error"], (argv, out)
+    with Registry.open(st) as reg, reg.session(readonly=True) as s:
+        assert len(promotion.history(s, "fast_loop")) == 1
+
+
+def test_eval_reflex_reads_the_pointer_promote_writes(models, home, capsys):
+    from hope_models.cli.eval_reflex import resolve_promoted
+
+    cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")
+    assert resolve_promoted(Path(home)) == models["good"].resolve()

@@ -1,0 +1,142 @@
+"""The sim reflex over HTTP: the promoted fast_loop driving the dm_control reacher, in the background.
+
+    POST /api/sim/reflex  {"episodes": 1..5 (default 1), "seed": int >= 0 (default 0),
+                           "task": "reach" | "track" (default "reach")}
+         -> 202 {"job": {...}}  (Location: /api/sim/reflex/<job>); 409 while another one runs or
+            when no fast_loop has been promoted yet
+    GET  /api/sim/reflex/<job>  -> {"job": {"id", "state": running|completed|failed, "episodes",
+                                   "seed", "task", "created_at", "finished_at", "elapsed_s",
+                                   "result": eval-reflex's JSON | null, "error": str | null}}
+
+Each job is `run_trainer.py eval-reflex --checkpoint promoted --json` in a child process (torch and
+MuJoCo stay out of the webapp), one at a time: the reflex is a demonstration, and two would only
+halve each other's speed on the Pi. The last KEEP_JOBS jobs are remembered in memory (a restart
+forgets them; their results are not training state). Issue 7 adds the frames (`sim.frame`).
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import secrets
+import threading
+from datetime import datetime, timezone
+from typing import Any
+
+from flask import Blueprint, current_app, jsonify
+
+from webapp.api.validation import get_int, get_str, json_body
+from webapp.errors import ApiError
+
+log = logging.getLogger(__name__)
+
+bp = Blueprint("sim", __name__, url_prefix="/api/sim")
+
+TASKS = ("reach", "track")  # hope_models.sim.reacher.TASKS (not imported: it loads MuJoCo); a test compares
+MAX_EPISODES = 5
+MAX_SEED = 2**31 - 1
+KEEP_JOBS = 20
+JOB_TIMEOUT_S = 900.0
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat()
+
+
+class ReflexBusy(RuntimeError):
+    pass
+
+
+class ReflexJobs:
+    """Background eval-reflex children, one at a time, and the results of the last KEEP_JOBS."""
+
+    def __init__(self, children, *, timeout_s: float = JOB_TIMEOUT_S):
+        self.children = children  # webapp.commands.ChildProcesses
+        self.timeout_s = timeout_s
+        self._jobs: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        self._counter = itertools.count(1)
+        self._running: str | None = None
+
+    def start(self, *, episodes: int, seed: int, task: str) -> dict[str, Any]:
+        with self._lock:
+            if self._running is not None:
+                raise ReflexBusy(f"sim reflex job {self._running} is still running; wait for it "
+                                 f"(GET /api/sim/reflex/{self._running})")
+            job_id = f"reflex-{next(self._counter)}-{secrets.token_hex(3)}"
+            job = {"id": job_id, "state": "running", "episodes": episodes, "seed": seed, "task": task,
+                   "created_at": _now(), "finished_at": None, "elapsed_s": None, "result": None, "error": None}
+            self._jobs[job_id] = job
+            self._running = job_id
+            for old in list(self._jobs)[:-KEEP_JOBS]:
+                del self._jobs[old]
+            snapshot = dict(job)
+        args = ["eval-reflex", "--checkpoint", "promoted", "--json", "--episodes", str(episodes), "--seed", str(seed),
+                "--task", task]
+        threading.Thread(target=self._run, args=(job_id, args), name=f"sim-{job_id}", daemon=True).start()
+        return snapshot
+
+    def _run(self, job_id: str, args: list[str]) -> None:
+        try:
+            res = self.children.run(args, timeout_s=self.timeout_s)
+            if res.code == 0 and isinstance(res.output, dict) and res.output.get("ok", True):
+                update = {"state": "completed", "result": res.output}
+            elif res.timed_out:
+                update = {"state": "failed", "error": f"eval-reflex did not finish within {self.timeout_s:.0f} s"}
+            else:
+                update = {"state": "failed", "error": res.error()}
+            update["elapsed_s"] = res.elapsed_s
+        except Exception as exc:  # noqa: BLE001 - a job that cannot start is a failed job, not a dead thread
+            log.exception("sim reflex job %s could not run", job_id)
+            update = {"state": "failed", "error": f"could not run eval-reflex: {exc}"}
+        with self._lock:
+            job = self._jobs.get(job_id)
+            if job is not None:
+                job.update(update, finished_at=_now())
+            self._running = None
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        with self._lock:
+            job = self._jobs.get(job_id)
+            return dict(job) if job is not None else None
+
+    def running(self) -> str | None:
+        return self._running
+
+
+def _state():
+    return current_app.extensions["hope"]
+
+
+@bp.post("/reflex")
+def start_reflex():
+    from hope_models.promote.pointers import PointerError, read_pointer
+
+    body = json_body(allowed=("episodes", "seed", "task"))
+    episodes = get_int(body, "episodes", default=1, minimum=1, maximum=MAX_EPISODES)
+    seed = get_int(body, "seed", default=0, minimum=0, maximum=MAX_SEED)
+    task = get_str(body, "task", default="reach", choices=TASKS)
+    state = _state()
+    try:
+        pointer = read_pointer(state.settings.home, "fast_loop")
+    except PointerError as exc:
+        raise ApiError(f"the fast_loop promotion pointer is unusable: {exc}", 409) from None
+    if pointer is None:
+        raise ApiError("no fast_loop has been promoted yet: promote one first (POST /api/brain/promote or "
+                       "`run_trainer.py promote RUN`)", 409)
+    try:
+        job = state.reflex_jobs.start(episodes=episodes, seed=seed, task=task)
+    except ReflexBusy as exc:
+        raise ApiError(str(exc), 409) from None
+    response = jsonify({"job": job})
+    response.status_code = 202
+    response.headers["Location"] = f"/api/sim/reflex/{job['id']}"
+    return response
+
+
+@bp.get("/reflex/<job_id>")
+def get_reflex(job_id: str):
+    job = _state().reflex_jobs.get(job_id)
+    if job is None:
+        raise ApiError(f"no sim reflex job {job_id} (jobs are kept in memory: the last {KEEP_JOBS} since the "
+                       "webapp started)", 404)
+    return jsonify({"job": job})

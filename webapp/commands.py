@@ -1,0 +1,145 @@
+"""`run_trainer.py` commands the webapp runs as child processes, because they need torch.
+
+The webapp never imports torch (it shares a process with the daemon under `serve`, and the idle
+budget is 400 MB; torch alone is ~250 MB). The promotion gate (`promote`, validation loss) and the
+sim reflex (`eval-reflex`) therefore run as `python run_trainer.py ... --json` children: the
+same code path as the shell, their memory goes back to the OS when they exit, and their last
+stdout line that is a JSON object is their answer.
+
+Children get HOPE_HOME from the app's settings (tests build settings without touching os.environ),
+one torch thread, and their own session, so the terminal's Ctrl-C reaches `serve` only, which then
+stops them in order (ChildProcesses.close).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RUN_TRAINER = REPO_ROOT / "run_trainer.py"
+STDERR_TAIL = 2000  # characters of a failed child's stderr kept for the error message
+
+
+def trainer_argv(*args: str) -> list[str]:
+    return [sys.executable, str(RUN_TRAINER), *args]
+
+
+def child_env(settings: Any) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update({"HOPE_HOME": str(settings.home), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1",
+                "MKL_NUM_THREADS": "1"})
+    return env
+
+
+def last_json_object(stdout: str) -> dict[str, Any] | None:
+    for line in reversed(stdout.splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(obj, dict):
+                return obj
+    return None
+
+
+def error_line(stderr: str) -> str:
+    """The child's own `error: ...` line if it printed one, else the tail of its stderr."""
+    lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
+    for line in reversed(lines):
+        if line.startswith("error:"):
+            return line[len("error:"):].strip()
+    return "\n".join(lines)[-STDERR_TAIL:]
+
+
+@dataclass
+class ChildResult:
+    argv: list[str]
+    code: int | None  # None: killed (timeout, shutdown)
+    output: dict[str, Any] | None  # the last JSON object on stdout
+    stderr: str
+    elapsed_s: float
+    timed_out: bool = False
+
+    def error(self) -> str:
+        if isinstance(self.output, dict) and isinstance(self.output.get("error"), str):
+            return self.output["error"]
+        return error_line(self.stderr) or f"exit code {self.code}"
+
+
+class ChildProcesses:
+    """Starts children and remembers the live ones, so the app's shutdown can stop them."""
+
+    def __init__(self, settings: Any):
+        self.settings = settings
+        self._live: set[subprocess.Popen] = set()
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def run(self, args: list[str], *, timeout_s: float) -> ChildResult:
+        """Run `run_trainer.py <args>` to the end (blocking the calling thread)."""
+        argv = trainer_argv(*args)
+        started = time.monotonic()
+        with self._lock:
+            if self._closed:
+                return ChildResult(argv, None, None, "the webapp is shutting down", 0.0)
+            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True, env=child_env(self.settings), cwd=str(REPO_ROOT),
+                                    start_new_session=True)
+            self._live.add(proc)
+        log.info("started %s (pid %d)", " ".join(args), proc.pid)
+        timed_out = False
+        try:
+            try:
+                stdout, stderr = proc.communicate(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                timed_out = True
+                self._kill(proc)
+                stdout, stderr = proc.communicate()
+        finally:
+            with self._lock:
+                self._live.discard(proc)
+        code = None if timed_out or proc.returncode < 0 else proc.returncode
+        result = ChildResult(argv, code, last_json_object(stdout or ""), stderr or "",
+                             round(time.monotonic() - started, 3), timed_out)
+        log.info("%s finished: exit %s in %.1f s", " ".join(args), proc.returncode, result.elapsed_s)
+        return result
+
+    @staticmethod
+    def _kill(proc: subprocess.Popen) -> None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM every live child, SIGKILL what is left after `timeout_s`."""
+        with self._lock:
+            self._closed = True
+            live = list(self._live)
+        for proc in live:
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+            except (ProcessLookupError, PermissionError):
+                pass
+        deadline = time.monotonic() + timeout_s
+        for proc in live:
+            try:
+                proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._kill(proc)
+
+
+__all__ = ["ChildProcesses", "ChildResult", "REPO_ROOT", "child_env", "last_json_object", "trainer_argv"]
