@@ -22,8 +22,10 @@ including WindowSSM's exact recompute of h from the ring each time the ring wrap
 which bounds float32 drift for any run length. At batch 1 a tick costs what its array operations
 cost (each ~0.5 us of NumPy dispatch), not its flops, so constants are folded at load time: each
 LayerNorm's affine into the product after it, the gate and up projections into one product, the
-SSM gain into B. One observation takes a flat path (_tick1); batches and the window re-run
-(forward) take the batched path. Both agree with torch within float32 rounding.
+SSM gain into B. One observation takes a flat path (tick, act -> _core) whose weights are folded
+further (_prepare_flat: the residual stream kept centred so no LayerNorm computes a mean, D * u
+riding in the B product, act's normalisation and denormalisation in obs_in and out); batches and
+the window re-run (forward) take the batched path. Both agree with torch within float32 rounding.
 
 A fast_loop that reads codes of a frozen vector VQ-VAE is supported (its MLP encoder, the
 parameter-free LayerNorm and the nearest codebook row are a few more products); one whose VQ-VAE
@@ -131,13 +133,6 @@ def _fold_ln(ln_w: np.ndarray, ln_b: np.ndarray, w: np.ndarray, b: np.ndarray) -
             (w64 @ ln_b.astype(np.float64) + b.astype(np.float64)).astype(np.float32))
 
 
-def _ln1(x: np.ndarray, mean_vec: np.ndarray, inv_d: float) -> np.ndarray:
-    """LayerNorm core of one vector [d] (no affine), its statistics as Python floats."""
-    xc = x - np.float32(x.dot(mean_vec))
-    xc *= np.float32(1.0 / math.sqrt(float(xc.dot(xc)) * inv_d + LN_EPS))
-    return xc
-
-
 def _silu(x: np.ndarray) -> np.ndarray:
     # x * sigmoid(x) through tanh: no overflow warning for large |x| (exp(-x) would overflow)
     return x * (np.float32(0.5) + np.float32(0.5) * np.tanh(np.float32(0.5) * x))
@@ -213,6 +208,49 @@ class FastLoopNumpy:
         self._shift = (obs_mean * self._inv_std).astype(np.float32)
         self._act_mean = np.asarray(act_mean, dtype=np.float64)
         self._act_std = np.asarray(act_std, dtype=np.float64)
+        self._prepare_flat(t, gain)
+
+    def _prepare_flat(self, t: dict[str, np.ndarray], gain: np.ndarray) -> None:
+        """Weights of the one-vector serving path (tick, act), folded further than the batched path's.
+
+        The residual stream is kept centred: every LayerNorm of it subtracts the mean first, and
+        everything that reads the stream reads it through one (u = LN_ssm(x), LN_head(z), LN_out(y)),
+        so adding c * ones anywhere changes no output. Each product that writes into the stream
+        (obs_in, code_in, the MLPs' w_out, C) has its output centred at load (W - row mean, b - mean),
+        and the SSM's D * u term rides in the B product as extra columns diag(ln_w * D) centred, so
+        no LayerNorm of the flat path computes a mean. The SSM LayerNorm's affine is folded into
+        those columns and into B (v = n (diag(ln_w) B^T gain) + ln_b B^T gain, the same v as the
+        batched path's up to float32 rounding). act() also folds the observation normalisation into
+        obs_in and the action denormalisation into out (float64, as denormalise computes it)."""
+        f64 = np.float64
+
+        def centred(w: np.ndarray, b: np.ndarray | None = None):  # w [in, out]: centre each row's outputs
+            w = w.astype(f64)
+            wc = np.ascontiguousarray((w - w.mean(1, keepdims=True)).astype(np.float32))
+            return wc if b is None else (wc, (b.astype(f64) - b.astype(f64).mean()).astype(np.float32))
+
+        d, n = self.d_model, self.d_state
+        w_in, b_in = self._obs_in.w_t.astype(f64), self._obs_in.b.astype(f64)
+        self._e_w, self._e_b = centred(w_in, b_in)  # normalised observation -> centred embedding
+        inv_std, shift = self._inv_std.astype(f64), self._shift.astype(f64)  # the float32 constants normalise uses
+        self._e_w_raw, self._e_b_raw = centred(inv_std[:, None] * w_in, b_in - shift @ w_in)  # raw observation
+        self._code_in_c = None if self._code_in is None else centred(self._code_in)
+        ln_w, ln_b = t["ssm_ln.weight"].astype(f64), t["ssm_ln.bias"].astype(f64)
+        bg = t["ssm.B"].T.astype(f64) * gain.astype(f64)[None, :]  # [d, N]
+        wd, bd = ln_w * t["ssm.D"].astype(f64), ln_b * t["ssm.D"].astype(f64)
+        self._vd_w = np.ascontiguousarray(np.concatenate(
+            [ln_w[:, None] * bg, np.diag(wd) - wd[:, None] / d], axis=1).astype(np.float32))  # [d, N + d]
+        self._vd_b = np.concatenate([ln_b @ bg, bd - bd.mean()]).astype(np.float32)
+        self._c_t_c = centred(self._c_t)
+        enc_out_w, enc_out_b = centred(self._enc.out_w, self._enc.out_b)
+        head_out_w, head_out_b = centred(self._head.out_w, self._head.out_b)
+        out_w, out_b = self._out.w_t.astype(f64), self._out.b.astype(f64)
+        self._a_w_raw = np.ascontiguousarray(out_w * self._act_std[None, :])  # float64 [d, act]
+        self._a_b_raw = out_b * self._act_std + self._act_mean
+        self._flat = (1.0 / d, LN_EPS, np.float32(1.0), n, self.window_k,
+                      self._enc.gu_w, self._enc.gu_b, self._enc.hidden, enc_out_w, enc_out_b,
+                      self._vd_w, self._vd_b, self._a, self._a_k, self._kernel, self._c_t_c,
+                      self._head.gu_w, self._head.gu_b, self._head.hidden, head_out_w, head_out_b)
 
     # -- loading --------------------------------------------------------------------------------
     @classmethod
@@ -353,40 +391,55 @@ class FastLoopNumpy:
             h = (ring * self._kernel).sum(1)
         return self._finish(x + h.dot(self._c_t) + u * self._d, norm), NumpyWindowState(h, ring, pos)
 
-    def _tick1(self, x: np.ndarray, h_prev: np.ndarray, ring_prev: np.ndarray,
-               pos: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """step() for one observation vector: the batched path's arithmetic written flat. At batch 1
-        a tick costs what its ~50 array operations and Python calls cost, not its flops, so this
-        uses locals, in-place ops on fresh temporaries and LayerNorm statistics as Python floats
-        (about 30% faster than the batched path on one row; both are tested against torch)."""
-        md, inv_d = self._mean_d, 1.0 / self.d_model
-        e = x.dot(self._obs_in.w_t)
-        e += self._obs_in.b
-        if self.n_codes:
-            e += self._code_in[self.codes(x)]
-        x = self._enc(_ln1(e, md, inv_d))
+    def _core(self, e: np.ndarray, ee: float, state: NumpyWindowState) -> tuple[np.ndarray, float, NumpyWindowState]:
+        """step() for one vector, from the centred embedding e [d] (ee = e.e) to the centred last
+        residual y [d] and its LayerNorm scale (LN_out(y) = y * scale), and the new state. At batch 1
+        a tick costs what its array operations and Python calls cost, not its flops, so this is
+        written flat: locals, in-place ops on fresh temporaries, LayerNorm statistics as Python
+        floats, and the weights folded at load (_prepare_flat) so that no LayerNorm computes a mean.
+        WindowSSM's recurrence and its exact recompute from the ring as in step()."""
+        (inv_d, eps, one, n, k, gu_w1, gu_b1, hid1, out_w1, out_b1, vd_w, vd_b, a_, a_k, kernel, c_t,
+         gu_w2, gu_b2, hid2, out_w2, out_b2) = self._flat
+        # encoder: x = e + GatedMLP(LN(e))  (silu(g) = g' (1 + tanh g'), g' = g / 2 folded into gu_w)
+        gu = (e * (1.0 / math.sqrt(ee * inv_d + eps))).dot(gu_w1)
+        gu += gu_b1
+        g = gu[:hid1]
+        m = np.tanh(g)
+        m += one
+        m *= g
+        m *= gu[hid1:]
+        x = m.dot(out_w1)
+        x += out_b1
         x += e
-        u = _ln1(x, md, inv_d)
-        u *= self._ssm_ln_w
-        u += self._ssm_ln_b
-        v = u.dot(self._bg_t)
-        h = self._a * h_prev
+        # SSM: [v | D u (centred)] = LN_ssm(x) in one product; h_t = a h_{t-1} + v_t - a^K v_{t-K}
+        vd = (x * (1.0 / math.sqrt(float(x.dot(x)) * inv_d + eps))).dot(vd_w)
+        vd += vd_b
+        v = vd[:n]
+        ring_prev, pos = state.ring, state.pos
+        h = a_ * state.h[0]  # 1-D: a [N] * [1, N] would broadcast, which costs twice as much
         h += v
-        h -= self._a_k * ring_prev[0, pos]
+        h -= a_k * ring_prev[0, pos]
         ring = ring_prev.copy()
         ring[0, pos] = v
-        pos = (pos + 1) % self.window_k
-        if pos == 0:  # the ring is in time order: recompute h exactly (see step)
-            h = (ring[0] * self._kernel).sum(0)
-        z = h.dot(self._c_t)
+        pos += 1
+        if pos == k:  # the ring is in time order: recompute h exactly (see step)
+            pos = 0
+            h = (ring[0] * kernel).sum(0)
+        z = h.dot(c_t)
         z += x
-        u *= self._d
-        z += u
-        y = self._head(_ln1(z, md, inv_d))
+        z += vd[n:]
+        # head: y = z + GatedMLP(LN(z)); the caller applies out(LN(y))
+        gu = (z * (1.0 / math.sqrt(float(z.dot(z)) * inv_d + eps))).dot(gu_w2)
+        gu += gu_b2
+        g = gu[:hid2]
+        m = np.tanh(g)
+        m += one
+        m *= g
+        m *= gu[hid2:]
+        y = m.dot(out_w2)
+        y += out_b2
         y += z
-        a = _ln1(y, md, inv_d).dot(self._out.w_t)
-        a += self._out.b
-        return a, h, ring, pos
+        return y, 1.0 / math.sqrt(float(y.dot(y)) * inv_d + eps), NumpyWindowState(h[None], ring, pos)
 
     def forward(self, obs_n: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
         """The whole window again: normalised obs [B, L, obs_dim] (mask [B, L], True = a real point)
@@ -404,17 +457,44 @@ class FastLoopNumpy:
 
     # -- one control tick from raw values ---------------------------------------------------------
     def act(self, values: Any, state: NumpyWindowState) -> tuple[np.ndarray, NumpyWindowState]:
-        """Raw observation (obs_dim numbers) + state -> (denormalised action float64 [act_dim], state)."""
-        a, state = self.tick(self.normalise(self.observation_vector(values)), state)
-        return self.denormalise(a), state
+        """Raw observation (obs_dim numbers) + state -> (denormalised action float64 [act_dim], state).
+        The normalisation is folded into obs_in and the denormalisation into out (see _prepare_flat);
+        the values are checked as observation_vector checks them."""
+        x = np.asarray(values, dtype=np.float64)
+        if x.shape != (self.obs_dim,):
+            x = self.observation_vector(values)  # the exact message, or a [1, obs_dim] flattened
+        if self.n_codes:  # the codes read the normalised observation itself
+            a, state = self.tick(self.normalise(self.observation_vector(x)), state)
+            return self.denormalise(a), state
+        if state.h.shape[0] != 1:
+            raise ValueError(f"act() steps one observation; this state holds a batch of {state.h.shape[0]}")
+        e = x.astype(np.float32).dot(self._e_w_raw)
+        e += self._e_b_raw
+        ee = float(e.dot(e))
+        if not math.isfinite(ee):  # a NaN/Inf observation (or one beyond float32): observation_vector decides
+            self.observation_vector(x)
+        y, r, state = self._core(e, ee, state)
+        a = y.dot(self._a_w_raw)  # float64, as denormalise
+        a *= r
+        a += self._a_b_raw
+        if self.action_bounds is not None:
+            np.clip(a, self.action_bounds[0], self.action_bounds[1], out=a)
+        return a, state
 
     def tick(self, obs_n: np.ndarray, state: NumpyWindowState) -> tuple[np.ndarray, NumpyWindowState]:
         """step() for one normalised observation [obs_dim] and a batch-1 state -> (normalised action
         [act_dim], new state): the serving path, without the batch dimension's wrapping."""
         if state.h.shape[0] != 1:
             raise ValueError(f"tick() steps one observation; this state holds a batch of {state.h.shape[0]}")
-        a, h, ring, pos = self._tick1(obs_n, state.h[0], state.ring, state.pos)
-        return a, NumpyWindowState(h[None, :], ring, pos)
+        e = obs_n.dot(self._e_w)
+        e += self._e_b
+        if self.n_codes:
+            e += self._code_in_c[self.codes(obs_n)]
+        y, r, state = self._core(e, float(e.dot(e)), state)
+        a = y.dot(self._out.w_t)
+        a *= r
+        a += self._out.b
+        return a, state
 
     def __repr__(self) -> str:
         codes = f" + codes of {self.n_codes}" if self.n_codes else ""
