@@ -7,17 +7,32 @@ STAMP  := $(VENV)/.installed-stamp
 # pytest options for `make test`; e.g. make test PYTEST_ARGS="-k rlds"
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo bench clean system-deps
+.PHONY: setup test demo bench clean system-deps assets
 
-setup: $(STAMP)
+ASSETS := webapp/static/vendor/.stamp
 
-# The daemon tests start a real redis-server on a loopback port (the production broker).
+setup: $(STAMP) $(ASSETS)
+
+# The daemon tests start a real redis-server on a loopback port (the production broker); the browser
+# tests drive Debian's chromium (never `playwright install`: no browser downloads); npm installs the
+# Robot Editor's JS (socket.io-client, chart.js) from package-lock.json.
+APT_DEPS := redis-server:redis-server chromium:chromium npm:npm
 system-deps:
-	@command -v redis-server >/dev/null 2>&1 || { \
-	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q redis-server >/dev/null || \
-	    { apt-get update -q >/dev/null && apt-get install -y -q redis-server >/dev/null; }; \
-	  else sudo apt-get install -y -q redis-server >/dev/null; fi; }
-	@command -v redis-server >/dev/null 2>&1 || { echo "redis-server is needed by the tests: apt-get install redis-server" >&2; exit 1; }
+	@for dep in $(APT_DEPS); do cmd=$${dep%%:*}; pkg=$${dep#*:}; \
+	  command -v $$cmd >/dev/null 2>&1 && continue; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q $$pkg >/dev/null || \
+	    { apt-get update -q >/dev/null && apt-get install -y -q $$pkg >/dev/null; }; \
+	  else sudo apt-get install -y -q $$pkg >/dev/null; fi; \
+	  command -v $$cmd >/dev/null 2>&1 || { echo "$$cmd is needed by the tests: apt-get install $$pkg" >&2; exit 1; }; \
+	done
+
+# The Robot Editor's browser libraries: npm (pinned by package-lock.json), copied into
+# webapp/static/vendor/ (generated, gitignored) by webapp/build_assets.py.
+assets: $(ASSETS)
+$(ASSETS): package.json package-lock.json webapp/build_assets.py | system-deps
+	npm ci --no-audit --no-fund --loglevel=error
+	$(PYTHON) webapp/build_assets.py
+	@touch $@
 
 # Plain pip into a venv: uv/poetry would skip the local CPU torch wheel and pull CUDA.
 $(STAMP): pyproject.toml
@@ -35,4 +50,4 @@ bench: setup
 	$(PY) bench/data_pipeline.py
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache
+	rm -rf $(VENV) *.egg-info .pytest_cache node_modules webapp/static/vendor test-artifacts

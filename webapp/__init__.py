@@ -87,17 +87,9 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     if brain is not None:
         wire_brain(brain, socketio, registry)
 
-    @app.get("/")
-    def index():
-        # Placeholder until the Robot Editor pages (issue 7): say where the API is.
-        return ("HOPE Seed Trainer\n\nAPI (Authorization: Bearer <token from $HOPE_HOME/token>):\n"
-                "  GET /api/health (open)\n  GET|POST /api/runs\n  GET /api/runs/<id>\n"
-                "  GET /api/runs/<id>/metrics\n  POST /api/runs/<id>/cancel|pause|resume\n"
-                "  POST /api/training/sequential\n  GET /api/brain\n  POST /api/brain/infer\n"
-                "  POST /api/brain/promote|rollback\n  GET /api/system\n  POST /api/sim/reflex\n"
-                "  GET /api/sim/reflex/<job>\n"
-                "Socket.IO events: run.state, run.progress, run.log, system.stats, system.throttle, "
-                "brain.reloaded\n", 200, {"Content-Type": "text/plain; charset=utf-8"})
+    from webapp.pages import bp as pages_bp
+
+    app.register_blueprint(pages_bp)  # the Robot Editor: "/" and its pages (webapp/pages.py)
 
     return app, socketio
 

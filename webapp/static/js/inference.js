@@ -1,0 +1,106 @@
+// Inference: one observation -> fast_loop's action (with the version that answered and the
+// latency), and the sim reflex: an eval-reflex job with the promoted fast_loop, polled until it
+// finishes (POST /api/sim/reflex, GET /api/sim/reflex/<job>). Frames arrive as sim.frame events
+// when the server sends them; otherwise the page shows the episode's result only.
+import { $, setText, fillKv, num, duration } from "./util.js";
+
+const POLL_MS = 1000;
+let ctx;
+let job = null;  // the reflex job this page follows
+
+export function init(c) {
+  ctx = c;
+  $("#infer-form").addEventListener("submit", onInfer);
+  $("#reflex-form").addEventListener("submit", onReflex);
+}
+
+export async function show() {
+  // prefill an observation of the size the served fast_loop reads
+  const obs = $("#infer-observation");
+  const brain = await ctx.api("/api/brain?history=0");
+  const served = brain.components.fast_loop?.serving;
+  if (served?.obs_dim && !obs.value.trim()) obs.value = Array(served.obs_dim).fill("0").join(", ");
+  obs.placeholder = served?.observation_fields ? served.observation_fields.join(", ") : "no fast_loop is served yet";
+  setText("#reflex-status", served?.version ? `promoted fast_loop: ${served.version}` : "no fast_loop promoted yet");
+}
+
+export const events = {
+  "sim.frame": (d) => {
+    if (!job || (d.job_id && d.job_id !== job)) return;
+    const src = d.image || d.frame;  // a data: URL (PNG / JPEG)
+    if (typeof src === "string" && src.startsWith("data:image/")) {
+      const canvas = $("#reflex-frame");
+      const img = new Image();
+      img.onload = () => { canvas.hidden = false; canvas.getContext("2d").drawImage(img, 0, 0, canvas.width, canvas.height); };
+      img.src = src;
+    }
+    if (typeof d.return === "number" || typeof d.reward === "number") {
+      setText("#reflex-status", `step ${d.step ?? "?"} · return so far ${num(d.return ?? d.reward)}`);
+    }
+  },
+};
+
+async function onInfer(event) {
+  event.preventDefault();
+  setText("#infer-error", "");
+  const parts = $("#infer-observation").value.split(/[\s,]+/).filter((x) => x !== "");
+  const observation = parts.map(Number);
+  const bad = parts.findIndex((x, i) => !isFinite(observation[i]));
+  if (!parts.length || bad >= 0) {
+    setText("#infer-error", parts.length ? `observation: "${parts[bad]}" is not a number` : "observation: type some numbers");
+    return;
+  }
+  $("#infer-button").disabled = true;
+  try {
+    const out = await ctx.api("/api/brain/infer", { method: "POST",
+      body: { component: "fast_loop", observation, session: "robot-editor", reset: $("#infer-reset").checked } });
+    fillKv("#infer-result", [["action", out.action.map((v) => num(v)).join(", ")], ["version", out.model_version],
+                             ["latency", `${num(out.latency_ms, 3)} ms`]]);
+  } catch (err) {
+    $("#infer-result").replaceChildren();
+    setText("#infer-error", err.message);
+  } finally {
+    $("#infer-button").disabled = false;
+  }
+}
+
+async function onReflex(event) {
+  event.preventDefault();
+  $("#reflex-button").disabled = true;
+  $("#reflex-result").replaceChildren();
+  try {
+    const body = { episodes: Number($("#reflex-episodes").value), seed: Number($("#reflex-seed").value), task: "reach" };
+    const started = await ctx.api("/api/sim/reflex", { method: "POST", body });
+    job = started.job.id;
+    setText("#reflex-status", `job ${job} running (the sim runs in a child process)…`);
+    await poll(job);
+  } catch (err) {
+    setText("#reflex-status", `Reflex refused: ${err.message}`);
+  } finally {
+    $("#reflex-button").disabled = false;
+  }
+}
+
+async function poll(id) {
+  for (;;) {
+    const j = (await ctx.api(`/api/sim/reflex/${encodeURIComponent(id)}`)).job;
+    if (j.state !== "running") return renderReflex(j);
+    await new Promise((r) => setTimeout(r, POLL_MS));
+  }
+}
+
+function renderReflex(j) {
+  $("#reflex-result").dataset.state = j.state;
+  if (j.state !== "completed") {
+    setText("#reflex-status", `Reflex ${j.state}: ${j.error ?? "no result"}`);
+    return;
+  }
+  const r = j.result || {};
+  const mean = r.mean_return ?? r.candidate?.mean_return ?? r.policy?.mean_return;
+  setText("#reflex-status", `Reflex done in ${duration(j.elapsed_s)}`);
+  const pairs = [["mean return", num(mean, 5)]];
+  for (const key of ["success_rate", "expert_mean_return", "random_mean_return", "version", "checkpoint"]) {
+    if (r[key] !== undefined) pairs.push([key.replace(/_/g, " "), Array.isArray(r[key]) ? r[key].map((v) => num(v, 5)).join(", ") : String(r[key])]);
+  }
+  fillKv("#reflex-result", pairs);
+}

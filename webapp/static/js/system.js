@@ -1,0 +1,97 @@
+// System: memory and temperature gauges and the throttle state, from GET /api/system and then the
+// daemon's system.stats samples; throttle changes (system.throttle) go in a history list. The
+// history before this page was opened comes from the running / recent runs' recorded throttle
+// events (their metrics.jsonl, through the API), so a reload does not empty it.
+import { $, setText, el, time } from "./util.js";
+
+const LEVELS = { 0: "normal", 1: "slowed", 2: "paused (too hot)" };
+const HISTORY_MAX = 100;
+const TEMP_SCALE_C = 90;  // the gauge's full scale; the hard limit is below it
+let ctx;
+const history = [];  // {when, level, text}
+
+export function init(c) { ctx = c; }
+
+export async function show() {
+  const data = await ctx.api("/api/system");
+  renderStats(data.stats || {});
+  renderThrottle(data.throttle?.level, data.throttle?.source);
+  const counts = Object.entries(data.queue?.counts || {}).map(([k, v]) => `${k} ${v}`).join(", ");
+  setText("#queue-counts", counts || "no runs");
+  setText("#process-text", data.process ? `webapp process ${data.process.pid}: ${data.process.rss_mb} MB RSS` : "");
+  await loadHistory(data.queue);
+}
+
+export const events = {
+  "system.stats": (d) => { renderStats(d); if ("throttle_level" in d) renderThrottle(d.throttle_level, "daemon"); },
+  "system.throttle": (d) => {
+    addHistory(d.time ? new Date(d.time) : new Date(), d.level, d.reason || d.message || "", d.run_id);
+    renderThrottle(d.level, d.source || "event");
+  },
+};
+
+function gauge(sel, pct, warnAt, badAt) {
+  const fill = $(sel);
+  const v = Math.max(0, Math.min(100, pct));
+  fill.style.width = `${v}%`;
+  fill.classList.toggle("warn", pct >= warnAt && pct < badAt);
+  fill.classList.toggle("bad", pct >= badAt);
+  fill.dataset.value = String(Math.round(pct));
+}
+
+function renderStats(s) {
+  if (typeof s.mem_percent === "number") {
+    gauge("#mem-gauge", s.mem_percent, 75, 90);
+    const used = s.mem_total_mb - s.mem_available_mb;
+    setText("#mem-text", `${Math.round(used)} of ${Math.round(s.mem_total_mb)} MB used (${s.mem_percent.toFixed(0)} %)`);
+  }
+  if (typeof s.temp_c === "number") {
+    gauge("#temp-gauge", (100 * s.temp_c) / TEMP_SCALE_C, (100 * 70) / TEMP_SCALE_C, (100 * 80) / TEMP_SCALE_C);
+    setText("#temp-text", `${s.temp_c.toFixed(1)} °C`);
+  } else {
+    gauge("#temp-gauge", 0, 100, 100);
+    setText("#temp-text", "no temperature sensor configured");
+  }
+  const flags = s.throttled && Object.entries(s.throttled).filter(([, v]) => v === true).map(([k]) => k);
+  setText("#cpu-text", `CPU ${typeof s.cpu_percent === "number" ? s.cpu_percent.toFixed(0) : "–"} %` +
+          (flags && flags.length ? ` · firmware: ${flags.join(", ")}` : "") + (s.time ? ` · sampled ${time(s.time)}` : ""));
+}
+
+function renderThrottle(level, source) {
+  const badge = $("#throttle-level");
+  const known = level === 0 || level === 1 || level === 2;
+  badge.textContent = known ? `level ${level}: ${LEVELS[level]}` : "unknown";
+  badge.className = `state ${level === 2 ? "failed" : level === 1 ? "paused" : known ? "completed" : ""}`;
+  badge.dataset.level = known ? String(level) : "";
+  setText("#throttle-text", known ? `from ${source || "?"}` : "no running job and no daemon in this process to ask");
+}
+
+function addHistory(when, level, text, runId) {
+  history.push({ when, level, text: text + (runId ? ` (run ${runId})` : "") });
+  history.sort((a, b) => b.when - a.when);
+  history.length = Math.min(history.length, HISTORY_MAX);
+  const ul = $("#throttle-history");
+  ul.replaceChildren(...history.map((h) => el("li", { text: `${h.when.toLocaleString()} · level ${h.level ?? "?"} · ${h.text}` })));
+  if (!history.length) ul.append(el("li", { class: "muted", text: "no throttle changes recorded" }));
+}
+
+async function loadHistory(queue) {
+  history.length = 0;
+  const ids = new Set([...(queue?.running || []), ...(queue?.paused || [])].map((r) => r.id));
+  try {
+    const recent = await ctx.api("/api/runs?limit=5");
+    for (const r of recent.runs) ids.add(r.id);
+  } catch { /* the live events still arrive */ }
+  for (const id of ids) {
+    try {
+      const data = await ctx.api(`/api/runs/${encodeURIComponent(id)}/metrics?events=1&limit=5000`);
+      for (const rec of data.records) {
+        if (rec.type === "event" && rec.kind === "throttle") {
+          const p = rec.payload || {};
+          addHistory(new Date(rec.wall_time * 1000), p.level, p.reason || p.message || "", id);
+        }
+      }
+    } catch { /* a run without metrics yet */ }
+  }
+  if (!history.length) $("#throttle-history").replaceChildren(el("li", { class: "muted", text: "no throttle changes recorded" }));
+}
