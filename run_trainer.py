@@ -20,7 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim-demos": ("hope_models.cli.sim_demos", "record expert demonstrations in the dm_control reacher as RLDS"),
     "imagine": ("hope_models.cli.imagine", "produce imagined rollouts by offline search, stored as RLDS"),
     "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
-    "demo": ("hope_models.cli.demo", "run the end-to-end job on generated episodes"),
+    "demo": ("daemon.cli.demo", "the whole loop through the services: sim demos, chain training, gate, serve, reflex"),
+    "demo-data": ("hope_models.cli.demo", "the data-layer demo on generated episodes (no server)"),
     # the service side (issue 5): none of these imports torch in its own process
     "serve": ("daemon.cli.serve", "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
     "daemon": ("daemon.cli.daemon", "the supervisor service: dispatch, monitors, recovery, events (systemd)"),

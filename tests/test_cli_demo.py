@@ -1,4 +1,4 @@
-"""`run_trainer.py demo` as a new user runs it: a real subprocess, its own HOPE_HOME."""
+"""`run_trainer.py demo-data` as a new user runs it: a real subprocess, its own HOPE_HOME."""
 import json
 import os
 import subprocess
@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _demo(home: Path, *extra: str) -> dict:
     env = dict(os.environ, HOPE_HOME=str(home))
-    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "4000", "--train-steps", "150", "--json", *extra],
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo-data", "--steps", "4000", "--train-steps", "150", "--json", *extra],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     return json.loads(proc.stdout)
@@ -43,7 +43,7 @@ def test_demo_end_to_end_then_rerun_changes_nothing(tmp_path):
 
 def test_demo_refuses_a_too_small_dataset(tmp_path):
     env = dict(os.environ, HOPE_HOME=str(tmp_path))
-    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo", "--steps", "10"],
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "demo-data", "--steps", "10"],
                           capture_output=True, text=True, env=env, timeout=60)
     assert proc.returncode == 2
     assert "--steps" in proc.stderr

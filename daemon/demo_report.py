@@ -1,0 +1,171 @@
+"""The end-to-end demo's figures and its summary table (`run_trainer.py demo`, daemon/cli/demo.py).
+
+Everything here reads what the services already recorded, so the demo prints what a user could
+check by hand: the registry (runs, their events, the models table) and each run's
+`result.json` (written by the training loop: first and final loss, peak RSS, elapsed time).
+Torch-free, and no I/O beyond those reads, so tests can feed it plain dicts.
+
+    figures = component_figures(run_obj, gate)      # one row of the table
+    text = format_summary(summary)                  # the table and the lines under it
+    problems = verdict(summary, target_return=900)  # [] when the demo did what it promises
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+AUTO_PROMOTE_SOURCE = "auto-promote"
+GATING_PREFIX = "auto-promote: gating"
+
+
+def read_result(run_dir: str | Path) -> dict[str, Any] | None:
+    """The training loop's result.json of a run dir, or None (not finished, unreadable)."""
+    try:
+        obj = json.loads((Path(run_dir) / "result.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def gate_outcome(session: Any, run_id: str) -> dict[str, Any] | None:
+    """What auto-promotion did with a completed run, or None while it has not finished.
+
+    {"state": "promoted", "version", "model_id"} | {"state": "refused", "version", "model_id",
+    "reasons"} | {"state": "error", "message"} (the promote child could not gate, or skipped it)."""
+    from sqlalchemy import select
+
+    from daemon import runs
+    from daemon.models import Model
+
+    model = session.scalars(select(Model).where(Model.run_id == run_id).order_by(Model.id.desc())).first()
+    if model is not None:
+        gate = model.gate_result or {}
+        if model.promoted_at is not None or model.demoted_at is not None:
+            return {"state": "promoted", "version": model.version, "model_id": model.id,
+                    "notes": list(gate.get("reasons") or [])}
+        return {"state": "refused", "version": model.version, "model_id": model.id,
+                "reasons": list(gate.get("reasons") or [])}
+    # No row: the child may still run, or it ended without recording (skipped, could not gate).
+    for event in reversed(runs.run_events(session, run_id, kinds=("log",))):
+        payload = event.payload or {}
+        if payload.get("source") != AUTO_PROMOTE_SOURCE:
+            continue
+        message = str(payload.get("message", ""))
+        if message.startswith(GATING_PREFIX):
+            return None  # the newest word is "gating": still running
+        return {"state": "error", "message": message}
+    return None
+
+
+def component_figures(run: dict[str, Any], gate: dict[str, Any] | None) -> dict[str, Any]:
+    """One row: a run's JSON object (Run.to_json_obj) plus its result.json and gate outcome."""
+    result = read_result(run["run_dir"]) or {}
+    return {
+        "component": run["component"],
+        "run_id": run["id"],
+        "state": run["state"],
+        "steps": run["step"],
+        "total_steps": run["total_steps"],
+        "first_loss": result.get("first_loss"),
+        "final_loss": result.get("final_loss"),
+        "peak_rss_mb": result.get("peak_rss_mb"),
+        "train_s": result.get("elapsed_s"),
+        "error": run.get("error"),
+        "gate": gate,
+        "loop_closure_s": run.get("loop_closure_s"),
+    }
+
+
+def _num(value: Any, fmt: str, missing: str = "-") -> str:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return missing
+    return format(value, fmt)
+
+
+def _gate_text(gate: dict[str, Any] | None) -> str:
+    if gate is None:
+        return "not gated"
+    if gate["state"] == "promoted":
+        return f"promoted {gate.get('version')}"
+    if gate["state"] == "refused":
+        return "refused by the gate"
+    return "gate error"
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """The table (per component: steps, loss first -> last, peak RSS, time, gate) and the lines
+    under it: inference through the API, the reflex against the expert and random, the loop closure."""
+    rows = summary.get("components") or []
+    lines = ["", "Summary", "",
+             f"{'component':<10} {'steps':>11}  {'loss first -> last':<21} {'peak RSS':>9} {'time':>7}  gate",
+             "-" * 96]
+    for r in rows:
+        steps = f"{r['steps']}/{r['total_steps']}"
+        loss = f"{_num(r['first_loss'], '.4g')} -> {_num(r['final_loss'], '.4g')}"
+        rss = f"{_num(r['peak_rss_mb'], '.0f')} MB" if r.get("peak_rss_mb") is not None else "-"
+        took = f"{_num(r['train_s'], '.0f')} s" if r.get("train_s") is not None else "-"
+        state = "" if r["state"] == "completed" else f"  [{r['state']}]"
+        lines.append(f"{r['component']:<10} {steps:>11}  {loss:<21} {rss:>9} {took:>7}  {_gate_text(r['gate'])}{state}")
+    lines.append("")
+    inference = summary.get("inference")
+    if inference and inference.get("action") is not None:
+        action = ", ".join(f"{a:+.3f}" for a in inference["action"])
+        expert = inference.get("expert_action")
+        lines.append(f"inference (POST /api/brain/infer): action [{action}]"
+                     + (f" (the expert: [{', '.join(f'{a:+.3f}' for a in expert)}])" if expert else "")
+                     + f", {inference.get('model_version')}, {_num(inference.get('latency_ms'), '.2f')} ms")
+    elif inference:
+        lines.append(f"inference: {inference.get('error')}")
+    reflex = summary.get("reflex")
+    if reflex and reflex.get("mean_return") is not None:
+        seeds = reflex.get("seeds") or ["?", "?"]
+        lines.append(f"reflex (reach, held-out seeds {seeds[0]}-{seeds[-1]}): mean return "
+                     f"{_num(reflex['mean_return'], '.1f')}, success {_num(100 * reflex['success_rate'], '.0f')} %"
+                     f"  | expert {_num(reflex.get('expert_mean_return'), '.1f')}"
+                     f"  | random {_num(reflex.get('random_mean_return'), '.1f')}"
+                     f"  (target >= {_num(summary.get('target_return'), 'g')})")
+    elif reflex:
+        lines.append(f"reflex: {reflex.get('error')}")
+    closure = summary.get("loop_closure_s")
+    lines.append("loop closure: " + (f"{closure:.1f} s from the fast_loop run finishing to its first served "
+                                     "inference (gate + load)" if isinstance(closure, (int, float))
+                                     else "not measured"))
+    timings = summary.get("timings") or {}
+    if timings:
+        lines.append("time: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()))
+    return "\n".join(lines)
+
+
+def verdict(summary: dict[str, Any], target_return: float) -> list[str]:
+    """What the demo promised and did not do; [] when all is well."""
+    problems = []
+    for r in summary.get("components") or []:
+        if r["state"] != "completed":
+            problems.append(f"{r['component']} run {r['run_id']} ended {r['state']}"
+                            + (f": {r['error']}" if r.get("error") else ""))
+    fast = next((r for r in summary.get("components") or [] if r["component"] == "fast_loop"), None)
+    if fast is not None and fast["state"] == "completed":
+        gate = fast.get("gate")
+        if gate is None:
+            problems.append("the fast_loop run was not gated (auto-promotion did not finish)")
+        elif gate["state"] == "refused":
+            problems.append(f"the gate refused the fast_loop: {'; '.join(gate.get('reasons') or [])}")
+        elif gate["state"] == "error":
+            problems.append(f"auto-promotion of the fast_loop failed: {gate.get('message')}")
+    inference = summary.get("inference") or {}
+    if inference.get("error"):
+        problems.append(f"inference through the API failed: {inference['error']}")
+    reflex = summary.get("reflex") or {}
+    mean = reflex.get("mean_return")
+    if reflex.get("error"):
+        problems.append(f"the reflex evaluation failed: {reflex['error']}")
+    elif not isinstance(mean, (int, float)):
+        problems.append("the reflex evaluation did not run")
+    elif mean < target_return:
+        problems.append(f"the promoted fast_loop's mean return {mean:.1f} is below the target {target_return:g}")
+    return problems
+
+
+__all__ = ["component_figures", "format_summary", "gate_outcome", "read_result", "verdict"]

@@ -1,0 +1,156 @@
+"""The end-to-end demo (daemon/cli/demo.py), short: a real subprocess on its own HOPE_HOME records a
+few sim demos, runs the chain vqvae,fast_loop,mid_loop through the daemon and the worker, gates and
+promotes, serves through BrainService, infers over HTTP, evaluates the reflex and exits (--exit).
+
+The full-size figures (50 demos, 4000 steps, mean return >= 900 on seeds 0-19 within 15 minutes)
+are measured by running `run_trainer.py demo` itself; here the steps are too few to promise a
+return, so --target-return 0, and the verdict's refusals are tested on plain summaries below.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _demo_argv() -> list[str]:
+    """`run_trainer.py demo` once it points at the daemon's demo; until then the module itself."""
+    sys.path.insert(0, str(REPO))
+    from run_trainer import COMMANDS
+
+    if COMMANDS["demo"][0] == "daemon.cli.demo":
+        return [sys.executable, str(REPO / "run_trainer.py"), "demo"]
+    return [sys.executable, "-m", "daemon.cli.demo"]
+
+
+def _env(home: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
+    env.update({"HOPE_HOME": str(home), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1",
+                # no thermal source: this machine's zone must not throttle the jobs
+                "HOPE_THERMAL_ZONE": str(home / "no-thermal-zone"), "HOPE_VCGENCMD": "",
+                # the demo turns auto-promotion on for its own process whatever the settings say
+                "HOPE_AUTO_PROMOTE": "0"})
+    return env
+
+
+@pytest.mark.slow
+def test_demo_short_runs_the_whole_loop_through_the_services(tmp_path):
+    home = tmp_path / "home"
+    argv = _demo_argv() + ["--episodes", "6", "--steps", "150", "--eval-episodes", "2", "--target-return", "0",
+                           "--exit", "--port", "0"]
+    proc = subprocess.run(argv, cwd=REPO, env=_env(home), capture_output=True, text=True, timeout=240)
+    out = proc.stdout
+    assert proc.returncode == 0, f"exit {proc.returncode}\n{out}\n{proc.stderr[-3000:]}"
+    assert "auto_promote is off" in out  # and it gated anyway (below)
+
+    summary = json.loads((home / "demo" / "summary.json").read_text())
+    assert summary["ok"] is True and summary["problems"] == []
+    rows = summary["components"]
+    assert [r["component"] for r in rows] == ["vqvae", "fast_loop", "mid_loop"]
+    for r in rows:
+        assert r["state"] == "completed" and r["steps"] == r["total_steps"] == 150, r
+        assert math.isfinite(r["first_loss"]) and math.isfinite(r["final_loss"]), r
+        assert r["peak_rss_mb"] > 50 and r["train_s"] > 0, r
+        assert r["gate"]["state"] == "promoted", r
+    fast = rows[1]
+    version = fast["gate"]["version"]
+    assert version.startswith(fast["run_id"] + "@150:")
+    # the version the gate promoted is the one BrainService served, answered with and evaluated
+    assert summary["served_version"] == version
+    inference = summary["inference"]
+    assert inference["model_version"] == version
+    assert len(inference["action"]) == 2 and all(-1.0 <= a <= 1.0 for a in inference["action"])
+    assert inference["latency_ms"] > 0
+    assert isinstance(summary["loop_closure_s"], float) and summary["loop_closure_s"] >= 0
+    reflex = summary["reflex"]
+    assert reflex["version"] == version and reflex["episodes"] == 2 and reflex["seeds"] == [0, 1]
+    assert reflex["expert_mean_return"] > 900 and reflex["random_mean_return"] < 200
+    assert 0 <= reflex["mean_return"] <= 1000
+
+    # what the terminal showed: progress, the inference, the table, the URL and the token
+    token = (home / "token").read_text().strip()
+    assert f"token: {token}" in out and "Robot Editor: http://127.0.0.1:" in out
+    assert "POST /api/brain/infer -> action" in out
+    assert "loss first -> last" in out and f"promoted {version}" in out
+    assert "completed: " + fast["run_id"] + " fast_loop at step 150/150" in out
+
+    # the registry: one chain, whose fast_loop read the codes of the chain's own VQ-VAE
+    from daemon.db import Registry
+    from daemon.models import Run
+    from hope_models.settings import load_settings
+
+    registry = Registry.open(load_settings(env=_env(home)))
+    try:
+        with registry.session(readonly=True) as s:
+            runs = {r.component: r for r in s.query(Run).all()}
+    finally:
+        registry.close()
+    assert len({r.sequence_id for r in runs.values()}) == 1 and len(runs) == 3
+    assert runs["fast_loop"].config["vqvae_run"] == runs["vqvae"].id
+    assert runs["fast_loop"].loop_closure_s == summary["loop_closure_s"]
+    ckpt_cfg = json.loads((Path(runs["fast_loop"].last_checkpoint) / "config.json").read_text())
+    assert ckpt_cfg["model_config"]["n_codes"] > 0
+    assert ckpt_cfg["vqvae"]["path"].startswith(runs["vqvae"].run_dir)
+
+    # --exit stopped everything: the port is closed and the job children are gone
+    port = int(summary["url"].rstrip("/").rsplit(":", 1)[1])
+    with socket.socket() as sock:
+        assert sock.connect_ex(("127.0.0.1", port)) != 0
+    import psutil
+
+    for r in runs.values():
+        if r.worker_pid and psutil.pid_exists(r.worker_pid):
+            assert psutil.Process(r.worker_pid).status() == psutil.STATUS_ZOMBIE
+
+
+# -- the verdict and the table, on plain summaries ------------------------------------------------
+
+def _row(component, state="completed", gate=None, **kw):
+    base = {"component": component, "run_id": f"r-{component}", "state": state, "steps": 10, "total_steps": 10,
+            "first_loss": 1.0, "final_loss": 0.1, "peak_rss_mb": 300.0, "train_s": 5.0, "error": None,
+            "gate": gate if gate is not None else {"state": "promoted", "version": f"r-{component}@10:abc"},
+            "loop_closure_s": None}
+    return {**base, **kw}
+
+
+def _summary(mean_return=950.0, **kw):
+    s = {"components": [_row("vqvae"), _row("fast_loop"), _row("mid_loop")],
+         "inference": {"action": [0.1, -0.2], "expert_action": [0.0, 0.0], "model_version": "r-fast_loop@10:abc",
+                       "latency_ms": 0.3},
+         "reflex": {"mean_return": mean_return, "success_rate": 1.0, "expert_mean_return": 985.0,
+                    "random_mean_return": 30.0, "seeds": [0, 19], "version": "r-fast_loop@10:abc"},
+         "loop_closure_s": 7.5, "target_return": 900.0, "timings": {"total": 400.0}}
+    s.update(kw)
+    return s
+
+
+def test_verdict_passes_a_good_summary_and_names_each_shortfall():
+    from daemon.demo_report import format_summary, verdict
+
+    assert verdict(_summary(), 900) == []
+    assert verdict(_summary(mean_return=899.9), 900) == [
+        "the promoted fast_loop's mean return 899.9 is below the target 900"]
+    refused = _summary(components=[_row("vqvae"), _row("fast_loop", gate={"state": "refused", "version": "v",
+                                                                           "reasons": ["val_loss: worse"]}),
+                                   _row("mid_loop")])
+    assert verdict(refused, 900) == ["the gate refused the fast_loop: val_loss: worse"]
+    failed = _summary(components=[_row("vqvae"), _row("fast_loop", state="failed", error="NaN loss"),
+                                  _row("mid_loop", state="cancelled")], reflex={"error": "no fast_loop is promoted"})
+    problems = verdict(failed, 900)
+    assert problems[0] == "fast_loop run r-fast_loop ended failed: NaN loss"
+    assert "mid_loop run r-mid_loop ended cancelled" in problems[1]
+    assert problems[-1] == "the reflex evaluation failed: no fast_loop is promoted"
+    assert verdict(_summary(inference={"error": "HTTP 401"}), 900) == ["inference through the API failed: HTTP 401"]
+
+    text = format_summary(_summary())
+    assert "fast_loop" in text and "1 -> 0.1" in text and "300 MB" in text and "promoted r-fast_loop@10:abc" in text
+    assert "mean return 950.0" in text and "expert 985.0" in text and "random 30.0" in text
+    assert "loop closure: 7.5 s" in text
