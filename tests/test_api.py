@@ -23,6 +23,7 @@ import time
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from brain_fixtures import brain_runs, promote_pointer, rewrite_manifest
@@ -566,9 +567,15 @@ def test_sim_reflex_job_runs_in_the_background(api, settings, tmp_path_factory):
     assert done["finished_at"] and done["elapsed_s"] > 0
 
     # a fast_loop trained on 4 joint values (the reacher's observation) runs: the job's result is
-    # eval-reflex's JSON, on the promoted version; one at a time, not one ever: this next job starts
+    # eval-reflex's JSON, on the promoted version; one at a time, not one ever: this next job starts.
+    # Its first episode streams as sim.frame events (as fast as the child renders here, instead of
+    # in real time, so the webapp's throttle has frames to drop)
     ckpt = _reacher_shaped_fast_loop(tmp_path_factory)
     pointer = promote_pointer(settings.home, ckpt)
+    sock = api.socketio.test_client(api.app, auth={"token": api.token})
+    assert sock.is_connected()
+    sock.get_received()
+    api.app.extensions["hope"].reflex_jobs.stream_speed = 0
     r = api.post("/api/sim/reflex", {})
     assert r.status_code == 202, r.get_data(as_text=True)
     job_id = r.get_json()["job"]["id"]
@@ -579,6 +586,51 @@ def test_sim_reflex_job_runs_in_the_background(api, settings, tmp_path_factory):
     assert result["version"] == pointer["version"] and result["episodes"] == 1 and result["task"] == "reach"
     assert result["expert_mean_return"] > result["random_mean_return"]
     assert [e["seed"] for e in result["per_episode"]] == [0]
+
+    from png_decode import decode_data_url
+
+    frames = [e["args"][0] for e in sock.get_received() if e["name"] == "sim.frame"]
+    assert len(frames) >= 2 and done["frames"] == {"emitted": len(frames), "error": None}, done["frames"]
+    assert result["frames"]["sent"] == 201 and result["frames"]["error"] is None  # the child rendered them all ...
+    assert len(frames) <= done["elapsed_s"] * sim.MAX_EMITS_PER_S + 2  # ... the browser got at most ~10 a second
+    assert all(f["job_id"] == job_id and f["episode"] == 0 and f["seed"] == 0 for f in frames)
+    steps = [f["step"] for f in frames]
+    assert steps == sorted(set(steps)) and steps[-1] == 1000 and frames[-1]["done"] is True
+    assert frames[-1]["return_so_far"] == result["per_episode"][0]["return"]
+    for f in (frames[0], frames[-1]):
+        img = decode_data_url(f["image"])
+        assert img.shape == (128, 128, 3) and len(np.unique(img.reshape(-1, 3), axis=0)) > 20
+    assert "image" not in json.dumps(result)  # the result is the child's answer, not its frame lines
+
+
+def test_sim_reflex_job_reports_frames_it_could_not_render():
+    """A child whose renders fail: the job completes with its result and says why there were no frames."""
+    from webapp.api import sim
+    from webapp.commands import ChildResult
+
+    class Children:
+        def run(self, args, *, timeout_s, on_line=None):
+            assert "--stream-frames" in args and on_line is not None
+            err = "cannot render the reacher (MUJOCO_GL=egl): RuntimeError: no EGL display"
+            assert on_line(json.dumps({"frame_error": err}) + "\n") is True
+            assert on_line('{"ok": true, "mean_return": 3.0}\n') is False
+            return ChildResult(args, 0, {"ok": True, "mean_return": 3.0, "frames": {"sent": 0, "error": err}}, "",
+                               1.0)
+
+    class Socket:
+        def __init__(self):
+            self.emitted = []
+
+        def emit(self, *a):
+            self.emitted.append(a)
+
+    sock = Socket()
+    jobs = sim.ReflexJobs(Children(), socketio=sock)
+    job = jobs.start(episodes=1, seed=0, task="reach")
+    done = wait_for(lambda: (lambda j: j if j["state"] != "running" else None)(jobs.get(job["id"])), 5, "the job")
+    assert done["state"] == "completed" and done["result"]["mean_return"] == 3.0
+    assert done["frames"]["emitted"] == 0 and "no EGL display" in done["frames"]["error"]
+    assert sock.emitted == []
 
 
 def _reacher_shaped_fast_loop(tmp_path_factory) -> Path:

@@ -206,9 +206,16 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
 
         # the reflex view: a sim episode with the promoted fast_loop, its return beside the expert's
         # and random's (this fast_loop never saw the reacher: the number is low, but it is real)
+        # its first episode streams in (sim.frame, real time: 20 s) and is drawn on the canvas
         page.click("#reflex-button")
+        expect(page.locator("#reflex-status")).to_contain_text("return so far", timeout=30_000)
+        expect(page.locator("#reflex-frame")).to_be_visible()
+        shots.take(page, "reflex-streaming")
         expect(page.locator("#reflex-status")).to_contain_text("Reflex done", timeout=60_000)
         expect(page.locator("#reflex-result")).to_have_attribute("data-state", "completed")
+        drawn = int(page.get_attribute("#reflex-frame", "data-frames") or 0)
+        assert drawn >= 10, f"only {drawn} frames were drawn"
+        expect(page.locator('#reflex-result dd[data-key="frames"]')).to_contain_text("streamed")
         expect(page.locator('#reflex-result dd[data-key="version"]')).to_have_text(version)
         for key in ("mean return", "expert mean return", "random mean return"):
             value = page.text_content(f'#reflex-result dd[data-key="{key}"]')

@@ -178,3 +178,37 @@ def test_eval_reflex_promoted_pointer(bc, tmp_path):
     assert out["checkpoint"] == str(bc["ckpt"]) and out["task"] == "track" and out["episodes"] == 1
     bad = _cli("eval-reflex", "--checkpoint", str(tmp_path / "missing"), "--json")
     assert bad.returncode == 2 and "not found" in json.loads(bad.stdout)["error"]
+
+
+def test_eval_reflex_streams_rendered_frames_of_the_first_episode(bc):
+    """--stream-frames: real EGL renders of the policy's first episode, as JSON lines before the
+    result; the episode (and so the result) is the same as without frames."""
+    from png_decode import decode_data_url
+
+    env = dict(os.environ)
+    env.pop("MUJOCO_GL", None)  # the child chooses EGL itself, before dm_control is imported
+    proc = _cli("eval-reflex", "--checkpoint", str(bc["run"]), "--episodes", "2", "--seed", "0", "--json",
+                "--stream-frames", "10", "--stream-speed", "0", env=env)
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(x) for x in proc.stdout.splitlines()]
+    out = lines[-1]
+    frames = [x["frame"] for x in lines[:-1]]
+    assert all(set(x) == {"frame"} for x in lines[:-1]), [list(x) for x in lines[:-1] if "frame" not in x]
+    assert out["ok"] is True and out["frames"] == {"fps": 10.0, "size": 128, "speed": 0.0, "sent": len(frames),
+                                                    "error": None}
+    # the first episode only, every 5th control step (10 per simulated second) and the last one
+    assert [f["step"] for f in frames] == list(range(0, 1000, 5)) + [1000]
+    assert {f["episode"] for f in frames} == {0} and {f["seed"] for f in frames} == {0}
+    assert [f["done"] for f in frames] == [False] * (len(frames) - 1) + [True]
+    returns = [f["return_so_far"] for f in frames]
+    assert returns[0] == 0 and returns == sorted(returns)
+    assert returns[-1] == out["per_episode"][0]["return"] > 0
+    # the same returns as an evaluation that renders nothing
+    plain = evaluate_policy(ReflexPolicy.from_checkpoint(bc["run"]), [0, 1], "reach")
+    assert [p["return"] for p in out["per_episode"]] == pytest.approx(plain.returns)
+    first, last = decode_data_url(frames[0]["image"]), decode_data_url(frames[-1]["image"])
+    assert first.shape == last.shape == (128, 128, 3)
+    for img in (first, last):
+        colours = np.unique(img.reshape(-1, 3), axis=0)
+        assert len(colours) > 20, f"a flat frame: {len(colours)} colours"
+    assert np.abs(first.astype(int) - last.astype(int)).sum() > 0, "the arm did not move between the frames"

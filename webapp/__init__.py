@@ -81,6 +81,7 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     # threading mode: no eventlet/gevent monkey-patching; WebSocket through simple-websocket.
     socketio = SocketIO(app, async_mode="threading", message_queue=message_queue, logger=False,
                         engineio_logger=False)
+    app.extensions["hope"].reflex_jobs.socketio = socketio  # sim.frame events of the reflex jobs
     errors.install(app)  # first: the body size is checked before the token
     auth.install(app, socketio)
     register(app)

@@ -22,7 +22,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +88,13 @@ class ChildProcesses:
         self._lock = threading.Lock()
         self._closed = False
 
-    def run(self, args: list[str], *, timeout_s: float) -> ChildResult:
-        """Run `run_trainer.py <args>` to the end (blocking the calling thread)."""
+    def run(self, args: list[str], *, timeout_s: float,
+            on_line: Callable[[str], bool] | None = None) -> ChildResult:
+        """Run `run_trainer.py <args>` to the end (blocking the calling thread). With `on_line`,
+        stdout is read line by line while the child runs and each line is passed to it; a line it
+        returns True for is consumed (not kept for `output`), e.g. eval-reflex's frame lines."""
+        if on_line is not None:
+            return self._run_streaming(args, timeout_s, on_line)
         argv = trainer_argv(*args)
         started = time.monotonic()
         with self._lock:
@@ -113,6 +118,61 @@ class ChildProcesses:
                 self._live.discard(proc)
         code = None if timed_out or proc.returncode < 0 else proc.returncode
         result = ChildResult(argv, code, last_json_object(stdout or ""), stderr or "",
+                             round(time.monotonic() - started, 3), timed_out)
+        log.info("%s finished: exit %s in %.1f s", " ".join(args), proc.returncode, result.elapsed_s)
+        return result
+
+    def _run_streaming(self, args: list[str], timeout_s: float, on_line: Callable[[str], bool]) -> ChildResult:
+        argv = trainer_argv(*args)
+        started = time.monotonic()
+        with self._lock:
+            if self._closed:
+                return ChildResult(argv, None, None, "the webapp is shutting down", 0.0)
+            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True, bufsize=1, env=child_env(self.settings), cwd=str(REPO_ROOT),
+                                    start_new_session=True)
+            self._live.add(proc)
+        log.info("started %s (pid %d, streaming stdout)", " ".join(args), proc.pid)
+        kept: list[str] = []
+        err: list[str] = []
+
+        def read_stdout() -> None:
+            for line in proc.stdout:
+                try:
+                    consumed = on_line(line)
+                except Exception:  # noqa: BLE001 - a bad consumer must not stall the child on a full pipe
+                    log.exception("%s: the stdout consumer failed on a line", " ".join(args))
+                    consumed = False
+                if not consumed:
+                    kept.append(line)
+
+        def read_stderr() -> None:
+            err.extend(proc.stderr)
+
+        readers = [threading.Thread(target=read_stdout, name=f"child-{proc.pid}-out", daemon=True),
+                   threading.Thread(target=read_stderr, name=f"child-{proc.pid}-err", daemon=True)]
+        for t in readers:
+            t.start()
+        timed_out = False
+        try:
+            try:
+                proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                timed_out = True
+                self._kill(proc)
+                proc.wait()
+            for t in readers:
+                t.join(timeout=10)
+        finally:
+            with self._lock:
+                self._live.discard(proc)
+            for stream in (proc.stdout, proc.stderr):
+                try:
+                    stream.close()
+                except OSError:
+                    pass
+        code = None if timed_out or proc.returncode < 0 else proc.returncode
+        result = ChildResult(argv, code, last_json_object("".join(kept)), "".join(err),
                              round(time.monotonic() - started, 3), timed_out)
         log.info("%s finished: exit %s in %.1f s", " ".join(args), proc.returncode, result.elapsed_s)
         return result

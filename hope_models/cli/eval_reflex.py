@@ -17,11 +17,25 @@ whose "checkpoint" names the checkpoint dir (absolute, or relative to $HOPE_HOME
 has been promoted there is none, and the command says so (exit 2).
 Exit 0 after an evaluation, 2 for a usage error (no such checkpoint, not a fast_loop, a spec that
 does not read the reacher's observation).
+
+Frames: `--stream-frames FPS [--stream-size 128] [--stream-speed 1.0]` renders the policy's first
+episode and writes one JSON line per frame on stdout while it runs, before the result (which stays
+the last line; hope_models/sim/frames.py has the format):
+
+    {"frame": {"episode": 0, "seed", "step", "image": "data:image/png;base64,...", "return_so_far", "done"}}
+
+FPS frames per simulated second, the episode paced at --stream-speed x real time (1.0: 20 s for the
+1000 steps; 0: as fast as it runs). MUJOCO_GL is set to "egl" before dm_control is imported (unless it
+names another GL backend). If the frames cannot be rendered, a {"frame_error": "..."} line says why,
+the evaluation goes on, and the result's "frames" {"fps", "size", "speed", "sent", "error"} reports
+sent = 0 and the error; if dm_control cannot even be imported with that backend, the command fails
+(exit 2) with the reason. The expert and random episodes are never rendered.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -62,6 +76,51 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", choices=TASKS, default="reach", help="reach or track (default reach)")
     parser.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1: one tick is tiny)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--stream-frames", type=_fps, default=None, metavar="FPS",
+                        help="stream the first episode's frames as JSON lines on stdout, FPS per simulated second")
+    parser.add_argument("--stream-size", type=_positive_int, default=128, metavar="PX",
+                        help="streamed frame size, square (default 128)")
+    parser.add_argument("--stream-speed", type=_speed, default=1.0, metavar="X",
+                        help="pace the streamed episode at X times real time (default 1; 0: as fast as it runs)")
+
+
+def _fps(text: str) -> float:
+    from hope_models.sim.frames import MAX_FPS
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < v <= MAX_FPS:
+        raise argparse.ArgumentTypeError(f"{v:g} must be within (0, {MAX_FPS:g}]")
+    return v
+
+
+def _speed(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v >= 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"{v:g} must be a finite number >= 0")
+    return v
+
+
+def _prepare_gl() -> str | None:
+    """Choose EGL before dm_control is imported (a GL backend the user exported wins; "disabled",
+    which a parent that ran the sim without frames may pass down, does not) and import it; the
+    reason when that fails."""
+    if "dm_control" not in sys.modules and os.environ.get("MUJOCO_GL", "").strip().lower() in ("", "disabled"):
+        os.environ["MUJOCO_GL"] = "egl"
+    try:
+        from hope_models.sim.reacher import _dm_control
+
+        _dm_control(frames=True)
+    except Exception as exc:  # noqa: BLE001 - ImportError, RuntimeError, OpenGL errors: all mean "no frames"
+        return (f"cannot render the reacher for --stream-frames (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
+                f"{type(exc).__name__}: {exc}; run without --stream-frames, or make that backend work (MUJOCO_GL=egl needs libEGL, "
+                "e.g. Mesa's libegl1)")
+    return None
 
 
 def resolve_promoted(home: Path) -> Path:
@@ -98,6 +157,15 @@ def run(args: argparse.Namespace) -> int:
         except (FileNotFoundError, ValueError, SettingsError) as exc:
             return _fail(args, str(exc))
 
+    if args.stream_frames is not None:
+        from hope_models.sim.frames import MAX_SIZE, MIN_SIZE
+
+        if not MIN_SIZE <= args.stream_size <= MAX_SIZE:
+            return _fail(args, f"--stream-size {args.stream_size} must be within {MIN_SIZE}-{MAX_SIZE}")
+        problem = _prepare_gl()  # before torch and anything else that could import dm_control
+        if problem is not None:
+            return _fail(args, problem)
+
     import torch
 
     from hope_models.runtime.reflex_policy import ReflexPolicy, ReflexPolicyError
@@ -109,7 +177,14 @@ def run(args: argparse.Namespace) -> int:
     except ReflexPolicyError as exc:
         return _fail(args, str(exc))
     seeds = list(range(args.seed, args.seed + args.episodes))
-    res = evaluate_policy(policy, seeds, args.task)
+    stream = None
+    if args.stream_frames is not None:
+        from hope_models.sim.frames import FrameStream
+
+        stream = FrameStream(sys.stdout, fps=args.stream_frames, size=args.stream_size, speed=args.stream_speed)
+    res = evaluate_policy(policy, seeds, args.task, frames=stream)
+    if stream is not None and stream.error is not None:
+        print(f"warning: no frames were streamed: {stream.error}", file=sys.stderr)
     expert = evaluate_policy(expert_factory, seeds, args.task)
     rand = evaluate_policy(random_factory, seeds, args.task)
     out = {
@@ -133,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
             for p, e, r in zip(res.episodes, expert.episodes, rand.episodes)],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
+    if stream is not None:
+        out["frames"] = stream.summary()
     if args.json:
         print(json.dumps(out))
     else:

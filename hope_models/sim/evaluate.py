@@ -104,28 +104,39 @@ def _policy_for(policy_factory: Any, seed: int):
     return policy_factory(seed)
 
 
-def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS) -> np.ndarray:
-    """Per-step rewards of one closed-loop episode."""
-    env = make_env(task, seed)
+def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames=None,
+                episode: int = 0) -> np.ndarray:
+    """Per-step rewards of one closed-loop episode. `frames` (a hope_models.sim.frames.FrameStream)
+    is shown the env after reset and after every step, and renders the frames it wants; the episode
+    is the same with or without it (rendering does not touch the physics)."""
+    env = make_env(task, seed, frames=frames is not None)
     obs = env.reset()
     reset = getattr(policy, "reset", None)
     if reset is not None:
         reset()
     rewards = np.zeros(steps)
+    ret = 0.0
+    if frames is not None:
+        frames.on_step(env, episode=episode, seed=seed, step=0, return_so_far=0.0, last=False)
     for t in range(steps):
         action = np.asarray(policy.act(obs), dtype=np.float64)
         if not np.isfinite(action).all():
             raise ValueError(f"{task} seed {seed} step {t}: the policy gave a non-finite action {action.tolist()}")
         obs, rewards[t], done = env.step(action)
+        ret += rewards[t]
+        if frames is not None:
+            frames.on_step(env, episode=episode, seed=seed, step=t + 1, return_so_far=ret,
+                           last=done or t + 1 == steps)
         if done:
             break
     return rewards
 
 
 def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], task: str = "reach",
-                    name: str | None = None, steps: int = EPISODE_STEPS) -> EvalResult:
+                    name: str | None = None, steps: int = EPISODE_STEPS, frames=None) -> EvalResult:
     """Score a policy on each seed. `policy_factory` is a callable seed -> policy, or a policy
-    (anything with act(observation) and optionally reset(), which is called per episode)."""
+    (anything with act(observation) and optionally reset(), which is called per episode).
+    `frames` (a hope_models.sim.frames.FrameStream) streams the first episode's frames."""
     if task not in TASKS:
         raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
     seeds = [int(s) for s in seeds]
@@ -135,11 +146,12 @@ def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], t
         raise ValueError(f"steps={steps} must be within 1-{EPISODE_STEPS}")
     label = name
     out = EvalResult(task, "")
-    for seed in seeds:
+    for i, seed in enumerate(seeds):
         policy = _policy_for(policy_factory, seed)
         if label is None:
             label = str(getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__))
-        out.episodes.append(score_rewards(seed, run_episode(policy, task, seed, steps)))
+        rewards = run_episode(policy, task, seed, steps, frames=frames if i == 0 else None, episode=i)
+        out.episodes.append(score_rewards(seed, rewards))
     out.policy = label or ""
     return out
 

@@ -6,19 +6,29 @@
             when no fast_loop has been promoted yet
     GET  /api/sim/reflex/<job>  -> {"job": {"id", "state": running|completed|failed, "episodes",
                                    "seed", "task", "created_at", "finished_at", "elapsed_s",
-                                   "result": eval-reflex's JSON | null, "error": str | null}}
+                                   "result": eval-reflex's JSON | null, "error": str | null,
+                                   "frames": {"emitted": int, "error": str | null}}}
 
-Each job is `run_trainer.py eval-reflex --checkpoint promoted --json` in a child process (torch and
-MuJoCo stay out of the webapp), one at a time: the reflex is a demonstration, and two would only
-halve each other's speed on the Pi. The last KEEP_JOBS jobs are remembered in memory (a restart
-forgets them; their results are not training state). Issue 7 adds the frames (`sim.frame`).
+Each job is `run_trainer.py eval-reflex --checkpoint promoted --json --stream-frames 10` in a child
+process (torch and MuJoCo stay out of the webapp), one at a time: the reflex is a demonstration, and
+two would only halve each other's speed on the Pi. The last KEEP_JOBS jobs are remembered in memory
+(a restart forgets them; their results are not training state).
+
+Frames: the child renders its first episode (at FRAME_FPS frames per simulated second, paced at
+`stream_speed` x real time, so the episode plays as it happens) and writes them as JSON lines on
+stdout; each is pushed to browsers as Socket.IO `sim.frame` {job_id, episode, seed, step, image (a
+data:image/png URL, 128x128), return_so_far, done}, at most MAX_EMITS_PER_S a second (the last frame
+of the episode always goes out, so the final return is shown). If the child cannot render, the job
+still completes with its result, and "frames": {"error"} says why there were none.
 """
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import secrets
 import threading
+import time
 from datetime import datetime, timezone
 from typing import Any
 
@@ -36,6 +46,11 @@ MAX_EPISODES = 5
 MAX_SEED = 2**31 - 1
 KEEP_JOBS = 20
 JOB_TIMEOUT_S = 900.0
+FRAME_EVENT = "sim.frame"
+FRAME_FPS = 10  # frames per simulated second the child renders
+FRAME_SIZE = 128
+MAX_EMITS_PER_S = 10.0
+STREAM_SPEED = 1.0  # the streamed episode plays in real time (20 s); 0: as fast as the child runs
 
 
 def _now() -> str:
@@ -49,9 +64,12 @@ class ReflexBusy(RuntimeError):
 class ReflexJobs:
     """Background eval-reflex children, one at a time, and the results of the last KEEP_JOBS."""
 
-    def __init__(self, children, *, timeout_s: float = JOB_TIMEOUT_S):
+    def __init__(self, children, *, timeout_s: float = JOB_TIMEOUT_S, socketio: Any = None,
+                 stream_speed: float = STREAM_SPEED):
         self.children = children  # webapp.commands.ChildProcesses
         self.timeout_s = timeout_s
+        self.socketio = socketio  # where sim.frame goes (create_app sets it); None: frames are not streamed
+        self.stream_speed = stream_speed
         self._jobs: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
         self._counter = itertools.count(1)
@@ -64,22 +82,69 @@ class ReflexJobs:
                                  f"(GET /api/sim/reflex/{self._running})")
             job_id = f"reflex-{next(self._counter)}-{secrets.token_hex(3)}"
             job = {"id": job_id, "state": "running", "episodes": episodes, "seed": seed, "task": task,
-                   "created_at": _now(), "finished_at": None, "elapsed_s": None, "result": None, "error": None}
+                   "created_at": _now(), "finished_at": None, "elapsed_s": None, "result": None, "error": None,
+                   "frames": {"emitted": 0, "error": None}}
             self._jobs[job_id] = job
             self._running = job_id
             for old in list(self._jobs)[:-KEEP_JOBS]:
                 del self._jobs[old]
-            snapshot = dict(job)
+            snapshot = _copy(job)
         args = ["eval-reflex", "--checkpoint", "promoted", "--json", "--episodes", str(episodes), "--seed", str(seed),
                 "--task", task]
+        if self.socketio is not None:
+            args += ["--stream-frames", str(FRAME_FPS), "--stream-size", str(FRAME_SIZE),
+                     "--stream-speed", f"{self.stream_speed:g}"]
         threading.Thread(target=self._run, args=(job_id, args), name=f"sim-{job_id}", daemon=True).start()
         return snapshot
 
+    def _frame_consumer(self, job_id: str):
+        """on_line for the child's stdout: frame lines become sim.frame events (throttled)."""
+        last_emit = [float("-inf")]
+
+        def on_line(line: str) -> bool:
+            if line.startswith('{"frame_error"'):
+                message = str(json.loads(line).get("frame_error"))
+                log.warning("sim reflex job %s: no frames: %s", job_id, message)
+                self._update_frames(job_id, error=message)
+                return True
+            if not line.startswith('{"frame"'):
+                return False
+            frame = json.loads(line).get("frame")
+            if not isinstance(frame, dict):
+                return False
+            now = time.monotonic()
+            if now - last_emit[0] < 1.0 / MAX_EMITS_PER_S and not frame.get("done"):
+                return True  # dropped: the browser gets at most MAX_EMITS_PER_S
+            last_emit[0] = now
+            payload = {"job_id": job_id, **{k: frame.get(k) for k in
+                                            ("episode", "seed", "step", "image", "return_so_far", "done")}}
+            try:
+                self.socketio.emit(FRAME_EVENT, payload)
+            except Exception:  # noqa: BLE001 - a browser push must not stop the evaluation
+                log.exception("could not push %s", FRAME_EVENT)
+                return True
+            self._update_frames(job_id, emitted=1)
+            return True
+
+        return on_line
+
+    def _update_frames(self, job_id: str, *, emitted: int = 0, error: str | None = None) -> None:
+        with self._lock:
+            job = self._jobs.get(job_id)
+            if job is not None:
+                job["frames"]["emitted"] += emitted
+                if error is not None:
+                    job["frames"]["error"] = error
+
     def _run(self, job_id: str, args: list[str]) -> None:
         try:
-            res = self.children.run(args, timeout_s=self.timeout_s)
+            on_line = self._frame_consumer(job_id) if "--stream-frames" in args else None
+            res = self.children.run(args, timeout_s=self.timeout_s, on_line=on_line)
             if res.code == 0 and isinstance(res.output, dict) and res.output.get("ok", True):
                 update = {"state": "completed", "result": res.output}
+                frames = res.output.get("frames")
+                if on_line is not None and isinstance(frames, dict) and frames.get("error"):
+                    self._update_frames(job_id, error=str(frames["error"]))
             elif res.timed_out:
                 update = {"state": "failed", "error": f"eval-reflex did not finish within {self.timeout_s:.0f} s"}
             else:
@@ -97,10 +162,14 @@ class ReflexJobs:
     def get(self, job_id: str) -> dict[str, Any] | None:
         with self._lock:
             job = self._jobs.get(job_id)
-            return dict(job) if job is not None else None
+            return _copy(job) if job is not None else None
 
     def running(self) -> str | None:
         return self._running
+
+
+def _copy(job: dict[str, Any]) -> dict[str, Any]:
+    return {**job, "frames": dict(job["frames"])}
 
 
 def _state():

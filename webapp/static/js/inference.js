@@ -1,7 +1,8 @@
 // Inference: one observation -> fast_loop's action (with the version that answered and the
 // latency), and the sim reflex: an eval-reflex job with the promoted fast_loop, polled until it
-// finishes (POST /api/sim/reflex, GET /api/sim/reflex/<job>). Frames arrive as sim.frame events
-// when the server sends them; otherwise the page shows the episode's result only.
+// finishes (POST /api/sim/reflex, GET /api/sim/reflex/<job>). The first episode's frames arrive as
+// sim.frame events {job_id, step, image, return_so_far} while it runs and are drawn on the canvas;
+// if the server could not render, the result says why ("frames").
 import { $, setText, fillKv, num, duration } from "./util.js";
 
 const POLL_MS = 1000;
@@ -31,11 +32,17 @@ export const events = {
     if (typeof src === "string" && src.startsWith("data:image/")) {
       const canvas = $("#reflex-frame");
       const img = new Image();
-      img.onload = () => { canvas.hidden = false; canvas.getContext("2d").drawImage(img, 0, 0, canvas.width, canvas.height); };
+      img.onload = () => {
+        canvas.hidden = false;
+        canvas.getContext("2d").drawImage(img, 0, 0, canvas.width, canvas.height);
+        canvas.dataset.frames = String(Number(canvas.dataset.frames || 0) + 1);  // drawn frames (tests read it)
+        canvas.dataset.step = String(d.step ?? "");
+      };
       img.src = src;
     }
-    if (typeof d.return === "number" || typeof d.reward === "number") {
-      setText("#reflex-status", `step ${d.step ?? "?"} · return so far ${num(d.return ?? d.reward)}`);
+    const ret = d.return_so_far ?? d.return ?? d.reward;
+    if (typeof ret === "number") {
+      setText("#reflex-status", `step ${d.step ?? "?"} · return so far ${num(ret)}`);
     }
   },
 };
@@ -68,6 +75,9 @@ async function onReflex(event) {
   event.preventDefault();
   $("#reflex-button").disabled = true;
   $("#reflex-result").replaceChildren();
+  const canvas = $("#reflex-frame");
+  canvas.hidden = true;
+  canvas.dataset.frames = "0";
   try {
     const body = { episodes: Number($("#reflex-episodes").value), seed: Number($("#reflex-seed").value), task: "reach" };
     const started = await ctx.api("/api/sim/reflex", { method: "POST", body });
@@ -102,5 +112,7 @@ function renderReflex(j) {
   for (const key of ["success_rate", "expert_mean_return", "random_mean_return", "version", "checkpoint"]) {
     if (r[key] !== undefined) pairs.push([key.replace(/_/g, " "), Array.isArray(r[key]) ? r[key].map((v) => num(v, 5)).join(", ") : String(r[key])]);
   }
+  const f = j.frames;
+  if (f) pairs.push(["frames", f.error ? `none: ${f.error}` : `${f.emitted} streamed`]);
   fillKv("#reflex-result", pairs);
 }
