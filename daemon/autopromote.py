@@ -34,6 +34,7 @@ from sqlalchemy import exists, func, select
 
 from daemon import runs
 from daemon.models import Model, Run, utcnow
+from hope_models.cli.json_result import last_json_object
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +144,7 @@ class AutoPromoter:
         self._proc = self._run_id = self._out_path = None
         assert proc is not None and run_id is not None and out_path is not None
         code = proc.returncode
-        outcome = _last_json(out_path)
+        outcome = _read_outcome(out_path)
         out_path.unlink(missing_ok=True)
         level, message = describe(code, outcome)
         self.last_outcome = {"run_id": run_id, "exit_code": code, **(outcome or {})}
@@ -176,21 +177,11 @@ class AutoPromoter:
         self._proc = self._run_id = self._out_path = None
 
 
-def _last_json(path: Path) -> dict[str, Any] | None:
+def _read_outcome(path: Path) -> dict[str, Any] | None:
     try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        return last_json_object(path.read_text(encoding="utf-8", errors="replace"))
     except OSError:
         return None
-    for line in reversed(lines):
-        line = line.strip()
-        if line.startswith("{"):
-            try:
-                obj = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(obj, dict):
-                return obj
-    return None
 
 
 def describe(code: int | None, outcome: dict[str, Any] | None) -> tuple[str, str]:

@@ -16,7 +16,6 @@ PromotionError is raised, so the table never says "promoted" for a model the poi
 """
 from __future__ import annotations
 
-import math
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
 from daemon.models import Model, Run, iso, utcnow
+from hope_models.json_finite import finite
 from hope_models.promote.pointers import PointerError, checkpoint_version, read_pointer, write_pointer
 
 HISTORY_LIMIT = 20
@@ -32,17 +32,6 @@ HISTORY_LIMIT = 20
 
 class PromotionError(ValueError):
     """A promotion or rollback that cannot be done; the message names the model or component and why."""
-
-
-def _json_safe(value: Any) -> Any:
-    """JSON has no NaN/Infinity: non-finite floats become None (the gate's reasons say why)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def record_candidate(s: Session, *, component: str, checkpoint_path: str | Path, version: str,
@@ -56,7 +45,7 @@ def record_candidate(s: Session, *, component: str, checkpoint_path: str | Path,
     if run_id is not None and s.get(Run, run_id) is None:
         raise PromotionError(f"no run {run_id} (see `run_trainer.py status`)")
     model = Model(component=component, checkpoint_path=str(Path(checkpoint_path).resolve()), version=version,
-                  run_id=run_id, metrics=_json_safe(metrics), gate_result=_json_safe(gate_result),
+                  run_id=run_id, metrics=finite(metrics), gate_result=finite(gate_result),
                   created_at=utcnow())
     s.add(model)
     s.flush()

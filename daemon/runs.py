@@ -16,7 +16,6 @@ row; the worker child reads them between steps and reports back through finish()
 from __future__ import annotations
 
 import json
-import math
 import re
 from typing import Any, Iterable
 
@@ -24,6 +23,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from daemon.models import Run, RunEvent, new_run_id, utcnow
+from hope_models.json_finite import finite
 from hope_models.train.contract import COMPONENTS
 
 STATES = ("queued", "running", "paused", "completed", "failed", "cancelled", "interrupted")
@@ -69,17 +69,6 @@ def _json_dict(value: Any, what: str) -> dict[str, Any]:
     return value
 
 
-def _finite(value: Any) -> Any:
-    """JSON has no NaN/Infinity (browsers refuse them): non-finite floats are stored as null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
-
-
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
@@ -89,7 +78,7 @@ def _is_int(value: Any) -> bool:
 def add_event(s: Session, run_id: str, kind: str, payload: dict[str, Any]) -> RunEvent:
     if kind not in EVENT_KINDS:
         raise RunError(f"run {run_id}: event kind {kind!r} is not one of {', '.join(EVENT_KINDS)}")
-    payload = _json_dict(_finite(payload), f"run {run_id}: {kind} event payload")
+    payload = _json_dict(finite(payload), f"run {run_id}: {kind} event payload")
     if s.get(Run, run_id) is None:
         raise RunError(_hint(run_id))
     event = RunEvent(run_id=run_id, kind=kind, payload=payload, time=utcnow())
@@ -413,7 +402,7 @@ def heartbeat(s: Session, run_id: str, pid: int, **progress: Any) -> bool:
     if unknown:
         raise RunError(f"run {run_id}: heartbeat fields {sorted(unknown)} are not among {', '.join(HEARTBEAT_FIELDS)}")
     now = utcnow()
-    values = {k: v for k, v in _finite(progress).items() if v is not None}
+    values = {k: v for k, v in finite(progress).items() if v is not None}
     result = s.execute(
         update(Run)
         .where(Run.id == run_id, Run.worker_pid == pid, Run.state == "running")

@@ -12,7 +12,6 @@ stops them in order (ChildProcesses.close).
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import signal
@@ -23,6 +22,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
+
+from hope_models.cli.json_result import last_json_object
 
 log = logging.getLogger(__name__)
 
@@ -40,19 +41,6 @@ def child_env(settings: Any) -> dict[str, str]:
     env.update({"HOPE_HOME": str(settings.home), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1",
                 "MKL_NUM_THREADS": "1"})
     return env
-
-
-def last_json_object(stdout: str) -> dict[str, Any] | None:
-    for line in reversed(stdout.splitlines()):
-        line = line.strip()
-        if line.startswith("{"):
-            try:
-                obj = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if isinstance(obj, dict):
-                return obj
-    return None
 
 
 def error_line(stderr: str) -> str:
@@ -93,34 +81,7 @@ class ChildProcesses:
         """Run `run_trainer.py <args>` to the end (blocking the calling thread). With `on_line`,
         stdout is read line by line while the child runs and each line is passed to it; a line it
         returns True for is consumed (not kept for `output`), e.g. eval-reflex's frame lines."""
-        if on_line is not None:
-            return self._run_streaming(args, timeout_s, on_line)
-        argv = trainer_argv(*args)
-        started = time.monotonic()
-        with self._lock:
-            if self._closed:
-                return ChildResult(argv, None, None, "the webapp is shutting down", 0.0)
-            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True, env=child_env(self.settings), cwd=str(REPO_ROOT),
-                                    start_new_session=True)
-            self._live.add(proc)
-        log.info("started %s (pid %d)", " ".join(args), proc.pid)
-        timed_out = False
-        try:
-            try:
-                stdout, stderr = proc.communicate(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                timed_out = True
-                self._kill(proc)
-                stdout, stderr = proc.communicate()
-        finally:
-            with self._lock:
-                self._live.discard(proc)
-        code = None if timed_out or proc.returncode < 0 else proc.returncode
-        result = ChildResult(argv, code, last_json_object(stdout or ""), stderr or "",
-                             round(time.monotonic() - started, 3), timed_out)
-        log.info("%s finished: exit %s in %.1f s", " ".join(args), proc.returncode, result.elapsed_s)
-        return result
+        return self._run_streaming(args, timeout_s, on_line or (lambda _line: False))
 
     def _run_streaming(self, args: list[str], timeout_s: float, on_line: Callable[[str], bool]) -> ChildResult:
         argv = trainer_argv(*args)
@@ -132,7 +93,7 @@ class ChildProcesses:
                                     text=True, bufsize=1, env=child_env(self.settings), cwd=str(REPO_ROOT),
                                     start_new_session=True)
             self._live.add(proc)
-        log.info("started %s (pid %d, streaming stdout)", " ".join(args), proc.pid)
+        log.info("started %s (pid %d)", " ".join(args), proc.pid)
         kept: list[str] = []
         err: list[str] = []
 

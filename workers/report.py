@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
@@ -42,6 +41,7 @@ from sqlalchemy.exc import OperationalError, SQLAlchemyError
 
 from daemon import runs
 from daemon.models import Run
+from hope_models.json_finite import finite
 
 log = logging.getLogger(__name__)
 
@@ -149,17 +149,6 @@ class ControlRow:
         if not isinstance(row.state, str) or not isinstance(row.throttle_level, int):
             raise ChannelError(f"malformed control state: {obj!r}")
         return row
-
-
-def finite(value: Any) -> Any:
-    """JSON has no NaN/Infinity: non-finite floats (a diverged loss) travel as null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite(v) for v in value]
-    return value
 
 
 def dumps(obj: Any) -> str:

@@ -23,25 +23,17 @@ import signal
 import sys
 import threading
 
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text} must be a positive number")
-    return v
+from hope_models.cli.argtypes import positive_float
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--tick-s", type=_positive_float, default=0.5, metavar="S",
+    parser.add_argument("--tick-s", type=positive_float, default=0.5, metavar="S",
                         help="seconds between two rounds of monitor/dispatch/reconcile (default 0.5)")
-    parser.add_argument("--heartbeat-timeout-s", type=_positive_float, default=30.0, metavar="S",
+    parser.add_argument("--heartbeat-timeout-s", type=positive_float, default=30.0, metavar="S",
                         help="a running job silent for this long is taken for dead and requeued (default 30)")
-    parser.add_argument("--claim-timeout-s", type=_positive_float, default=600.0, metavar="S",
+    parser.add_argument("--claim-timeout-s", type=positive_float, default=600.0, metavar="S",
                         help="a sent task not picked up for this long is sent again (default 600)")
-    parser.add_argument("--stats-every-s", type=_positive_float, default=5.0, metavar="S",
+    parser.add_argument("--stats-every-s", type=positive_float, default=5.0, metavar="S",
                         help="system.stats event interval (default 5)")
     parser.add_argument("--local-queues", default="pi", metavar="LIST",
                         help="comma-separated queues whose worker runs on this host: this host's temperature "

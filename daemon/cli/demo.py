@@ -42,6 +42,9 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+from hope_models.cli.argtypes import positive_int
+from hope_models.cli.json_result import last_json_object
+
 log = logging.getLogger("hope.demo")
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -62,29 +65,18 @@ class DemoError(Exception):
     """The demo cannot go on; the message says why."""
 
 
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from daemon.cli.serve import _port
+    from daemon.cli.serve import add_listen_arguments
 
-    parser.add_argument("--episodes", type=_positive, default=50, help="expert demonstrations to record (default 50)")
+    parser.add_argument("--episodes", type=positive_int, default=50, help="expert demonstrations to record (default 50)")
     parser.add_argument("--noise", type=float, default=1.0, help="DART noise of the demonstrations (default 1.0)")
-    parser.add_argument("--steps", type=_positive, default=4000, help="training steps of every component (default 4000)")
+    parser.add_argument("--steps", type=positive_int, default=4000, help="training steps of every component (default 4000)")
     parser.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
-    parser.add_argument("--eval-episodes", type=_positive, default=20,
+    parser.add_argument("--eval-episodes", type=positive_int, default=20,
                         help="held-out reacher seeds 0..N-1 the reflex is evaluated on (default 20)")
     parser.add_argument("--target-return", type=float, default=900.0,
                         help="the mean return the promoted fast_loop must reach (default 900)")
-    parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
-    parser.add_argument("--port", type=_port, default=None, help="port (default: settings, 8765; 0 = any free one)")
+    add_listen_arguments(parser)
     parser.add_argument("--queue", default="pi", help="the queue the demo's runs and its worker use (default pi)")
     parser.add_argument("--exit", action="store_true", help="stop after the summary instead of serving on")
 
@@ -93,37 +85,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def say(text: str = "") -> None:
     print(text, flush=True)
-
-
-def _setup_logging(home: Path) -> None:
-    """The services log to $HOPE_HOME/logs/daemon.log as under `serve`; the terminal gets warnings
-    only, so the demo's own lines stay readable."""
-    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
-    root = logging.getLogger()
-    root.setLevel(logging.INFO)
-    console = logging.StreamHandler(sys.stderr)
-    console.setLevel(logging.WARNING)
-    console.setFormatter(fmt)
-    root.addHandler(console)
-    (home / "logs").mkdir(parents=True, exist_ok=True)
-    file_handler = logging.FileHandler(home / "logs" / "daemon.log", encoding="utf-8")
-    file_handler.setFormatter(fmt)
-    root.addHandler(file_handler)
-    for noisy in ("werkzeug", "engineio", "socketio", "kombu", "celery", "amqp", "alembic"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
-
-
-def _last_json(text: str) -> dict[str, Any] | None:
-    for line in reversed(text.strip().splitlines()):
-        line = line.strip()
-        if line.startswith("{"):
-            try:
-                obj = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(obj, dict):
-                return obj
-    return None
 
 
 class Demo:
@@ -198,7 +159,7 @@ class Demo:
         code, stdout, tail = self.run_child(
             ["sim-demos", "--episodes", str(a.episodes), "--out", str(partial), "--task", "reach",
              "--noise", str(a.noise), "--seed", str(DEMO_SEED), "--json"], timeout_s=1800)
-        result = _last_json(stdout)
+        result = last_json_object(stdout)
         if code != 0 or not result or not result.get("ok"):
             raise DemoError(f"recording the demonstrations failed (exit {code}): "
                             f"{(result or {}).get('error') or tail}")
@@ -233,8 +194,8 @@ class Demo:
         left = self._unfinished_chain(req.config())
         if left:
             self.serve.daemon.wake()
-            say(f"3. training: resuming the chain an interrupted demo left (its runs resume from their "
-                f"checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left)))
+            say("3. training: resuming the chain an interrupted demo left (its runs resume from their "
+                "checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left)))
             return left
         with self.serve.registry.session() as s:
             members = create_sequence(s, COMPONENTS, req.config(), total_steps=req.steps,
@@ -433,7 +394,7 @@ class Demo:
         code, stdout, tail = self.run_child(["eval-reflex", "--checkpoint", "promoted", "--episodes", str(n),
                                              "--seed", "0", "--task", "reach", "--json"], timeout_s=1800)
         self.timings["reflex"] = time.monotonic() - t0
-        result = _last_json(stdout)
+        result = last_json_object(stdout)
         if code != 0 or not result or result.get("ok") is False:
             return {"error": f"eval-reflex exited {code}: {(result or {}).get('error') or tail}"}
         keep = ("mean_return", "success_rate", "time_to_reach_s", "expert_mean_return", "random_mean_return",
@@ -494,23 +455,20 @@ def run(args: argparse.Namespace) -> int:
     from daemon.demo_report import format_summary, verdict
     from daemon.run_request import RunRequestError
     from daemon.runs import RunError
-    from hope_models.settings import SettingsError, load_settings
+    from daemon.cli.serve import listen_settings, setup_logging
+    from hope_models.settings import SettingsError
     from webapp.auth import TokenError
     from webapp.server import ServerError
 
     try:
-        settings = load_settings()
+        settings = listen_settings(args)
     except SettingsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if args.host is not None:
-        settings.host = args.host
-    if args.port is not None:
-        settings.port = args.port
     if not settings.auto_promote:
         say("note: auto_promote is off in the settings; the demo turns it on for this process (it gates each run)")
         settings.auto_promote = True
-    _setup_logging(settings.home)
+    setup_logging(settings.home, console_level=logging.WARNING)
     demo = Demo(settings, args)
 
     def on_signal(signum, _frame):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hope_models.cli.train import _json_object, _non_negative_int, _positive_float, _positive_int
+from hope_models.cli.argtypes import json_object, non_negative_int, positive_float, positive_int
 from hope_models.train.contract import COMPONENTS
 
 # TrainConfig override -> the CLI attribute it comes from
@@ -45,27 +45,27 @@ def add_job_options(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--data", required=True, metavar="PATH",
                         help="RLDS dataset dir, episode dir or episode file (made absolute)")
-    parser.add_argument("--steps", type=_positive_int, default=DEFAULT_STEPS,
+    parser.add_argument("--steps", type=positive_int, default=DEFAULT_STEPS,
                         help=f"total optimizer steps (default {DEFAULT_STEPS})")
-    parser.add_argument("--seed", type=_non_negative_int, default=None, help="default 0")
-    parser.add_argument("--batch-size", type=_positive_int, default=None, help="default 64")
-    parser.add_argument("--lr", type=_positive_float, default=None, help="peak learning rate (default 1e-3)")
-    parser.add_argument("--warmup", type=_non_negative_int, default=None, help="warmup steps (default 100)")
-    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
-    parser.add_argument("--checkpoint-every", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--seed", type=non_negative_int, default=None, help="default 0")
+    parser.add_argument("--batch-size", type=positive_int, default=None, help="default 64")
+    parser.add_argument("--lr", type=positive_float, default=None, help="peak learning rate (default 1e-3)")
+    parser.add_argument("--warmup", type=non_negative_int, default=None, help="warmup steps (default 100)")
+    parser.add_argument("--threads", type=positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="N",
                         help="checkpoint every N steps (default 500)")
-    parser.add_argument("--checkpoint-seconds", type=_positive_float, default=None, metavar="T",
+    parser.add_argument("--checkpoint-seconds", type=positive_float, default=None, metavar="T",
                         help="and every T seconds (default 300)")
-    parser.add_argument("--keep", type=_positive_int, default=None, metavar="K", help="keep the last K checkpoints")
-    parser.add_argument("--log-every", type=_positive_int, default=None, metavar="N", help="metrics every N steps")
-    parser.add_argument("--memory-budget-mb", type=_positive_float, default=None,
+    parser.add_argument("--keep", type=positive_int, default=None, metavar="K", help="keep the last K checkpoints")
+    parser.add_argument("--log-every", type=positive_int, default=None, metavar="N", help="metrics every N steps")
+    parser.add_argument("--memory-budget-mb", type=positive_float, default=None,
                         help="the job's memory budget (default: settings, 3072)")
     parser.add_argument("--imagined-ratio", type=float, default=None, help="share of imagined episodes in a batch")
-    parser.add_argument("--model-config", type=_json_object, default=None, metavar="JSON",
+    parser.add_argument("--model-config", type=json_object, default=None, metavar="JSON",
                         help="model config overrides, e.g. '{\"d_model\": 64}'")
     parser.add_argument("--queue", default="pi", help="the worker queue that trains it (default pi)")
     parser.add_argument("--priority", type=_int, default=0, help="higher runs first (default 0)")
-    parser.add_argument("--max-attempts", type=_positive_int, default=3, metavar="K",
+    parser.add_argument("--max-attempts", type=positive_int, default=3, metavar="K",
                         help="attempts before a run whose worker keeps dying is failed (default 3)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 

@@ -54,7 +54,7 @@ _PDEATHSIG_WRAPPER = (
 )
 
 
-def _port(text: str) -> int:
+def port_number(text: str) -> int:
     try:
         v = int(text)
     except ValueError:
@@ -64,9 +64,27 @@ def _port(text: str) -> int:
     return v
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
+    """--host/--port of every command that serves the webapp (serve, webapp, demo)."""
     parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
-    parser.add_argument("--port", type=_port, default=None, help="port (default: settings, 8765; 0 = any free one)")
+    parser.add_argument("--port", type=port_number, default=None,
+                        help="port (default: settings, 8765; 0 = any free one)")
+
+
+def listen_settings(args: argparse.Namespace):
+    """The settings with --host/--port applied; SettingsError when config.toml or the env is bad."""
+    from hope_models.settings import load_settings
+
+    settings = load_settings()
+    if args.host is not None:
+        settings.host = args.host
+    if args.port is not None:
+        settings.port = args.port
+    return settings
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_listen_arguments(parser)
     parser.add_argument("--no-worker", action="store_true",
                         help="do not start a worker child (one runs elsewhere, e.g. `run_trainer.py worker`)")
     parser.add_argument("--queue", default="pi", help="the queue the worker child serves (default pi)")
@@ -300,11 +318,14 @@ def brain_summary(brain: Any) -> str:
     return "brain: " + ("; ".join(parts) or "no components")
 
 
-def _setup_logging(home: Path) -> None:
+def setup_logging(home: Path, console_level: int = logging.INFO) -> None:
+    """Services log to $HOPE_HOME/logs/daemon.log; the terminal gets `console_level` and up (the
+    demo keeps it to warnings so its own lines stay readable)."""
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
     root = logging.getLogger()
     root.setLevel(logging.INFO)
     console = logging.StreamHandler(sys.stderr)
+    console.setLevel(console_level)
     console.setFormatter(fmt)
     root.addHandler(console)
     (home / "logs").mkdir(parents=True, exist_ok=True)
@@ -317,20 +338,16 @@ def _setup_logging(home: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from daemon.db import RegistryError
-    from hope_models.settings import SettingsError, load_settings
+    from hope_models.settings import SettingsError
     from webapp.auth import TokenError
     from webapp.server import ServerError
 
     try:
-        settings = load_settings()
+        settings = listen_settings(args)
     except SettingsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if args.host is not None:
-        settings.host = args.host
-    if args.port is not None:
-        settings.port = args.port
-    _setup_logging(settings.home)
+    setup_logging(settings.home)
     serve = Serve(settings, args)
 
     def on_signal(signum, _frame):

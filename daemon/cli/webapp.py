@@ -22,14 +22,13 @@ import signal
 import sys
 import threading
 
-from daemon.cli.serve import _port, brain_summary
+from daemon.cli.serve import add_listen_arguments, brain_summary, listen_settings
 
 log = logging.getLogger("hope.webapp")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
-    parser.add_argument("--port", type=_port, default=None, help="port (default: settings, 8765; 0 = any free one)")
+    add_listen_arguments(parser)
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
 
 
@@ -64,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from daemon.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
-    from hope_models.settings import SettingsError, load_settings
+    from hope_models.settings import SettingsError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
     from webapp.server import HttpServer, ServerError
@@ -76,11 +75,7 @@ def run(args: argparse.Namespace) -> int:
     notifier = SdNotifier()
     stop = threading.Event()
     try:
-        settings = load_settings()
-        if args.host is not None:
-            settings.host = args.host
-        if args.port is not None:
-            settings.port = args.port
+        settings = listen_settings(args)
         registry = Registry.open(settings, migrate=True)
     except (SettingsError, RegistryError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -201,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
     same = bool(np.array_equal(resumed.next_batch(), sampler.next_batch()))
     mid_batch = make_windows(cache, sampler.next_batch(), mid)
     timed("windows", t0)
-    _say(args, f"\n5. windows (cut by time, resampled to a fixed grid):")
+    _say(args, "\n5. windows (cut by time, resampled to a fixed grid):")
     _say(args, f"   fast {fast.duration_s * 1000:.0f} ms x {fast.k} points: obs {list(batch.obs.shape)}, "
                f"act {list(batch.act.shape)}, {fast_rate:.0f} batches/s of 64")
     _say(args, f"   mid {mid.duration_s:.0f} s x {mid.k} points + 1 s ahead: obs {list(mid_batch.obs.shape)}, "

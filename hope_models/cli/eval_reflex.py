@@ -40,29 +40,11 @@ import sys
 import time
 from pathlib import Path
 
+from hope_models.cli.argtypes import non_negative_int, positive_int
+
 PROMOTED = "promoted"
 POINTER_DIR = "promoted"
 POINTER_FILE = "fast_loop.json"
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 0")
-    return v
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,15 +52,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--checkpoint", required=True, metavar="PATH|promoted",
                         help="a fast_loop run dir or checkpoints/<step> dir, or 'promoted' for the promoted one")
-    parser.add_argument("--episodes", type=_positive_int, default=20, help="episodes (seeds) to evaluate (default 20)")
-    parser.add_argument("--seed", type=_non_negative_int, default=0,
+    parser.add_argument("--episodes", type=positive_int, default=20, help="episodes (seeds) to evaluate (default 20)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
                         help="first seed (default 0); seeds S..S+N-1, held out from sim-demos' default 100000+")
     parser.add_argument("--task", choices=TASKS, default="reach", help="reach or track (default reach)")
-    parser.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1: one tick is tiny)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1: one tick is tiny)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     parser.add_argument("--stream-frames", type=_fps, default=None, metavar="FPS",
                         help="stream the first episode's frames as JSON lines on stdout, FPS per simulated second")
-    parser.add_argument("--stream-size", type=_positive_int, default=128, metavar="PX",
+    parser.add_argument("--stream-size", type=positive_int, default=128, metavar="PX",
                         help="streamed frame size, square (default 128)")
     parser.add_argument("--stream-speed", type=_speed, default=1.0, metavar="X",
                         help="pace the streamed episode at X times real time (default 1; 0: as fast as it runs)")

@@ -15,58 +15,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 0")
-    return v
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"{text} must be a non-negative number")
-    return v
+from hope_models.cli.argtypes import non_negative_float, non_negative_int, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # defaults are repeated here (not imported) so that parsing never imports dm_control
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset dir the episode dirs are written into")
-    parser.add_argument("--episodes", required=True, type=_positive_int, metavar="N", help="rollouts to imagine")
+    parser.add_argument("--episodes", required=True, type=positive_int, metavar="N", help="rollouts to imagine")
     parser.add_argument("--method", choices=("dart", "cem"), default="dart",
                         help="dart: noise-perturbed expert, labelled with the expert's correction (default); "
                              "cem: cross-entropy-method MPC with the simulator as the model")
     parser.add_argument("--task", choices=("reach", "track"), default="reach")
-    parser.add_argument("--seed", type=_non_negative_int, default=200_000,
+    parser.add_argument("--seed", type=non_negative_int, default=200_000,
                         help="first task seed; episode i uses seed+i (default 200000: outside the eval and demo seeds)")
-    parser.add_argument("--noise", type=_non_negative_float, default=None, metavar="SIGMA",
+    parser.add_argument("--noise", type=non_negative_float, default=None, metavar="SIGMA",
                         help="std of the Gaussian noise added to the executed command while the label stays the "
                              "searcher's action (DART); default 2.0; 0 records the search's own trajectories")
-    parser.add_argument("--steps", type=_positive_int, default=1000, help="control steps per episode (default 1000)")
-    parser.add_argument("--horizon", type=_positive_int, default=None, help="cem: planning horizon in steps (12)")
-    parser.add_argument("--population", type=_positive_int, default=None, help="cem: candidates per iteration (32)")
-    parser.add_argument("--iterations", type=_positive_int, default=None, help="cem: refits per control step (2)")
-    parser.add_argument("--elites", type=_positive_int, default=None, help="cem: elites per refit (6)")
+    parser.add_argument("--steps", type=positive_int, default=1000, help="control steps per episode (default 1000)")
+    parser.add_argument("--horizon", type=positive_int, default=None, help="cem: planning horizon in steps (12)")
+    parser.add_argument("--population", type=positive_int, default=None, help="cem: candidates per iteration (32)")
+    parser.add_argument("--iterations", type=positive_int, default=None, help="cem: refits per control step (2)")
+    parser.add_argument("--elites", type=positive_int, default=None, help="cem: elites per refit (6)")
     parser.add_argument("--demos", nargs="+", metavar="DIR", default=(),
                         help="recorded demos whose start states (task, seed) must not be reused")
     parser.add_argument("--allow-overlap", action="store_true",

@@ -14,51 +14,25 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 0")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    v = _non_negative_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
-def _noise(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"{text} must be a non-negative number (std of the action noise)")
-    return v
+from hope_models.cli.argtypes import non_negative_float, non_negative_int, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from hope_models.sim.reacher import TASKS
 
-    parser.add_argument("--episodes", type=_positive_int, required=True, help="episodes to record")
+    parser.add_argument("--episodes", type=positive_int, required=True, help="episodes to record")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset dir the episode dirs are written into")
     parser.add_argument("--task", choices=TASKS, default="reach", help="reach (dm_control reacher/easy) or track "
                         "(the target moves along a circle); default reach")
-    parser.add_argument("--seed", type=_non_negative_int, default=None,
+    parser.add_argument("--seed", type=non_negative_int, default=None,
                         help="seed of the first episode (default 100000; eval-reflex evaluates seeds 0..N-1 by default)")
-    parser.add_argument("--noise", type=_noise, default=0.0, metavar="SIGMA",
+    parser.add_argument("--noise", type=non_negative_float, default=0.0, metavar="SIGMA",
                         help="DART noise: std of the Gaussian added to the executed action (the recorded label stays "
                              "the expert's); 0 = none (default). 1.0 is the documented recipe")
-    parser.add_argument("--steps", type=_positive_int, default=None,
+    parser.add_argument("--steps", type=positive_int, default=None,
                         help="steps per episode (default and maximum 1000 = 20 s; fewer for a quick look)")
     parser.add_argument("--frames", action="store_true", help="also store a 64x64 RGB frame per step (MUJOCO_GL=egl)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")

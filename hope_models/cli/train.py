@@ -19,47 +19,8 @@ import sys
 import time
 from typing import Any
 
+from hope_models.cli.argtypes import json_object, non_negative_int, positive_float, positive_int
 from hope_models.train.contract import COMPONENTS, ControlCommand
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{v} must be >= 0")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"{text} must be a positive number")
-    return v
-
-
-def _json_object(text: str) -> dict:
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise argparse.ArgumentTypeError(f"not valid JSON: {exc}") from None
-    if not isinstance(obj, dict):
-        raise argparse.ArgumentTypeError("must be a JSON object, e.g. '{\"d_model\": 64}'")
-    return obj
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,20 +32,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, metavar="PATH", help="RLDS dataset dir, episode dir or episode file")
     parser.add_argument("--run-dir", required=True, metavar="DIR", help="checkpoints and metrics go here; "
                         "re-running with the same dir resumes")
-    parser.add_argument("--steps", required=True, type=_positive_int, help="total optimizer steps")
-    parser.add_argument("--seed", type=_non_negative_int, default=0)
-    parser.add_argument("--batch-size", type=_positive_int, default=64)
-    parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate (default 1e-3)")
-    parser.add_argument("--warmup", type=_non_negative_int, default=100,
+    parser.add_argument("--steps", required=True, type=positive_int, help="total optimizer steps")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--batch-size", type=positive_int, default=64)
+    parser.add_argument("--lr", type=positive_float, default=1e-3, help="peak learning rate (default 1e-3)")
+    parser.add_argument("--warmup", type=non_negative_int, default=100,
                         help="warmup steps, at most a tenth of --steps (default 100)")
-    parser.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
-    parser.add_argument("--checkpoint-every", type=_positive_int, default=500, metavar="N",
+    parser.add_argument("--threads", type=positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=500, metavar="N",
                         help="checkpoint every N steps (default 500)")
-    parser.add_argument("--checkpoint-seconds", type=_positive_float, default=300.0, metavar="T",
+    parser.add_argument("--checkpoint-seconds", type=positive_float, default=300.0, metavar="T",
                         help="and every T seconds (default 300)")
-    parser.add_argument("--keep", type=_positive_int, default=3, metavar="K", help="keep the last K checkpoints")
-    parser.add_argument("--log-every", type=_positive_int, default=10, metavar="N", help="metrics every N steps")
-    parser.add_argument("--memory-budget-mb", type=_positive_float, default=None,
+    parser.add_argument("--keep", type=positive_int, default=3, metavar="K", help="keep the last K checkpoints")
+    parser.add_argument("--log-every", type=positive_int, default=10, metavar="N", help="metrics every N steps")
+    parser.add_argument("--memory-budget-mb", type=positive_float, default=None,
                         help="the job's memory budget (default: settings, 3072)")
     parser.add_argument("--thermal-zone", metavar="PATH", default=None,
                         help="thermal zone file to watch (default: settings, /sys/class/thermal/thermal_zone0/temp)")
@@ -93,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", metavar="DIR", default=None, help="dataset cache root (default: $HOPE_HOME/cache)")
     parser.add_argument("--spec", metavar="FILE", default=None, help="feature spec JSON overriding the inferred one")
     parser.add_argument("--imagined-ratio", type=float, default=0.0, help="share of imagined episodes in a batch")
-    parser.add_argument("--model-config", type=_json_object, default=None, metavar="JSON",
+    parser.add_argument("--model-config", type=json_object, default=None, metavar="JSON",
                         help="model config overrides, e.g. '{\"d_model\": 64}'")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 

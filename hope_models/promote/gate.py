@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.json_finite import finite
+
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
 # The first episodes' metadata read to decide the sim task (metadata.environment_id).
 _TASK_PROBE_EPISODES = 3
@@ -55,17 +57,7 @@ class GateResult:
     checks: list[dict[str, str]] = field(default_factory=list)
 
     def to_json_obj(self) -> dict[str, Any]:
-        return _json_safe(asdict(self))
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
+        return finite(asdict(self))
 
 
 class _Gate:

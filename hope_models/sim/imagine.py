@@ -62,15 +62,14 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from hope_models.rlds.episode import Episode, Step
+from hope_models.rlds.episode import Episode
 from hope_models.rlds.validate import episode_report
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
 from hope_models.sim.reacher import (
-    ACT_DIM, ACTION_HIGH, ACTION_LOW, CONTROL_PERIOD_S, EPISODE_STEPS, FRAME_SIZE, LINK_LENGTHS_M, ROBOT_MODEL,
-    TASKS, make_env,
+    ACT_DIM, ACTION_HIGH, ACTION_LOW, CONTROL_PERIOD_S, EPISODE_STEPS, LINK_LENGTHS_M, TASKS, make_env,
 )
 from hope_models.sim.recorder import DEFAULT_SEED_BASE as DEMO_SEED_BASE
-from hope_models.sim.recorder import FRAME_URI, PERIOD_NS
+from hope_models.sim.recorder import rollout, sim_metadata, software_versions
 
 METHODS = ("dart", "cem")
 IMAGINED_TAG = "continuon.imagined"
@@ -274,18 +273,6 @@ def make_search(method: str, env, seed: int, noise: float | None = None, cem: CE
 
 # -- one episode ---------------------------------------------------------------------------------
 
-def _software() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {"imagine": "hope_models.sim.imagine"}
-    for pkg in ("dm-control", "mujoco"):
-        try:
-            out[pkg.replace("-", "_")] = version(pkg)
-        except PackageNotFoundError:
-            pass
-    return out
-
-
 def episode_id_for(method: str, task: str, seed: int, prefix: str = "imagined") -> str:
     return safe_episode_id(f"{prefix}-{method}-{task}-s{seed:06d}")
 
@@ -307,47 +294,17 @@ def imagine_episode(task: str, seed: int, method: str = "dart", *, noise: float 
     obs = env.reset()
     search = make_search(method, env, seed, noise, cem)
     source = "sim_expert" if method == "dart" else "sim_planner"
-    if frames:
-        (Path(frame_dir) / "blobs").mkdir(parents=True, exist_ok=True)
-    out: list[Step] = []
-    total = 0.0
-    for t in range(steps):
-        observation = {k: (dict(v) if isinstance(v, dict) else v) for k, v in obs.items()}
-        if frames:
-            np.save(Path(frame_dir) / (FRAME_URI % t), env.render(FRAME_SIZE), allow_pickle=False)
-            observation["media"] = {"rgb": {"uri": FRAME_URI % t, "width": FRAME_SIZE, "height": FRAME_SIZE,
-                                            "format": "npy_uint8_hwc"}}
-        label, executed, extra, meta = search.choose(obs)
-        obs, reward, done = env.step(executed)
-        total += reward
-        action = {"command": [float(v) for v in label], "source": source, **extra}
-        out.append(Step(observation=observation, action=action, reward=float(reward), is_terminal=(t == steps - 1),
-                        step_metadata=meta, timestamp_ns=t * PERIOD_NS))
-        if done:
-            break
+    out, total = rollout(env, obs, search.choose, source, steps, frame_dir if frames else None)
     origin = origin_for(method)
     ep_id = episode_id or episode_id_for(method, task, seed)
-    metadata = {
-        "schema_version": "1.1",
-        "episode_id": ep_id,
-        "robot_model": ROBOT_MODEL,
-        "robot_type": ROBOT_MODEL,
-        "xr_mode": "workstation",
-        "control_role": source,
-        "action_source": source,
-        "environment_id": f"dm_control/reacher-{task}",
-        "tags": ["sim", "dm_control", "reacher", task, IMAGINED_TAG, f"imagined_{method}"],
-        "software": _software(),
-        "total_steps": len(out),
-        "duration_ms": (len(out) - 1) * PERIOD_NS // 10**6,
-        "provenance": {
-            "origin": origin,
-            "imagined": {"method": method, **search.settings()},
-            "sim": {"domain": "reacher", "task": task, "seed": int(seed), "control_period_s": CONTROL_PERIOD_S,
-                    "noise_std": search.inject.noise, "policy": method,
-                    "return": total},
-        },
-    }
+    metadata = sim_metadata(ep_id, task, source, [IMAGINED_TAG, f"imagined_{method}"],
+                            software_versions("imagine", "hope_models.sim.imagine"), len(out), {
+                                "origin": origin,
+                                "imagined": {"method": method, **search.settings()},
+                                "sim": {"domain": "reacher", "task": task, "seed": int(seed),
+                                        "control_period_s": CONTROL_PERIOD_S, "noise_std": search.inject.noise,
+                                        "policy": method, "return": total},
+                            })
     ep = Episode(ep_id, metadata, out, source=f"{origin}#{ep_id}", layout="sim",
                  blob_root=str(frame_dir) if frames else None)
     return ep, total

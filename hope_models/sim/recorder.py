@@ -76,16 +76,66 @@ class RecordResult:
         return float(np.mean([e.ret for e in self.episodes])) if self.episodes else float("nan")
 
 
-def _software() -> dict[str, str]:
+def software_versions(key: str, module: str) -> dict[str, str]:
+    """metadata.software of a sim episode: the module that wrote it (under `key`) and the
+    simulator's versions."""
     from importlib.metadata import PackageNotFoundError, version
 
-    out = {"recorder": "hope_models.sim.recorder"}
+    out = {key: module}
     for pkg in ("dm-control", "mujoco"):
         try:
             out[pkg.replace("-", "_")] = version(pkg)
         except PackageNotFoundError:
             pass
     return out
+
+
+def rollout(env, obs, choose: Callable[[Any], tuple[Any, Any, dict, dict]], source: str, steps: int,
+            frame_dir: str | Path | None) -> tuple[list[Step], float]:
+    """Drive `env` from `obs` for up to `steps` control steps, one canonical Step per step.
+    `choose(obs)` -> (label, executed, extra action keys, step_metadata): the label is recorded as
+    action.command, the executed command is what the env gets. With frame_dir, a frame per step
+    is saved under frame_dir/blobs/ and referenced from observation.media. Returns the steps and
+    the return (sum of the rewards of what was executed)."""
+    if frame_dir is not None:
+        (Path(frame_dir) / "blobs").mkdir(parents=True, exist_ok=True)
+    out: list[Step] = []
+    total = 0.0
+    for t in range(steps):
+        observation = {k: (dict(v) if isinstance(v, dict) else v) for k, v in obs.items()}
+        if frame_dir is not None:
+            np.save(Path(frame_dir) / (FRAME_URI % t), env.render(FRAME_SIZE), allow_pickle=False)
+            observation["media"] = {"rgb": {"uri": FRAME_URI % t, "width": FRAME_SIZE, "height": FRAME_SIZE,
+                                            "format": "npy_uint8_hwc"}}
+        label, executed, extra, meta = choose(obs)
+        obs, reward, done = env.step(executed)
+        total += reward
+        action = {"command": [float(v) for v in label], "source": source, **extra}
+        out.append(Step(observation=observation, action=action, reward=float(reward),
+                        is_terminal=(t == steps - 1), step_metadata=meta, timestamp_ns=t * PERIOD_NS))
+        if done:
+            break
+    return out, total
+
+
+def sim_metadata(ep_id: str, task: str, source: str, tags: Sequence[str], software: dict[str, str],
+                 n_steps: int, provenance: dict[str, Any]) -> dict[str, Any]:
+    """The v1.1 metadata block every reacher episode carries (recorded or imagined)."""
+    return {
+        "schema_version": "1.1",
+        "episode_id": ep_id,
+        "robot_model": ROBOT_MODEL,
+        "robot_type": ROBOT_MODEL,
+        "xr_mode": "workstation",
+        "control_role": source,
+        "action_source": source,
+        "environment_id": f"dm_control/reacher-{task}",
+        "tags": ["sim", "dm_control", "reacher", task, *tags],
+        "software": software,
+        "total_steps": n_steps,
+        "duration_ms": (n_steps - 1) * PERIOD_NS // 10**6,
+        "provenance": provenance,
+    }
 
 
 def episode_id_for(prefix: str, task: str, seed: int) -> str:
@@ -113,52 +163,27 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
     if hasattr(policy, "reset"):
         policy.reset()
     rng = np.random.default_rng([int(seed), 0xDA27])
-    if frames:
-        (Path(frame_dir) / "blobs").mkdir(parents=True, exist_ok=True)
-    out: list[Step] = []
-    total = 0.0
-    for t in range(steps):
-        observation = {k: (dict(v) if isinstance(v, dict) else v) for k, v in obs.items()}
-        if frames:
-            np.save(Path(frame_dir) / (FRAME_URI % t), env.render(FRAME_SIZE), allow_pickle=False)
-            observation["media"] = {"rgb": {"uri": FRAME_URI % t, "width": FRAME_SIZE, "height": FRAME_SIZE,
-                                            "format": "npy_uint8_hwc"}}
-        label = np.clip(np.asarray(policy.act(obs), dtype=np.float64), env.action_low, env.action_high)
-        executed = np.clip(label + rng.normal(0.0, noise, label.shape), env.action_low, env.action_high) \
-            if noisy else label
-        action: dict[str, Any] = {"command": [float(v) for v in label],
-                                  "source": "sim_expert" if is_expert else "sim_policy"}
-        if noisy:
-            action["executed_command"] = [float(v) for v in executed]
-        obs, reward, done = env.step(executed)
-        total += reward
-        out.append(Step(observation=observation, action=action, reward=float(reward),
-                        is_terminal=(t == steps - 1), step_metadata={}, timestamp_ns=t * PERIOD_NS))
-        if done:
-            break
+
+    def choose(o):
+        label = np.clip(np.asarray(policy.act(o), dtype=np.float64), env.action_low, env.action_high)
+        if not noisy:
+            return label, label, {}, {}
+        executed = np.clip(label + rng.normal(0.0, noise, label.shape), env.action_low, env.action_high)
+        return label, executed, {"executed_command": [float(v) for v in executed]}, {}
+
+    source = "sim_expert" if is_expert else "sim_policy"
+    out, total = rollout(env, obs, choose, source, steps, frame_dir if frames else None)
     ep_id = episode_id or episode_id_for("dmc-reacher", task, seed)
     policy_name = getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__)
-    metadata = {
-        "schema_version": "1.1",
-        "episode_id": ep_id,
-        "robot_model": ROBOT_MODEL,
-        "robot_type": ROBOT_MODEL,
-        "xr_mode": "workstation",
-        "control_role": "sim_expert" if is_expert else "sim_policy",
-        "action_source": "sim_expert" if is_expert else "sim_policy",
-        "environment_id": f"dm_control/reacher-{task}",
-        "tags": ["sim", "dm_control", "reacher", task, *tags] + (["dart_noise"] if noisy else []),
-        "software": _software(),
-        "total_steps": len(out),
-        "duration_ms": (len(out) - 1) * PERIOD_NS // 10**6,
-        "provenance": {
-            "origin": origin,
-            "sim": {"domain": "reacher", "task": task, "seed": int(seed), "control_period_s": CONTROL_PERIOD_S,
-                    "noise_std": float(noise) if noisy else 0.0, "policy": str(policy_name),
-                    **({"policy_config": policy.config()} if hasattr(policy, "config") else {}),
-                    "return": total},
-        },
-    }
+    metadata = sim_metadata(ep_id, task, source, [*tags] + (["dart_noise"] if noisy else []),
+                            software_versions("recorder", "hope_models.sim.recorder"), len(out), {
+                                "origin": origin,
+                                "sim": {"domain": "reacher", "task": task, "seed": int(seed),
+                                        "control_period_s": CONTROL_PERIOD_S,
+                                        "noise_std": float(noise) if noisy else 0.0, "policy": str(policy_name),
+                                        **({"policy_config": policy.config()} if hasattr(policy, "config") else {}),
+                                        "return": total},
+                            })
     ep = Episode(ep_id, metadata, out, source=f"{origin}#{ep_id}", layout="sim",
                  blob_root=str(frame_dir) if frames else None)
     return ep, total
@@ -213,4 +238,5 @@ def record_episodes(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED
 
 
 __all__ = ["record_episodes", "record_dataset", "record_episode", "RecordResult", "RecordedEpisode",
-           "DEFAULT_SEED_BASE", "DEFAULT_ORIGIN", "FRAME_URI", "episode_id_for"]
+           "DEFAULT_SEED_BASE", "DEFAULT_ORIGIN", "FRAME_URI", "episode_id_for", "rollout", "sim_metadata",
+           "software_versions"]

@@ -25,6 +25,7 @@ from typing import Any
 
 import psutil
 
+from hope_models.cli.json_result import last_json_object
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import COMPONENTS
 
@@ -125,13 +126,7 @@ def _watch(proc: subprocess.Popen, started: float) -> dict[str, Any]:
         except subprocess.TimeoutExpired:
             pass
     reader.join(timeout=10)
-    result: dict[str, Any] = {}
-    for line in reversed("".join(out).splitlines()):
-        try:
-            result = json.loads(line)
-            break
-        except json.JSONDecodeError:
-            continue
+    result = last_json_object("".join(out)) or {}
     return {"exit_code": proc.returncode, "result": result, "polled_peak_rss_mb": peak,
             "seconds": time.monotonic() - started}
 
