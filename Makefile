@@ -17,6 +17,7 @@ setup: $(STAMP) $(ASSETS)
 # tests drive Debian's chromium (never `playwright install`: no browser downloads); npm installs the
 # Robot Editor's JS (socket.io-client, chart.js) from package-lock.json.
 APT_DEPS := redis-server:redis-server chromium:chromium npm:npm
+GL_DEPS := libegl1 libgl1-mesa-dri
 system-deps:
 	@for dep in $(APT_DEPS); do cmd=$${dep%%:*}; pkg=$${dep#*:}; \
 	  command -v $$cmd >/dev/null 2>&1 && continue; \
@@ -25,6 +26,11 @@ system-deps:
 	  else sudo apt-get install -y -q $$pkg >/dev/null; fi; \
 	  command -v $$cmd >/dev/null 2>&1 || { echo "$$cmd is needed by the tests: apt-get install $$pkg" >&2; exit 1; }; \
 	done
+	@# MUJOCO_GL=egl (frames for the VQ-VAE and the reflex view) needs the EGL and Mesa drivers.
+	@dpkg -s $(GL_DEPS) >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q $(GL_DEPS) >/dev/null || \
+	    { apt-get update -q >/dev/null && apt-get install -y -q $(GL_DEPS) >/dev/null; }; \
+	  else sudo apt-get install -y -q $(GL_DEPS) >/dev/null; fi; }
 
 # The Robot Editor's browser libraries: npm (pinned by package-lock.json), copied into
 # webapp/static/vendor/ (generated, gitignored) by webapp/build_assets.py.
