@@ -56,6 +56,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hope_models.settings import use_private_umask
+
+    # Before anything is written: $HOPE_HOME (registry, broker, token, runs, logs) is for this user
+    # only, and the processes this one starts (worker, job children, gate) inherit the umask.
+    use_private_umask()
     argv = sys.argv[1:] if argv is None else argv
     command = argv[0] if argv and argv[0] in COMMANDS else None
     args = build_parser(command).parse_args(argv)

@@ -291,6 +291,7 @@ def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str,
             req = build_request(component="fast_loop", data=str(data), steps=run_steps)
             with registry.session() as s:
                 run = submit(s, settings, req)
+                runs.transition(s, run, "starting")  # trained right here, as if a worker child claimed it
                 runs.transition(s, run, "running")
                 run.worker_pid, run.worker_host = os.getpid(), "bench"
                 run_id, run_dir = run.id, run.run_dir

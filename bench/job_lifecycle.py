@@ -158,13 +158,13 @@ def _t(value: Any) -> datetime:
 
 
 def job_times(registry, run_id: str) -> dict[str, Any]:
-    """created, dispatched (state running), claimed (started_at), first step (first progress), finished."""
+    """created, dispatched (state starting), claimed (started_at), first step (first progress), finished."""
     from daemon import runs
 
     with registry.session(readonly=True) as s:
         run = runs.get_run(s, run_id)
         events = runs.run_events(s, run_id, kinds=["state", "progress"])
-        dispatched = next(e.time for e in events if e.kind == "state" and e.payload.get("state") == "running")
+        dispatched = next(e.time for e in events if e.kind == "state" and e.payload.get("state") == "starting")
         first = next(e for e in events if e.kind == "progress")
         return {"id": run.id, "state": run.state, "created": run.created_at, "dispatched": dispatched,
                 "claimed": run.started_at, "first_step": first.time, "first_step_no": first.payload.get("step"),

@@ -1,11 +1,16 @@
 """Dispatch: start the next queued run on each queue when nothing runs there.
 
-Per queue, at most one run is `running` (registry: next_dispatchable refuses otherwise), highest
-priority first, then first queued; a chain member waits for its predecessor. A run is marked
-running (with a fresh task id) and committed BEFORE its Celery message is sent, so the worker
-child's claim() always finds the row it expects; if the send fails the run goes back to queued.
-A message that is sent but never picked up is re-sent by reconcile.py after claim_timeout_s, and
-a duplicate delivery never trains twice: claim() refuses task ids that are not the run's current one.
+Per queue, at most one run is active, `starting` or `running` (registry: next_dispatchable
+refuses otherwise), highest priority first, then first queued; a chain member waits for its
+predecessor. A run is marked `starting` (with a fresh task id) and committed BEFORE its Celery
+message is sent, so the worker child's claim() always finds the row it expects; only that claim
+makes it `running`. If the send fails the run goes back to queued. A message that is sent but
+never picked up (no worker serves the queue, or it was lost) leaves the run starting, which says
+it waits for a worker on its queue; reconcile.py re-sends it after claim_timeout_s. The queue
+holds its next run meanwhile (nothing could train it either, and a worker that comes takes the
+messages in order); a cancel or pause of the starting run is done at once and frees the queue. A
+duplicate or stale delivery never trains: claim() refuses a task id that is not the run's
+current one, and any run that is no longer starting.
 
 Local queues (the ones whose worker runs on this host, default just "pi") follow this host's
 throttle level: no new run starts at level 2 (hot), a thermal-paused run is requeued once the
@@ -130,16 +135,16 @@ class Dispatcher:
             run = runs.get_run(s, d.run_id)
             # Only if nothing happened to it since (a very fast child could have claimed it
             # from a send that raised after all; then it is really running).
-            if run.state == "running" and run.celery_task_id == d.task_id and run.worker_pid is None:
+            if run.state == "starting" and run.celery_task_id == d.task_id:
                 runs.transition(s, run, "queued", reason="send_failed", message=why)
                 run.celery_task_id = None
 
     def resend(self, run_id: str) -> str | None:
-        """A dispatched run that no child claimed in time: same attempt, new task id."""
+        """A starting run that no child claimed in time: same attempt, new task id."""
         task_id = str(uuid.uuid4())
         with self.registry.session() as s:
             run = runs.get_run(s, run_id)
-            if run.state != "running" or run.worker_pid is not None:
+            if run.state != "starting":
                 return None
             runs.resend(s, run, task_id)
             attempt, queue = run.attempt, run.queue
@@ -148,7 +153,8 @@ class Dispatcher:
         except Exception as exc:  # noqa: BLE001
             self._unsend(Dispatched(run_id, queue, task_id, attempt), exc)
             return None
-        log.warning("run %s: not claimed in time; re-sent as task %s", run_id, task_id)
+        log.warning("run %s: not claimed in time (is a worker serving queue %s?); re-sent as task %s", run_id,
+                    queue, task_id)
         return task_id
 
     # -- paused runs that the daemon paused --------------------------------------------------

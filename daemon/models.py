@@ -88,6 +88,8 @@ class Run(Base):
     run_dir: Mapped[str] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     queued_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # this attempt's task was first sent (state starting; a re-send keeps it): what `waiting` counts from
+    dispatched_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)  # this attempt's child claimed the run
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
@@ -104,11 +106,21 @@ class Run(Base):
     def __repr__(self) -> str:
         return f"<Run {self.id} {self.component} {self.state} step {self.step}/{self.total_steps}>"
 
+    def waiting_text(self) -> str | None:
+        """Why a starting run (sent, not claimed by any worker child) does not train yet, and
+        since when; None in every other state (daemon/runs.py has the states)."""
+        if self.state != "starting":
+            return None
+        since = f" since {self.dispatched_at:%Y-%m-%d %H:%M:%S} UTC" if self.dispatched_at is not None else ""
+        return (f"waiting for a worker on queue '{self.queue}'{since}: no worker has taken it yet "
+                f"(start one with: run_trainer.py worker -Q {self.queue})")
+
     def to_json_obj(self) -> dict[str, Any]:
         return {
             "id": self.id,
             "component": self.component,
             "state": self.state,
+            "waiting": self.waiting_text(),
             "step": self.step,
             "total_steps": self.total_steps,
             "pause_reason": self.pause_reason,
@@ -131,6 +143,7 @@ class Run(Base):
             "worker_pid": self.worker_pid,
             "created_at": iso(self.created_at),
             "queued_at": iso(self.queued_at),
+            "dispatched_at": iso(self.dispatched_at),
             "started_at": iso(self.started_at),
             "finished_at": iso(self.finished_at),
             "updated_at": iso(self.updated_at),

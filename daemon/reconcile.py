@@ -1,15 +1,16 @@
 """Reconcile: make the registry agree with the processes that are really there.
 
-For every `running` run (at daemon start and on every tick):
+For every active run, `starting` or `running` (at daemon start and on every tick):
 - claimed (worker_pid set) and its child is gone: on this host (worker_host == our hostname) the
   pid no longer exists, is a zombie, or is a newer process that reused the pid; on any host, no
   heartbeat for heartbeat_timeout_s (the child beats every 2 s from a thread, from before it
   imports torch). -> registry.mark_interrupted: requeued with attempt + 1 (the trainer resumes from
   the last checkpoint in run_dir) or failed once max_attempts are used up. A local child that is
   alive but silent is hung: it is killed first, so two processes never train in one run dir.
-- not claimed (worker_pid None) for claim_timeout_s since it was sent: the message was lost or
-  no worker serves that queue yet -> re-sent with a new task id, same attempt (a log event says
-  so). The old message, if it ever arrives, is refused by claim(). At daemon start the timeout is
+- starting (sent, not claimed) for claim_timeout_s since it was last sent: the message was lost
+  or no worker serves that queue yet -> re-sent with a new task id, same attempt (a log event
+  says so); it stays starting, waiting for a worker. The old message, if it ever arrives, is
+  refused by claim(). At daemon start the timeout is
   heartbeat_timeout_s instead: a daemon killed between committing a dispatch and sending its
   message left a run that nothing would ever claim.
 
@@ -77,7 +78,7 @@ class Reconciler:
 
     def _suspect(self, run: Run, now: datetime, trust_heartbeats: bool) -> str | None:
         """Why this running run looks dead (None: it looks fine). Called inside a session."""
-        if run.worker_pid is None:
+        if run.state != "running" or run.worker_pid is None:  # a starting run has no child to judge
             return None
         if run.worker_host == self.host:
             alive, why = child_alive(run.worker_pid, run.started_at)
@@ -104,7 +105,8 @@ class Reconciler:
         with self.registry.session(readonly=True) as s:
             rows = s.scalars(select(Run).where(Run.state.in_(runs.ACTIVE))).all()
             suspects = [r.id for r in rows if self._suspect(r, now, trust)]
-            unclaimed = [r.id for r in rows if r.worker_pid is None and r.heartbeat_at is not None
+            # heartbeat_at of a starting run is when its task was last sent
+            unclaimed = [r.id for r in rows if r.state == "starting" and r.heartbeat_at is not None
                          and now - r.heartbeat_at > timedelta(seconds=claim_timeout)]
         actions: list[Action] = []
         for run_id in suspects:
@@ -120,7 +122,7 @@ class Reconciler:
         # Re-checked under the write lock: the child may have finished (or beaten) meanwhile.
         with self.registry.session() as s:
             run = runs.get_run(s, run_id)
-            if run.state not in runs.ACTIVE:
+            if run.state != "running":
                 return None
             why = self._suspect(run, utcnow(), trust)
             if why is None:

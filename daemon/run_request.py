@@ -1,9 +1,13 @@
 """What a request for a training run may say, checked once for every front door.
 
-`run_trainer.py enqueue` / `sequential` and `POST /api/runs` all turn their input into a
-`RunRequest`, then `submit()` writes the queued run. Checking here (not in the worker) means a bad
-path or a typo in a field is refused at the door with a message naming the field, instead of
-becoming a failed run minutes later. Torch-free: the CLI and the webapp import it.
+`run_trainer.py enqueue` / `sequential` and `POST /api/runs` / `/api/training/sequential` all
+turn their input into a `RunRequest` (build_request: the fields), then queue_run() /
+queue_sequence() run preflight() (what the disk says: a dataset with usable episodes, a
+model_config that fits each component and the data, a memory estimate within a budget no larger
+than the deployment's) and write the queued run(s). Checking here (not in the worker) means a bad
+path, a typo in a field or a model that cannot fit is refused at the door with a message naming
+the field, before a run exists, instead of becoming a failed run minutes later. Torch-free: the
+CLI and the webapp import it.
 
 The run's `config` column holds only TrainConfig overrides the request gave (plus `data`,
 `steps` and `vqvae_run`); the worker fills the rest from TrainConfig's defaults and the settings
@@ -17,24 +21,35 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hope_models.paths import PathError, confine_path
 from hope_models.train.contract import COMPONENTS
+from hope_models.train.model_config import short
 
-QUEUE_RE = re.compile(r"^[a-z0-9_-]+$")
+QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
 DEFAULT_STEPS = 2000
 MAX_STEPS = 100_000_000
+RUN_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # daemon.models.new_run_id: r-<time>-<hex>
 
 
 class RunRequestError(ValueError):
     """A request that cannot become a run; the message names the field."""
 
 
-def _int(field_name: str, value: Any, *, minimum: int | None = None, maximum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, str)):
-        raise RunRequestError(f"{field_name}: expected an integer, got {value!r}")
-    try:
-        v = int(value)
-    except ValueError:
-        raise RunRequestError(f"{field_name}: expected an integer, got {value!r}") from None
+def listed(names: list[str], at_most: int = 5) -> str:
+    """Names for a message: a few, each bounded, and how many more (never the whole of a big body)."""
+    shown = ", ".join(short(n) if len(n) > 40 else n for n in names[:at_most])
+    return shown + (f" and {len(names) - at_most} more" if len(names) > at_most else "")
+
+
+# One rule for numbers at every door (the API's other endpoints use check_int too,
+# webapp/api/validation.py): a number is a JSON number, never a string that looks like one, so
+# "2000" is refused wherever 2000 is accepted; an integer may be written 2000.0, not 2000.5.
+def check_int(field_name: str, value: Any, *, minimum: int | None = None, maximum: int | None = None) -> int:
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise RunRequestError(f"{field_name}: expected an integer, got {short(value)}")
+    v = value
     if minimum is not None and v < minimum:
         raise RunRequestError(f"{field_name}: {v} must be >= {minimum}")
     if maximum is not None and v > maximum:
@@ -44,14 +59,14 @@ def _int(field_name: str, value: Any, *, minimum: int | None = None, maximum: in
 
 def _float(field_name: str, value: Any, *, positive: bool = False, lo: float | None = None,
            hi_exclusive: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise RunRequestError(f"{field_name}: expected a number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RunRequestError(f"{field_name}: expected a number, got {short(value)}")
     try:
         v = float(value)
-    except ValueError:
-        raise RunRequestError(f"{field_name}: expected a number, got {value!r}") from None
+    except OverflowError:  # an integer with hundreds of digits
+        v = math.inf
     if not math.isfinite(v):
-        raise RunRequestError(f"{field_name}: {value!r} is not a finite number")
+        raise RunRequestError(f"{field_name}: {short(value)} is not a finite number")
     if positive and v <= 0:
         raise RunRequestError(f"{field_name}: {v} must be > 0")
     if lo is not None and v < lo:
@@ -63,22 +78,22 @@ def _float(field_name: str, value: Any, *, positive: bool = False, lo: float | N
 
 def _model_config(field_name: str, value: Any) -> dict:
     if not isinstance(value, dict):
-        raise RunRequestError(f"{field_name}: expected a JSON object, e.g. {{\"d_model\": 64}}, got {value!r}")
+        raise RunRequestError(f"{field_name}: expected a JSON object, e.g. {{\"d_model\": 64}}, got {short(value)}")
     return dict(value)
 
 
 # TrainConfig overrides a request may carry: name -> checker. Names are TrainConfig fields
 # (tests/test_cli_daemon.py checks that), except vqvae_run (the worker maps it to a run dir).
 CONFIG_FIELDS = {
-    "seed": lambda n, v: _int(n, v, minimum=0),
-    "batch_size": lambda n, v: _int(n, v, minimum=1, maximum=65536),
+    "seed": lambda n, v: check_int(n, v, minimum=0, maximum=2**32 - 1),  # what numpy's seed takes
+    "batch_size": lambda n, v: check_int(n, v, minimum=1, maximum=65536),
     "lr": lambda n, v: _float(n, v, positive=True),
-    "warmup": lambda n, v: _int(n, v, minimum=0),
-    "threads": lambda n, v: _int(n, v, minimum=1, maximum=256),
-    "checkpoint_every_steps": lambda n, v: _int(n, v, minimum=1),
+    "warmup": lambda n, v: check_int(n, v, minimum=0, maximum=MAX_STEPS),
+    "threads": lambda n, v: check_int(n, v, minimum=1, maximum=256),
+    "checkpoint_every_steps": lambda n, v: check_int(n, v, minimum=1, maximum=MAX_STEPS),
     "checkpoint_every_s": lambda n, v: _float(n, v, positive=True),
-    "keep_last": lambda n, v: _int(n, v, minimum=1),
-    "log_every": lambda n, v: _int(n, v, minimum=1),
+    "keep_last": lambda n, v: check_int(n, v, minimum=1, maximum=1000),
+    "log_every": lambda n, v: check_int(n, v, minimum=1, maximum=MAX_STEPS),
     "memory_budget_mb": lambda n, v: _float(n, v, positive=True),
     "imagined_ratio": lambda n, v: _float(n, v, lo=0.0, hi_exclusive=1.0),
     "model_config": _model_config,
@@ -110,32 +125,24 @@ class RunRequest:
 def resolve_path(field_name: str, value: Any, *, base: Path | None = None,
                  allowed_roots: list[Path] | None = None) -> str:
     """An existing path, made absolute (relative to `base`, default the working directory).
-    With `allowed_roots` (the webapp), the path must lie inside one of them."""
-    if not isinstance(value, str) or not value.strip():
-        raise RunRequestError(f"{field_name}: expected a path, got {value!r}")
-    path = Path(value).expanduser()
-    if not path.is_absolute():
-        path = (base or Path.cwd()) / path
-    path = path.resolve()
-    if allowed_roots is not None:
-        roots = [Path(r).expanduser().resolve() for r in allowed_roots]
-        if not any(path == r or r in path.parents for r in roots):
-            raise RunRequestError(f"{field_name}: {value} is outside the allowed data roots "
-                                  f"({', '.join(str(r) for r in roots)}; add one with data_roots in config.toml)")
-    if not path.exists():
-        raise RunRequestError(f"{field_name}: {path} does not exist")
-    return str(path)
+    With `allowed_roots` (the webapp), the path must lie inside one of them (hope_models/paths.py:
+    the one confinement rule, which the promotion gate applies to checkpoint configs too)."""
+    try:
+        return str(confine_path(field_name, value, base=base, allowed_roots=allowed_roots))
+    except PathError as exc:
+        raise RunRequestError(str(exc)) from None
 
 
 def check_queue(value: Any) -> str:
     if not isinstance(value, str) or not QUEUE_RE.match(value):
-        raise RunRequestError(f"queue: {value!r} is not a queue name (lowercase letters, digits, '_' and '-')")
+        raise RunRequestError(f"queue: {short(value)} is not a queue name (1 to 64 lowercase letters, digits, "
+                              "'_' and '-')")
     return value
 
 
 def check_component(value: Any) -> str:
     if value not in COMPONENTS:
-        raise RunRequestError(f"component: {value!r} is not one of {', '.join(COMPONENTS)}")
+        raise RunRequestError(f"component: {short(value)} is not one of {', '.join(COMPONENTS)}")
     return value
 
 
@@ -147,20 +154,20 @@ def build_request(*, component: Any, data: Any, steps: Any = None, queue: Any = 
     overrides = dict(overrides or {})
     unknown = sorted(set(overrides) - set(CONFIG_FIELDS))
     if unknown:
-        raise RunRequestError(f"unknown config field(s) {', '.join(unknown)} "
+        raise RunRequestError(f"unknown config field(s) {listed(unknown)} "
                               f"(known: {', '.join(sorted(CONFIG_FIELDS))})")
     checked = {k: CONFIG_FIELDS[k](k, v) for k, v in overrides.items() if v is not None}
     if vqvae_dir is not None and vqvae_run is not None:
         raise RunRequestError("vqvae_dir and vqvae_run: give one, not both")
-    if vqvae_run is not None and (not isinstance(vqvae_run, str) or not vqvae_run.strip()):
-        raise RunRequestError(f"vqvae_run: expected a run id, got {vqvae_run!r}")
+    if vqvae_run is not None and (not isinstance(vqvae_run, str) or not RUN_ID_RE.fullmatch(vqvae_run.strip())):
+        raise RunRequestError(f"vqvae_run: expected a run id, got {short(vqvae_run)}")
     return RunRequest(
         component=check_component(component),
         data=resolve_path("data", data, base=base, allowed_roots=allowed_roots),
-        steps=DEFAULT_STEPS if steps is None else _int("steps", steps, minimum=1, maximum=MAX_STEPS),
+        steps=DEFAULT_STEPS if steps is None else check_int("steps", steps, minimum=1, maximum=MAX_STEPS),
         queue=check_queue(queue),
-        priority=_int("priority", priority, minimum=-1000, maximum=1000),
-        max_attempts=_int("max_attempts", max_attempts, minimum=1, maximum=100),
+        priority=check_int("priority", priority, minimum=-1000, maximum=1000),
+        max_attempts=check_int("max_attempts", max_attempts, minimum=1, maximum=100),
         vqvae_dir=None if vqvae_dir is None else resolve_path("vqvae_dir", vqvae_dir, base=base,
                                                               allowed_roots=allowed_roots),
         vqvae_run=vqvae_run.strip() if isinstance(vqvae_run, str) else None,
@@ -177,7 +184,7 @@ def request_from_json(body: Any, *, allowed_roots: list[Path] | None, base: Path
         raise RunRequestError("the request body must be a JSON object")
     unknown = sorted(set(body) - REQUEST_KEYS - set(CONFIG_FIELDS))
     if unknown:
-        raise RunRequestError(f"unknown field(s) {', '.join(unknown)} "
+        raise RunRequestError(f"unknown field(s) {listed(unknown)} "
                               f"(known: {', '.join(sorted(REQUEST_KEYS | set(CONFIG_FIELDS)))})")
     for required in ("component", "data"):
         if required not in body:
@@ -187,13 +194,14 @@ def request_from_json(body: Any, *, allowed_roots: list[Path] | None, base: Path
     return build_request(**main, overrides=overrides, base=base, allowed_roots=allowed_roots)
 
 
-def check_vqvae_run(session, run_id: str | None) -> None:
+def check_vqvae_run(session, run_id: str | None) -> str | None:
     """A vqvae_run must name a completed vqvae run of the registry: the worker reads its run dir
-    when the job starts, and nothing orders two separate runs (a chain does: `sequential`)."""
+    when the job starts, and nothing orders two separate runs (a chain does: `sequential`).
+    Returns that run dir."""
     from daemon import runs
 
     if run_id is None:
-        return
+        return None
     try:
         source = runs.get_run(session, run_id)
     except runs.RunError as exc:
@@ -203,6 +211,116 @@ def check_vqvae_run(session, run_id: str | None) -> None:
     if source.state != "completed":
         raise RunRequestError(f"vqvae_run: run {source.id} is {source.state}, not completed; wait for it, or queue "
                               "the components as one chain with `run_trainer.py sequential`")
+    return source.run_dir
+
+
+def _check_vqvae_source(req: RunRequest, components: list[str], chain: bool) -> None:
+    """Each member that predicts VQ-VAE codes has a VQ-VAE: given, or trained earlier in the chain."""
+    from hope_models.train.sequential import NEEDS_VQVAE  # torch-free
+
+    have = bool(req.vqvae_dir or req.vqvae_run)
+    for name in components:
+        if name in NEEDS_VQVAE and not have:
+            if chain:
+                raise RunRequestError(f"components: {name} needs a trained VQ-VAE: put vqvae before it in the chain, "
+                                      "or give vqvae_dir / vqvae_run")
+            raise RunRequestError(f"{name} predicts VQ-VAE codes: give vqvae_dir (a trained VQ-VAE) or vqvae_run (a "
+                                  "completed vqvae run), or queue vqvae first in one chain with "
+                                  f"`run_trainer.py sequential --components vqvae,{name}`")
+        have = have or name == "vqvae"
+
+
+def _model_config_error(exc: Exception, chain: bool) -> RunRequestError:
+    text = str(exc) if str(exc).startswith("model_config") else f"model_config: {exc}"
+    return RunRequestError(text + (" (the members of a chain share one model_config)" if chain else ""))
+
+
+def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
+              vqvae_run_dir: str | None = None) -> list:
+    """What the disk says about a request, before a run exists: the memory budget it asks for is
+    within the deployment's, `data` holds usable episodes, the model_config fits every component
+    (a chain's `components`, in order) and the data, and each model's estimated memory fits the
+    budget (estimate.estimate_from_config: no model is built, torch is not imported). Returns
+    the estimates (none when the dataset's files are too large to probe here: the job checks
+    again before it builds anything). It reads files: call it outside a write transaction."""
+    from dataclasses import fields
+
+    from hope_models.data.cache import probe_dataset_spec
+    from hope_models.data.features import FeatureSpecError
+    from hope_models.train import checkpoint as ckpt
+    from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
+    from hope_models.train.loop import TrainConfig
+    from hope_models.train.model_config import check_keys, read_vqvae_config, resolve
+
+    names = components or [req.component]
+    chain = components is not None
+    limit = float(settings.memory_budget_mb)
+    budget = req.overrides.get("memory_budget_mb", limit)
+    if budget > limit:
+        # a request may ask for less than the deployment allows, never for more
+        raise RunRequestError(f"memory_budget_mb: {budget:g} MB is more than this deployment's budget of {limit:g} MB "
+                              "(HOPE_MEMORY_BUDGET_MB or memory_budget_mb in config.toml); ask for at most that")
+    model_config = req.overrides.get("model_config", {})
+    for name in names:
+        try:
+            check_keys(name, model_config)
+        except ValueError as exc:
+            raise _model_config_error(exc, chain) from None
+    _check_vqvae_source(req, names, chain)
+    try:
+        spec = probe_dataset_spec(req.data)
+    except FeatureSpecError as exc:
+        raise RunRequestError(f"data: {exc}") from None
+    vq = None  # the VQ-VAE a member reads codes from: given, then the chain's own once it is trained
+    if req.vqvae_dir or vqvae_run_dir:
+        what = "vqvae_dir" if req.vqvae_dir else "vqvae_run"
+        try:
+            vq = read_vqvae_config(ckpt.resolve_checkpoint_dir(req.vqvae_dir or vqvae_run_dir))
+        except (ckpt.CheckpointError, ValueError) as exc:
+            raise RunRequestError(f"{what}: {exc}") from None
+    if spec is None:
+        return []
+    defaults = {f.name: f.default for f in fields(TrainConfig)}
+    batch_size = req.overrides.get("batch_size", defaults["batch_size"])
+    estimates = []
+    for name in names:
+        try:
+            resolved = resolve(name, spec, model_config, None if name == "vqvae" else vq)
+            est = estimate_from_config(resolved, batch_size, spec.obs_dim, spec.act_dim)
+            estimates.append(check_fits(est, budget, defaults["memory_soft_fraction"]))
+        except MemoryBudgetError as exc:
+            raise RunRequestError(str(exc)) from None
+        except ValueError as exc:
+            raise _model_config_error(exc, chain) from None
+        if name == "vqvae":
+            vq = resolved.cfg  # the chain's later members read this one's codes
+    return estimates
+
+
+def queue_run(registry, settings, req: RunRequest, show=None):
+    """preflight() then submit(): the one way a front door queues a run. Returns
+    show(session, run) (default: Run.to_json_obj()), made while the run's session is open."""
+    with registry.session(readonly=True) as s:
+        vqvae_run_dir = check_vqvae_run(s, req.vqvae_run)
+    preflight(settings, req, vqvae_run_dir=vqvae_run_dir)
+    with registry.session() as s:
+        run = submit(s, settings, req)
+        return show(s, run) if show is not None else run.to_json_obj()
+
+
+def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=None) -> tuple[str, list]:
+    """preflight() of every member, then daemon.dispatch.create_sequence: the chain's sequence id
+    and show(session, run) of each member (default: Run.to_json_obj())."""
+    from daemon.dispatch import create_sequence
+
+    with registry.session(readonly=True) as s:
+        vqvae_run_dir = check_vqvae_run(s, req.vqvae_run)
+    preflight(settings, req, list(names), vqvae_run_dir=vqvae_run_dir)
+    with registry.session() as s:
+        check_vqvae_run(s, req.vqvae_run)
+        members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
+                                  queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
+        return members[0].sequence_id, [show(s, r) if show is not None else r.to_json_obj() for r in members]
 
 
 def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None,
@@ -211,14 +329,9 @@ def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None
     from daemon import runs
     from daemon.models import new_run_id
 
-    from hope_models.train.sequential import NEEDS_VQVAE  # torch-free
-
     check_vqvae_run(session, req.vqvae_run)
-    if req.component in NEEDS_VQVAE and sequence_id is None and not (req.vqvae_dir or req.vqvae_run):
-        # Refused here rather than failing in the worker minutes later.
-        raise RunRequestError(f"{req.component} predicts VQ-VAE codes: give vqvae_dir (a trained VQ-VAE) or "
-                              "vqvae_run (a completed vqvae run), or queue vqvae first in one chain with "
-                              "`run_trainer.py sequential --components vqvae," + req.component + "`")
+    if sequence_id is None:  # refused here rather than failing in the worker minutes later
+        _check_vqvae_source(req, [req.component], chain=False)
     run_id = new_run_id()
     run_dir = Path(settings.runs_dir) / run_id
     return runs.create_run(session, component=req.component, config=req.config(), total_steps=req.steps,
@@ -228,4 +341,5 @@ def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None
 
 
 __all__ = ["CONFIG_FIELDS", "DEFAULT_STEPS", "REQUEST_KEYS", "RunRequest", "RunRequestError", "build_request",
-           "check_component", "check_vqvae_run", "check_queue", "request_from_json", "resolve_path", "submit"]
+           "check_component", "check_int", "check_vqvae_run", "listed", "check_queue", "preflight", "queue_run",
+           "queue_sequence", "request_from_json", "resolve_path", "submit"]

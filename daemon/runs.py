@@ -5,10 +5,17 @@ and leave committing to it. Invalid requests raise RunError naming the run and t
 state change writes a `state` RunEvent {"state", "from", "reason", "message"}, so the event log
 is a complete timeline of each run.
 
-    queued -> running -> completed | failed | cancelled
-    running -> paused (user | thermal | memory) -> queued -> running ...
+    queued -> starting -> running -> completed | failed | cancelled
+    starting -> queued (the send failed, or shutdown) | cancelled | paused (user): at once, no child
+    running -> paused (user | thermal | memory) -> queued -> starting ...
     running -> interrupted (its worker died) -> queued (attempt + 1) | failed (attempts used up)
-    running -> queued (shutdown, or a task message that was lost; attempt unchanged)
+    running -> queued (shutdown; attempt unchanged)
+
+`starting` is a run whose task was sent to its queue but that no worker child has claimed yet:
+nothing trains it, so it is not `running` (with no worker on the queue it would stay that way),
+and a cancel or pause of it is done at once. Only claim() makes it running. Its task message,
+if a worker takes it later, is refused by claim() (the run is no longer starting, or the task id
+is not its current one), so such a worker never trains it.
 
 Control from outside (CLI, webapp, daemon) flows through desired_state / throttle_level on the
 row; the worker child reads them between steps and reports back through finish().
@@ -26,11 +33,15 @@ from daemon.models import Run, RunEvent, new_run_id, utcnow
 from hope_models.json_finite import finite
 from hope_models.train.contract import COMPONENTS
 
-STATES = ("queued", "running", "paused", "completed", "failed", "cancelled", "interrupted")
+STATES = ("queued", "starting", "running", "paused", "completed", "failed", "cancelled", "interrupted")
 TERMINAL = {"completed", "failed", "cancelled"}
-ACTIVE = {"running"}
+# What holds its queue: the daemon starts one run per queue at a time. A starting run holds it
+# too: with no worker on the queue nothing could train the next one either, and once a worker
+# comes it takes the messages in order. The run's `waiting` text says why the queue stands still.
+ACTIVE = {"starting", "running"}
 ALLOWED: dict[str, set[str]] = {
-    "queued": {"running", "cancelled", "paused"},
+    "queued": {"starting", "cancelled", "paused"},
+    "starting": {"running", "queued", "cancelled", "paused"},
     "running": {"paused", "completed", "failed", "cancelled", "interrupted", "queued"},
     "paused": {"queued", "cancelled"},
     # + cancelled: request_control cancels an interrupted run at once (the brief's cancel rule).
@@ -108,9 +119,9 @@ def _log(s: Session, run: Run, message: str, level: str = "info") -> None:
 def transition(s: Session, run: Run, new: str, *, reason: str | None = None, message: str | None = None) -> Run:
     """Move `run` to state `new` (validated against ALLOWED) and record a state event.
 
-    Entering queued or leaving running clears what belonged to the last attempt's child
-    (worker pid/host, desired state and its reason, throttle level): a request has been served
-    once the child has stopped, and a requeued run starts clean.
+    Entering queued or leaving starting/running for any other state clears what belonged to the
+    last attempt's child (worker pid/host, desired state and its reason, throttle level): a
+    request has been served once the child has stopped, and a requeued run starts clean.
     """
     old = run.state
     if new not in STATES:
@@ -122,7 +133,7 @@ def transition(s: Session, run: Run, new: str, *, reason: str | None = None, mes
     now = utcnow()
     run.state = new
     run.updated_at = now
-    if old == "running":
+    if old in ACTIVE and new not in ACTIVE:
         run.worker_pid = None
         run.worker_host = None
         run.desired_state = "run"
@@ -238,6 +249,27 @@ def sequence_runs(s: Session, sequence_id: str) -> list[Run]:
     return list(s.scalars(select(Run).where(Run.sequence_id == sequence_id).order_by(Run.sequence_index)))
 
 
+def to_json(s: Session, items: Iterable[Run]) -> list[dict[str, Any]]:
+    """Run.to_json_obj() of each run, where a queued run that its queue holds back also says why
+    in `waiting`: the run ahead of it (one run per queue at a time), which may itself be waiting
+    for a worker. What status, the API and the Robot Editor show."""
+    items = list(items)
+    queues = {r.queue for r in items if r.state == "queued"}
+    holders: dict[str, Run] = {}
+    if queues:
+        for held in s.scalars(select(Run).where(Run.queue.in_(queues), Run.state.in_(ACTIVE)).order_by(Run.id)):
+            holders.setdefault(held.queue, held)
+    out = []
+    for run in items:
+        obj = run.to_json_obj()
+        ahead = holders.get(run.queue) if run.state == "queued" else None
+        if ahead is not None:
+            doing = "waiting for a worker" if ahead.state == "starting" else "running"
+            obj["waiting"] = f"behind run {ahead.id}, {doing} on queue '{run.queue}' (one run per queue at a time)"
+        out.append(obj)
+    return out
+
+
 # --- control from outside (CLI, webapp) ------------------------------------------------------
 
 def request_control(s: Session, run_id: str, action: str) -> Run:
@@ -255,11 +287,15 @@ def request_control(s: Session, run_id: str, action: str) -> Run:
                 run.desired_state, run.requested_reason = "cancel", "user"
                 run.updated_at = utcnow()
             _log(s, run, "cancel requested by user; the job stops at its next step")
-        else:  # queued, paused, interrupted
+        else:  # queued, starting, paused, interrupted: no child trains it, so it ends now
             transition(s, run, "cancelled", reason="user", message="cancelled by user")
-            _log(s, run, "cancel requested by user; cancelled")
+            if state == "starting":
+                _log(s, run, f"cancel requested by user; cancelled before a worker took it (task {run.celery_task_id} "
+                             "is refused if a worker picks it up later)")
+            else:
+                _log(s, run, "cancel requested by user; cancelled")
     elif action == "pause":
-        if state == "queued":
+        if state in ("queued", "starting"):
             transition(s, run, "paused", reason="user")
             _log(s, run, "pause requested by user; paused before it started")
         elif state == "running":
@@ -285,7 +321,7 @@ def request_control(s: Session, run_id: str, action: str) -> Run:
                 _log(s, run, "resume requested by user; the pending pause is withdrawn")
             else:
                 _log(s, run, "resume requested by user; already running")
-        else:  # queued, interrupted: it will run
+        else:  # queued, starting, interrupted: it will run
             _log(s, run, f"resume requested by user; already {state}")
     return run
 
@@ -334,10 +370,14 @@ def next_dispatchable(s: Session, queue: str) -> Run | None:
 
 
 def mark_dispatched(s: Session, run: Run, task_id: str, *, throttle_level: int = 0) -> Run:
-    """queued -> running once its task is sent. The child claims it with claim()."""
-    transition(s, run, "running", reason="dispatched", message=f"task {task_id} attempt {run.attempt}")
+    """queued -> starting as its task is sent; the worker child makes it running with claim().
+    heartbeat_at is when the task was last sent (reconcile re-sends it after claim_timeout_s),
+    dispatched_at when this attempt was first sent (what `waiting` counts from)."""
+    transition(s, run, "starting", reason="dispatched",
+               message=f"waiting for a worker on queue '{run.queue}' (task {task_id}, attempt {run.attempt})")
     now = utcnow()
     run.celery_task_id = task_id
+    run.dispatched_at = now
     run.heartbeat_at = now
     run.worker_pid = None
     run.worker_host = None
@@ -358,10 +398,10 @@ def request_shutdown(s: Session, run: Run) -> Run:
 
 
 def resend(s: Session, run: Run, task_id: str) -> Run:
-    """A dispatched run that no child claimed: record the new task id (same attempt). The old
+    """A starting run that no child claimed: record the new task id (same attempt). The old
     task, if it ever arrives, no longer matches celery_task_id, so claim() refuses it."""
-    if run.state != "running" or run.worker_pid is not None:
-        raise RunError(f"run {run.id}: only a running, unclaimed run can be re-sent (state {run.state}, pid {run.worker_pid})")
+    if run.state != "starting":
+        raise RunError(f"run {run.id}: only a starting (sent, unclaimed) run can be re-sent (state {run.state})")
     old = run.celery_task_id
     run.celery_task_id = task_id
     run.heartbeat_at = utcnow()
@@ -373,16 +413,17 @@ def resend(s: Session, run: Run, task_id: str) -> Run:
 # --- the worker child ---------------------------------------------------------------------
 
 def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: int) -> Run | None:
-    """Record this child as the one training the run; None if the task is stale (re-sent,
-    requeued, cancelled, or already claimed), in which case it must not train."""
+    """starting -> running: record this child as the one training the run. None if the task is
+    stale (re-sent, requeued, paused, cancelled, or already claimed): then it must not train."""
     now = utcnow()
+    # One guarded UPDATE, so of two deliveries racing for the run exactly one wins.
     result = s.execute(
         update(Run)
         .where(
             Run.id == run_id,
             Run.celery_task_id == task_id,
             Run.attempt == attempt,
-            Run.state == "running",
+            Run.state == "starting",
             Run.worker_pid.is_(None),
         )
         .values(worker_pid=pid, worker_host=host, started_at=now, heartbeat_at=now, updated_at=now)
@@ -391,6 +432,9 @@ def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: i
     if result.rowcount != 1:
         return None
     run = s.scalars(select(Run).where(Run.id == run_id).execution_options(populate_existing=True)).one()
+    waited = (now - run.dispatched_at).total_seconds() if run.dispatched_at is not None else None
+    transition(s, run, "running", reason="claimed",
+               message=f"pid {pid} on {host}" + (f" after {waited:.1f} s waiting" if waited is not None else ""))
     _log(s, run, f"claimed by pid {pid} on {host} (task {task_id}, attempt {attempt})")
     return run
 

@@ -237,7 +237,8 @@ class Daemon:
         with self.registry.session(readonly=True) as s:
             active = s.scalars(select(Run).where(Run.state.in_(runs.ACTIVE))).all()
             queued = len(s.scalars(select(Run.id).where(Run.state == "queued")).all())
-        parts = [f"{r.id} {r.component} step {r.step}/{r.total_steps}" for r in active] or ["idle"]
+        parts = [f"{r.id} {r.component} " + (f"waiting for a worker on queue {r.queue}" if r.state == "starting"
+                                             else f"step {r.step}/{r.total_steps}") for r in active] or ["idle"]
         return "; ".join(parts) + f"; {queued} queued; throttle {self.policy.level}"
 
     def _update_status(self) -> None:

@@ -2,10 +2,18 @@
 
 Every command and service builds its Settings the same way, so `serve`, `enqueue` and `status`
 run with the same HOPE_HOME see the same state. Settings are passed in, never imported as a global.
+
+$HOPE_HOME holds the registry, the API token, the broker's messages, datasets and checkpoints, so
+it is its user's alone: loading the settings creates it 0700 (or takes group/other access away
+from one we own, saying so), and every entry point sets PRIVATE_UMASK, so what is written in it
+is 0600 (directories 0700).
 """
 from __future__ import annotations
 
+import logging
 import os
+import re
+import stat
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -30,6 +38,10 @@ class Settings:
     thermal_hard_c: float = 82.0
     thermal_resume_c: float = 70.0
     data_roots: list[str] = field(default_factory=list)  # extra roots API requests may read from
+    # Host names the webapp answers besides loopback and this machine's own names/addresses
+    # (webapp/hosts.py): a browser reaching it through any other name may be DNS rebinding.
+    allowed_hosts: list[str] = field(default_factory=list)
+    max_connections: int = 200  # open HTTP/WebSocket connections at once; more get 503 (webapp/server.py)
     max_file_mb: int = 512  # reader guard: larger episode files are refused
     max_line_kb: int = 64 * 1024  # reader guard: a JSONL line longer than this is refused
     # promotion (hope_models/promote/gate.py, daemon/autopromote.py)
@@ -57,6 +69,8 @@ _ENV = {
     "HOPE_PORT": "port",
     "HOPE_REDIS_URL": "redis_url",
     "HOPE_MEMORY_BUDGET_MB": "memory_budget_mb",
+    "HOPE_ALLOWED_HOSTS": "allowed_hosts",
+    "HOPE_MAX_CONNECTIONS": "max_connections",
     "HOPE_THERMAL_ZONE": "thermal_zone_path",
     "HOPE_VCGENCMD": "vcgencmd_path",
     "HOPE_THERMAL_SOFT_C": "thermal_soft_c",
@@ -70,7 +84,11 @@ _ENV = {
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
-_MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1}
+_MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
+            "max_connections": 8}
+# list settings whose items never contain a path separator are split on commas and blanks instead
+# (an IPv6 address holds ':', os.pathsep)
+_WORD_LISTS = {"allowed_hosts"}
 
 
 def _coerce(name: str, value, where: str):
@@ -97,6 +115,8 @@ def _coerce(name: str, value, where: str):
             return _at_least(name, v, where)
         if kind == "list[str]":
             if isinstance(value, str):
+                if name in _WORD_LISTS:
+                    return [v for v in re.split(r"[,\s]+", value) if v]
                 return [v for v in value.split(os.pathsep) if v]
             return [str(v) for v in value]
         if kind == "str | None":
@@ -115,9 +135,52 @@ def _at_least(name: str, value, where: str):
     return value
 
 
+PRIVATE_UMASK = 0o077  # files 0600, directories 0700
+HOME_MODE = 0o700
+
+log = logging.getLogger(__name__)
+
+
+def use_private_umask() -> int:
+    """Files and directories this process creates from now on are its user's alone (0600/0700),
+    and so are those of its children, which inherit the umask (the Celery worker and its job
+    children, the gate's child, serve's worker). Called first thing by every entry point
+    (run_trainer.main, a Celery worker's start). Returns the previous umask."""
+    return os.umask(PRIVATE_UMASK)
+
+
+def secure_home(home: Path) -> None:
+    """Create `home` 0700, or take group/other access away from an existing one that we own
+    (logged: the registry and the token were readable by other local users). One owned by
+    someone else is left alone, with a warning. Never raises: a home that cannot be created is
+    reported by whatever writes to it first, with its own path in the error."""
+    try:
+        home.mkdir(mode=HOME_MODE, parents=True, exist_ok=True)  # parents keep the default mode, like mkdir -p
+        st = home.stat()
+    except OSError as exc:
+        log.warning("HOPE_HOME %s cannot be created or read: %s", home, exc.strerror or exc)
+        return
+    mode = stat.S_IMODE(st.st_mode)
+    if not mode & 0o077:
+        return
+    if st.st_uid != os.geteuid():
+        log.warning("HOPE_HOME %s is mode %04o and belongs to uid %d, not to us: other local users may read "
+                    "the registry; ask its owner to chmod 700 it", home, mode, st.st_uid)
+        return
+    try:
+        os.chmod(home, mode & HOME_MODE)
+    except OSError as exc:
+        log.warning("HOPE_HOME %s is mode %04o (other local users can read the registry and the API token) "
+                    "and could not be changed: %s", home, mode, exc.strerror or exc)
+        return
+    log.warning("HOPE_HOME %s was mode %04o (other local users could read the registry and the API token); "
+                "changed to %04o", home, mode, mode & HOME_MODE)
+
+
 def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | None = None) -> Settings:
     env = dict(os.environ if env is None else env)
     home_path = Path(home or env.get("HOPE_HOME") or DEFAULT_HOME).expanduser()
+    secure_home(home_path)
     values: dict = {}
     config_file = home_path / "config.toml"
     if config_file.exists():

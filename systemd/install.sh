@@ -6,7 +6,7 @@
 #
 # What it does (docs/pi.md explains each step):
 #   1. checks the venv's python can import the services without torch in the parents;
-#   2. creates the system user `hope` (in the video group for vcgencmd) and /var/lib/hope-trainer (0750);
+#   2. creates the system user `hope` (in the video group for vcgencmd) and /var/lib/hope-trainer (0700);
 #   3. writes the unit files to /etc/systemd/system with the repo and python paths filled in;
 #   4. writes /etc/default/hope-trainer (site overrides) if it does not exist;
 #   5. systemctl daemon-reload, enable (and start unless --no-start) the three services;
@@ -71,10 +71,11 @@ if [ "$make_user" = 1 ]; then
   if getent group video >/dev/null 2>&1; then
     usermod -a -G video "$user"
   fi
-  install -d -m 0750 -o "$user" -g "$user" "$state_dir"
-  install -d -m 0750 -o "$user" -g "$user" "$state_dir/logs"
+  # the registry and the API token live here: the service user's alone (the units set UMask=0077)
+  install -d -m 0700 -o "$user" -g "$user" "$state_dir"
+  install -d -m 0700 -o "$user" -g "$user" "$state_dir/logs"
 else
-  install -d -m 0750 "$state_dir"
+  install -d -m 0700 "$state_dir"
 fi
 
 # 3. unit files with the paths filled in

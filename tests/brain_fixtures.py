@@ -77,6 +77,28 @@ def promote_pointer(home: Path, ckpt: Path, component: str = "fast_loop", model_
     return obj
 
 
+def overflowing_copy(src: Path, dst: Path, column: int = 0) -> tuple[Path, float]:
+    """A copy of fast_loop checkpoint `src` that computes NaN from some valid observations: the
+    obs_in weights reading observation value `column` are +-1e33 (finite, so the checkpoint loads),
+    which overflows float32 to Inf once that value is far from its mean (1e6 is), while an
+    observation holding exactly the mean there answers normally (normalised 0 x 1e33 = 0).
+    Returns (the copy, that mean as the float the client sends)."""
+    import shutil
+
+    import numpy as np
+    from safetensors.numpy import load_file, save_file
+
+    shutil.copytree(src, dst)
+    tensors = load_file(str(dst / "model.safetensors"))
+    w = tensors["obs_in.weight"].copy()
+    w[:, column] = np.where(np.arange(w.shape[0]) % 2 == 0, 1e33, -1e33).astype(np.float32)
+    tensors["obs_in.weight"] = w
+    save_file(tensors, str(dst / "model.safetensors"), metadata={"format": "hope.checkpoint/1"})
+    rewrite_manifest(dst)
+    mean = json.loads((dst / "config.json").read_text())["feature_spec"]["observation"]["mean"][column]
+    return dst, float(np.float32(mean))
+
+
 def rewrite_manifest(ckpt: Path) -> None:
     """Re-hash every file of an edited checkpoint dir into its manifest.json."""
     manifest = json.loads((ckpt / "manifest.json").read_text())

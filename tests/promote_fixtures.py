@@ -57,6 +57,13 @@ def _rewrite_manifest(ckpt: Path, fname: str) -> None:
     (ckpt / "manifest.json").write_text(json.dumps(manifest))
 
 
+def write_config(ckpt: Path, config: dict | str) -> None:
+    """Replace the checkpoint's config.json (an object, or raw text), manifest re-hashed so the
+    edit reaches the code under test instead of stopping at the manifest check."""
+    (ckpt / "config.json").write_text(config if isinstance(config, str) else json.dumps(config))
+    _rewrite_manifest(ckpt, "config.json")
+
+
 def poison_with_nan(ckpt: Path) -> str:
     """Put a NaN into the first floating tensor of model.safetensors; returns its name."""
     import torch
@@ -73,12 +80,15 @@ def poison_with_nan(ckpt: Path) -> str:
     return name
 
 
-def completed_run(registry, run_dir: Path, component: str = "fast_loop") -> str:
-    """A run row for run_dir, taken through running to completed (finished_at = now)."""
+def completed_run(registry, run_dir: Path, component: str = "fast_loop", data: str | Path = "x") -> str:
+    """A run row for run_dir, taken through running to completed (finished_at = now). `data` is the
+    run's dataset as the registry holds it, which `promote RUN` gates on."""
     from daemon import runs
 
     with registry.session() as s:
-        run = runs.create_run(s, component=component, config={"data": "x"}, total_steps=10, run_dir=str(run_dir))
+        run = runs.create_run(s, component=component, config={"data": str(data)}, total_steps=10,
+                              run_dir=str(run_dir))
+        runs.transition(s, run, "starting")
         runs.transition(s, run, "running")
         runs.transition(s, run, "completed", reason="trainer")
         return run.id

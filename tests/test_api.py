@@ -52,8 +52,10 @@ def add_completed_run(registry, settings, source_run_dir: Path, *, finished_ago_
     shutil.copytree(source_run_dir, run_dir, symlinks=True)
     steps = sorted(int(p.name) for p in (run_dir / "checkpoints").iterdir() if p.name.isdigit())
     last = run_dir / "checkpoints" / f"{steps[-1]:08d}"
+    # the dataset the run was trained on, as the registry holds it (promote RUN gates on it)
+    data = json.loads((last / "config.json").read_text())["train"]["data"]
     with registry.session() as s:
-        run = runs.create_run(s, component="fast_loop", config={"data": "ds", "steps": steps[-1]},
+        run = runs.create_run(s, component="fast_loop", config={"data": data, "steps": steps[-1]},
                               total_steps=steps[-1], run_dir=str(run_dir), run_id=run_id)
         run.state = "completed"
         run.step = steps[-1]
@@ -149,6 +151,9 @@ def bad_input_table(run_id: str, token_file_in_home: str) -> list[tuple]:
         ("POST", infer, b'{"component": "fast_loop", "observation": [1e999, 0, 0, 0, 0, 0]}', 400, "finite"),
         ("POST", infer, b'{"component": "fast_loop", "observation": [0, -1e400, 0, 0, 0, 0]}', 400,
          "observation[1]"),
+        # finite, but beyond any robot's values (near float32's limit they answered NaN)
+        ("POST", infer, b'{"component": "fast_loop", "observation": [3.5e38, 0, 0, 0, 0, 0]}', 400,
+         "observation[0] = 3.5e+38 is outside the accepted range [-1e+06, 1e+06]"),
         # malformed JSON, wrong content type, not an object
         ("POST", infer, b'{"component": "fast_loop", "observation": [0.1,', 400, "not valid JSON"),
         ("POST", infer, b"", 400, "empty"),
@@ -178,6 +183,7 @@ def bad_input_table(run_id: str, token_file_in_home: str) -> list[tuple]:
         # path traversal and absolute paths outside the data roots
         ("POST", runs_, {"component": "fast_loop", "data": "../../../../etc"}, 400, "outside the allowed data roots"),
         ("POST", runs_, {"component": "fast_loop", "data": "/etc"}, 400, "outside the allowed data roots"),
+        ("POST", runs_, {"component": "fast_loop", "data": "ds\u0000/x"}, 400, "data: 'ds\\x00/x' is not a path"),
         ("POST", runs_, {"component": "fast_loop", "data": "ds/../../../../../etc/passwd"}, 400, "outside"),
         ("POST", seq, {"components": "fast_loop", "data": "/etc"}, 400, "outside the allowed data roots"),
         ("POST", seq, {"components": "fast_loop", "data": "../../.."}, 400, "outside the allowed data roots"),
@@ -354,6 +360,63 @@ def test_corrupt_pointer_is_reported_not_a_500(api):
     assert reflex.status_code == 409 and "fast_loop.json" in reflex.get_json()["error"]
 
 
+# -- every answer is valid JSON --------------------------------------------------------------------
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} in an answer: not JSON")
+
+
+def strict_json(response):
+    """The body as a strict parser (a browser's JSON.parse) reads it: NaN / Infinity refused."""
+    return json.loads(response.get_data(as_text=True), parse_constant=_no_constant)
+
+
+def test_a_non_finite_tick_is_a_500_without_nan_and_the_session_is_not_poisoned(api, tmp_path_factory, tmp_path):
+    from brain_fixtures import overflowing_copy
+
+    ckpt, mean0 = overflowing_copy(brain_runs(tmp_path_factory)["alpha30"],
+                                   tmp_path / "ovf" / "checkpoints" / "00000030")
+    version = promote_pointer(api.settings.home, ckpt)["version"]
+    wait_for(lambda: api.brain.version("fast_loop") == version, 5, "BrainService to load the overflowing copy")
+    normal = [[mean0] + OBS[1:], [mean0, 0.5, -0.3, 0.1, 0.2, -0.1]]
+
+    def infer(obs, session):
+        return api.post("/api/brain/infer", {"component": "fast_loop", "observation": obs, "session": session})
+
+    first = infer(normal[0], "arm")
+    assert first.status_code == 200
+    huge = infer([3.5e38] + OBS[1:], "arm")  # bad input: 400 with the range, the state untouched
+    assert huge.status_code == 400 and "[-1e+06, 1e+06]" in strict_json(huge)["error"]
+    fault = infer([1e6] + OBS[1:], "arm")  # in range, but this model overflows on it: its fault
+    assert fault.status_code == 500, fault.get_data(as_text=True)
+    body = strict_json(fault)
+    assert "non-finite" in body["error"] and version in body["error"] and "action" not in body
+    second = infer(normal[1], "arm")
+    ref = [strict_json(infer(x, "ref"))["action"] for x in normal]  # a session that never saw them
+    assert [strict_json(first)["action"], strict_json(second)["action"]] == ref
+    served = strict_json(api.get("/api/brain"))["components"]["fast_loop"]["serving"]
+    assert served["non_finite"] == 1
+
+
+def test_the_json_provider_writes_null_for_non_finite_floats(api):
+    """The floor under every view: whatever a view returns, the body is valid JSON."""
+    from dataclasses import dataclass
+
+    from flask import jsonify
+
+    @dataclass
+    class Metrics:  # serialised through the provider's `default`
+        loss: float
+        history: list
+
+    with api.app.test_request_context():
+        body = jsonify({"loss": float("nan"), "series": [1.0, float("inf"), -float("inf")],
+                        "nested": {"m": Metrics(float("nan"), [float("-inf"), 2])}, "ok": 0.5})
+        text = body.get_data(as_text=True)
+    assert json.loads(text, parse_constant=_no_constant) == {
+        "loss": None, "series": [1.0, None, None], "nested": {"m": {"loss": None, "history": [None, 2]}}, "ok": 0.5}
+
+
 # -- promote -> infer -> rollback over HTTP, the loop closure ---------------------------------------
 
 def _nan_copy(ckpt: Path, dest: Path) -> Path:
@@ -516,11 +579,46 @@ def test_system_standalone_and_with_the_daemon(api, settings):
     body = api.get("/api/system").get_json()
     assert body["throttle"] == {"level": 0, "source": "daemon"}
     assert body["stats"]["time"] == daemon.last_sample["time"]
-    assert [x["id"] for x in body["queue"]["running"]] == [queued] and sent
+    # sent to the (fake) broker, no worker has taken it: starting, and it says what it waits for
+    assert [x["id"] for x in body["queue"]["starting"]] == [queued] and body["queue"]["running"] == [] and sent
+    assert body["queue"]["starting"][0]["waiting"].startswith("waiting for a worker on queue 'pi' since ")
+
+
+def test_a_run_no_worker_takes_is_starting_over_http_and_cancel_ends_it_at_once(api, settings):
+    """GET /api/runs and /api/runs/<id> show a sent, unclaimed run as starting with why; POST
+    cancel ends it at once (no worker could ever answer a request), and the queue moves on."""
+    from daemon import runs
+    from daemon.dispatch import Dispatcher
+
+    with api.registry.session() as s:
+        first, behind = (runs.create_run(s, component="fast_loop", config={"data": "ds"}, total_steps=5,
+                                         run_dir=str(settings.runs_dir / name), queue="gpu").id
+                         for name in ("a", "b"))
+    sent = []
+    dispatcher = Dispatcher(api.registry, settings, send=lambda *a: sent.append(a))
+    assert [d.run_id for d in dispatcher.dispatch(0)] == [first]
+    listed = {r["id"]: r for r in api.get("/api/runs").get_json()["runs"]}
+    assert listed[first]["state"] == "starting" and listed[first]["worker_pid"] is None
+    assert listed[first]["waiting"].startswith("waiting for a worker on queue 'gpu' since ")
+    assert listed[behind]["state"] == "queued" and f"behind run {first}" in listed[behind]["waiting"]
+    assert api.get("/api/runs?state=starting").get_json()["runs"] == [listed[first]]
+    assert api.get(f"/api/runs/{first}").get_json()["run"] == listed[first]
+
+    r = api.post(f"/api/runs/{first}/cancel")
+    assert r.status_code == 200
+    run = r.get_json()["run"]
+    assert run["state"] == "cancelled" and run["waiting"] is None and run["error"] == "cancelled by user"
+    assert api.post(f"/api/runs/{first}/cancel").status_code == 409  # nothing left to cancel
+    assert [d.run_id for d in dispatcher.dispatch(0)] == [behind] and len(sent) == 2
+    with api.registry.session() as s:  # the first message, taken by a late worker, is refused
+        assert runs.claim(s, first, sent[0][3], 1, "gpu-box", 99) is None
 
 
 def test_sequential_queues_a_chain(api, settings):
-    (settings.datasets_dir / "ds").mkdir(parents=True)
+    from hope_models.data.synthetic import generate_dataset
+
+    # a real dataset: the chain is checked against it (episodes, each member's model) before it exists
+    generate_dataset(settings.datasets_dir / "ds", 200, obs_dim=6, act_dim=2, seed=0, episode_seconds=(4.0, 6.0))
     woken = []
     api.app.extensions["hope"].daemon = type("D", (), {"wake": lambda self: woken.append(1)})()
     r = api.post("/api/training/sequential", {"components": ["vqvae", "fast_loop", "mid_loop"], "data": "ds",

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from brain_fixtures import brain_runs, promote_pointer, rewrite_manifest
+from brain_fixtures import brain_runs, overflowing_copy, promote_pointer, rewrite_manifest
 from hope_models.promote.pointers import checkpoint_version, pointer_path
-from hope_models.runtime.brain_service import BrainError, BrainService
+from hope_models.runtime.brain_service import MAX_ABS_OBSERVATION, BrainError, BrainService
 from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -288,6 +288,10 @@ def test_sessions_keep_state_reset_and_are_bounded(runs, home):
     (("fast_loop", OBS6[:5] + [float("nan")]), 400, r"observation\[5\] = nan is not finite"),
     (("fast_loop", OBS6[:5] + [float("inf")]), 400, "not finite"),
     (("fast_loop", OBS6[:5] + [10 ** 400]), 400, "too large"),
+    # finite doubles that float32 cannot hold (they answered NaN): refused with the range
+    (("fast_loop", OBS6[:5] + [3.5e38]), 400, r"observation\[5\] = 3.5e\+38 is outside the accepted range "
+                                               r"\[-1e\+06, 1e\+06\]"),
+    (("fast_loop", [-1.5e6] + OBS6[1:]), 400, r"observation\[0\] = -1.5e\+06 is outside the accepted range"),
     (("fast_loop", OBS6[:5] + ["1.0"]), 400, r"observation\[5\] = '1.0' is not a number"),
     (("fast_loop", OBS6[:5] + [True]), 400, "is not a number"),
     (("fast_loop", OBS6[:5] + [[1.0]]), 400, "is not a number"),
@@ -307,6 +311,38 @@ def test_bad_input_is_a_brain_error_with_its_status(runs, home, args, status, pa
         brain.infer(*args)
     assert err.value.status == status
     assert brain.infer("fast_loop", OBS6)["model_version"]  # and the service is fine afterwards
+
+
+def test_observations_at_the_range_limit_answer_finite_actions(runs, home):
+    promote_pointer(home, runs["alpha30"])
+    brain = BrainService(home)
+    brain.check_now()
+    for edge in (MAX_ABS_OBSERVATION, -MAX_ABS_OBSERVATION):
+        out = brain.infer("fast_loop", [edge] * 6, session="edge")
+        assert all(np.isfinite(out["action"])), out
+
+
+def test_a_non_finite_answer_is_a_500_and_never_poisons_the_session(runs, home, tmp_path):
+    """A model that computes NaN from a valid observation (weights that overflow float32 on it):
+    the request gets a 500 naming the version, no NaN; the session's state is not committed, so
+    its next tick answers exactly what a session that never saw the bad observation answers."""
+    ckpt, mean0 = overflowing_copy(runs["alpha30"], tmp_path / "ovf" / "checkpoints" / "00000030")
+    promote_pointer(home, ckpt)
+    normal = [[mean0] + OBS6[1:], [mean0, 0.5, -0.3, 0.1, 0.2, -0.1], [mean0, -0.1, 0.0, 0.3, 0.1, 0.4]]
+    bad = [1e6] + OBS6[1:]  # in range: a fault of the model, not of the request
+    brain = BrainService(home)
+    brain.check_now()
+    first = brain.infer("fast_loop", normal[0], session="arm")
+    for session in ("arm", None):
+        with pytest.raises(BrainError, match=rf"{re.escape(version(ckpt))} computed a non-finite action") as err:
+            brain.infer("fast_loop", bad, session=session)
+        assert err.value.status == 500 and "nan" not in str(err.value).lower()
+    after = [brain.infer("fast_loop", x, session="arm")["action"] for x in normal[1:]]
+    fresh = [brain.infer("fast_loop", x, session="ref")["action"] for x in normal]
+    assert [first["action"], *after] == fresh  # exactly: the bad tick left nothing behind
+    assert fresh[1] != brain.infer("fast_loop", normal[1])["action"]  # (the state does matter)
+    assert all(np.isfinite(a).all() for a in fresh)
+    assert brain.status()["fast_loop"]["non_finite"] == 2
 
 
 def test_constructor_refuses_components_it_cannot_serve(home):

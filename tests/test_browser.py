@@ -249,6 +249,25 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
         expect(page.locator('#runs-table tr[data-state="cancelled"]')).to_have_count(2)
         shots.take(page, "jobs-sequence-cancelled")
         page.check('input[name="mode"][value="single"]')
+
+        # a run for a queue no worker serves (serve's worker takes "pi" only): it reads as waiting
+        # for a gpu worker, not as running, and Cancel ends it at once
+        page.fill("#start-overrides", '{"queue": "gpu"}')
+        page.fill("#start-steps", "50")
+        page.click("#start-button")
+        expect(detail).not_to_have_attribute("data-run", seq1)
+        lonely = detail.get_attribute("data-run")
+        row = page.locator(f'#runs-table tr[data-run="{lonely}"]')
+        expect(row).to_have_attribute("data-state", "starting")
+        expect(row.locator(".waiting")).to_contain_text("waiting for a worker on queue 'gpu'")
+        expect(detail).to_have_attribute("data-state", "starting")
+        expect(page.locator("#detail-waiting")).to_contain_text("waiting for a worker on queue 'gpu'")
+        shots.take(page, "jobs-waiting-for-a-worker")
+        row.locator('[data-action="cancel"]').click()
+        expect(row).to_have_attribute("data-state", "cancelled")
+        expect(page.locator("#flash")).to_contain_text(f"cancel: run {lonely} is cancelled")
+        expect(page.locator("#detail-waiting")).to_be_hidden()
+        page.fill("#start-overrides", "")
         page.locator(f'#runs-table tr[data-run="{run2}"] td').first.click()
         expect(detail).to_have_attribute("data-run", run2)
         try:

@@ -146,6 +146,100 @@ def test_enqueue_status_and_control_with_no_daemon(home, tiny_dataset):
     assert wrong.returncode == 2 and "trains fast_loop, not vqvae" in wrong.stderr
 
 
+def test_no_worker_on_the_queue_waits_visibly_cancel_ends_it_a_late_worker_refuses_it_state_is_private(
+        tmp_path, tiny_dataset):
+    """The real processes, started the way a user does, under a permissive umask (022) in a fresh
+    HOPE_HOME: `enqueue --queue gpu` with the daemon up and no gpu worker. The run is sent (the
+    embedded broker holds its message) but must read `starting`, waiting for a gpu worker, not
+    `running`; `cancel` ends it at once; a gpu worker started later takes the message and does
+    not train it. Then everything the product wrote under HOPE_HOME is its user's alone."""
+    import os
+    import sqlite3
+    import stat
+
+    from daemon import runs
+    from daemon.db import Registry
+    from hope_models.settings import load_settings
+
+    state_dir = tmp_path / "home"  # created by the product, not by the test
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
+    env.update({"HOPE_HOME": str(state_dir), "PYTHONUNBUFFERED": "1", "HOPE_THERMAL_ZONE": str(tmp_path / "no-zone"),
+                "HOPE_VCGENCMD": "", "HOPE_AUTO_PROMOTE": "0", "OMP_NUM_THREADS": "1"})
+    user = type("U", (), {"env": env})()  # what cli() needs of a Home
+    procs: list[Proc] = []
+    previous = os.umask(0o022)  # a typical login umask: files 0644, directories 0755 unless the product says otherwise
+    try:
+        rid = cli_json(user, "enqueue", *JOB, "--data", str(tiny_dataset), "--steps", "40", "--queue", "gpu")["id"]
+        procs.append(Proc("daemon", [sys.executable, str(REPO / "run_trainer.py"), "daemon", "--tick-s", "0.2"], env,
+                          logs / "daemon.log"))
+
+        def status() -> dict:
+            return {r["id"]: r for r in cli_json(user, "status")["runs"]}
+
+        def why() -> str:
+            return "\n".join(p.log.read_text(errors="replace")[-3000:] for p in procs)
+
+        deadline = time.monotonic() + 30
+        while (run := status()[rid])["state"] == "queued":
+            assert time.monotonic() < deadline, "the daemon did not dispatch the run\n" + why()
+            time.sleep(0.3)
+        assert run["state"] == "starting" and run["worker_pid"] is None, why()
+        assert run["waiting"].startswith("waiting for a worker on queue 'gpu' since "), run
+        assert (state_dir / "broker" / "broker.sqlite").is_file()  # the message really was sent
+        table = cli(user, "status").stdout.splitlines()
+        assert [row.split()[3] for row in table if row.startswith(rid + " ")] == ["starting"]
+        assert any(row.startswith(f"{rid}: waiting for a worker on queue 'gpu'") for row in table), table
+
+        t0 = time.monotonic()
+        cancelled = cli_json(user, "cancel", rid)["run"]
+        assert cancelled["state"] == "cancelled" and cancelled["waiting"] is None  # at once, not "asked to"
+        assert time.monotonic() - t0 < 10
+
+        procs.append(Proc("worker-gpu", [sys.executable, str(REPO / "run_trainer.py"), "worker", "-Q", "gpu"], env,
+                          logs / "worker.log", teardown_kill=True))
+        registry = Registry.open(load_settings(env=env), migrate=False)
+        try:
+            def refused():
+                with registry.session(readonly=True) as s:
+                    return [e for e in runs.run_events(s, rid, kinds=["log"])
+                            if "ignored a stale delivery" in e.payload["message"]]
+
+            deadline = time.monotonic() + 60
+            while not refused():
+                assert time.monotonic() < deadline, "the late worker never took the old message\n" + why()
+                time.sleep(0.3)
+            with registry.session(readonly=True) as s:
+                run = runs.get_run(s, rid)
+                assert (run.state, run.worker_pid, run.step) == ("cancelled", None, 0)
+                assert runs.run_events(s, rid, kinds=["progress", "checkpoint"]) == []
+        finally:
+            registry.close()
+        assert not (state_dir / "runs" / rid / "checkpoints").exists()
+        broker = sqlite3.connect(state_dir / "broker" / "broker.sqlite")
+        try:
+            assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 0  # taken, not left behind
+        finally:
+            broker.close()
+    finally:
+        for p in reversed(procs):
+            p.kill() if p.teardown_kill else p.stop()
+        os.umask(previous)
+
+    # $HOPE_HOME and all it holds (registry, broker, their WAL files and locks) are private
+    assert stat.S_IMODE(state_dir.stat().st_mode) == 0o700
+    seen = []
+    for root, dirs, files in os.walk(state_dir):
+        for name in dirs:
+            assert stat.S_IMODE((Path(root) / name).stat().st_mode) == 0o700, Path(root) / name
+        for name in files:
+            path = Path(root) / name
+            assert stat.S_IMODE(path.lstat().st_mode) == 0o600, f"{path} is {stat.S_IMODE(path.lstat().st_mode):o}"
+            seen.append(path.relative_to(state_dir).as_posix())
+    assert {"hope.db", "broker/broker.sqlite"} <= set(seen), seen
+
+
 @pytest.mark.parametrize("args, needle", [
     (["enqueue", *JOB, "--data", "/no/such/dataset"], "data: /no/such/dataset does not exist"),
     (["enqueue", "--component", "mid_loop", "--data", ".", "--vqvae-run", "r-nope"], "no run r-nope"),
@@ -214,7 +308,7 @@ def _timeline_ok(home: Home, first: str, second: str) -> None:
     a, b = home.run(first), home.run(second)
     assert a["state"] == b["state"] == "completed", home.describe()
     # never two at once: the second started (was dispatched) after the first had finished
-    dispatched_b = [e["time"] for e in home.events(second, ["state"]) if e["payload"]["state"] == "running"]
+    dispatched_b = [e["time"] for e in home.events(second, ["state"]) if e["payload"]["state"] == "starting"]
     assert a["finished_at"] <= min(dispatched_b), home.describe()
 
 

@@ -86,8 +86,9 @@ def test_sigkill_of_the_child_resumes_from_its_checkpoint_with_the_same_final_we
     run = home.run(victim)
     assert run["attempt"] == 2 and run["step"] == 600
     states = home.states(victim)
-    assert states == ["queued", "running", "interrupted", "queued", "running", "completed"], states
-    lost = home.events(victim, ["state"])[2]["payload"]
+    assert states == ["queued", "starting", "running", "interrupted", "queued", "starting", "running",
+                      "completed"], states
+    lost = home.events(victim, ["state"])[3]["payload"]
     assert f"pid {pid}" in lost["message"] and "gone" in lost["message"]
     # the second attempt resumed from a checkpoint the first one wrote (the newest before the kill)
     resumed = [e["payload"] for e in home.events(victim, ["log"]) if e["payload"].get("event") == "resume"]
@@ -130,7 +131,7 @@ def test_sigkill_of_the_daemon_then_restart_loses_nothing(home, tiny_dataset, pr
     intervals = assert_never_overlapping(home, ids)
     assert [r for _, _, r in intervals] == ids
     for rid in ids:
-        assert home.states(rid) == ["queued", "running", "completed"] and home.run(rid)["attempt"] == 1
+        assert home.states(rid) == ["queued", "starting", "running", "completed"] and home.run(rid)["attempt"] == 1
     fast = home.run(chain[1])
     assert fast["config"]["vqvae_run"] == chain[0]
     # fast_loop read the codes of the chain's VQ-VAE
@@ -195,7 +196,8 @@ def test_a_hot_host_pauses_the_run_and_it_resumes_once_cool(home, tiny_dataset, 
     assert home.run(rid)["state"] == "paused"
     zone.write_text("60000\n")
     wait_until(lambda: home.run(rid)["state"] == "completed", JOB_TIMEOUT, f"{rid} to resume and complete", home)
-    assert home.states(rid) == ["queued", "running", "paused", "queued", "running", "completed"]
+    assert home.states(rid) == ["queued", "starting", "running", "paused", "queued", "starting", "running",
+                                "completed"]
     assert home.run(rid)["attempt"] == 1
     resumed = [e["payload"] for e in home.events(rid, ["log"]) if e["payload"].get("event") == "resume"]
     assert [r["data"]["step"] for r in resumed] == [paused_at]

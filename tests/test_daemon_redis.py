@@ -71,7 +71,8 @@ def test_redis_restarted_mid_run_the_run_completes_and_the_next_one_runs(rhome, 
                2 * JOB_TIMEOUT, "both runs to complete after the Redis restart", rhome)
     assert all_states(rhome, [first, second]), rhome.describe()
     # the run in flight was not lost or restarted: one attempt, trained through the restart
-    assert rhome.run(first)["attempt"] == 1 and rhome.states(first) == ["queued", "running", "completed"]
+    assert rhome.run(first)["attempt"] == 1 and rhome.states(first) == ["queued", "starting", "running",
+                                                                          "completed"]
     assert rhome.run(second)["attempt"] == 1
     assert_never_overlapping(rhome, [first, second])
 
@@ -156,7 +157,8 @@ def test_a_remote_worker_reports_through_redis_and_runs_beside_the_local_one(rho
                           "the remote run to be cancelled", rhome, interval=0.05)
         assert done["state"] == "cancelled", rhome.describe()
         assert Path(done["last_checkpoint"]).name == f"{done['step']:08d}" and done["step"] > paused["step"] + 10
-        assert rhome.states(long) == ["queued", "running", "paused", "queued", "running", "cancelled"]
+        assert rhome.states(long) == ["queued", "starting", "running", "paused", "queued", "starting", "running",
+                                      "cancelled"]
 
         ids = pi + [short]
         wait_until(lambda: all_states(rhome, ids) or any(rhome.run(r)["state"] in ("failed", "cancelled")

@@ -87,6 +87,7 @@ def test_claim_is_answered_with_the_run_and_its_control_state(rhome, tiny_datase
     vq = rhome.enqueue(tiny_dataset, component="vqvae", steps=10)
     with rhome.registry.session() as s:
         run = runs.get_run(s, vq)
+        runs.transition(s, run, "starting")
         runs.transition(s, run, "running")
         runs.transition(s, run, "completed")
     rid = dispatched(rhome, tiny_dataset, steps=30, vqvae_run=vq)
@@ -202,7 +203,7 @@ def test_a_second_finish_or_claim_is_harmless(rhome, tiny_dataset, remote, redis
     done = report("finish", rid, outcome="completed", message="done", step=100, last_checkpoint="/ck/100")
     push(redis_client, done, done)
     assert remote.poll() == 2
-    assert rhome.states(rid) == ["queued", "running", "completed"]
+    assert rhome.states(rid) == ["queued", "starting", "running", "completed"]
     claims = [e for e in rhome.events(rid, ["log"]) if e["payload"]["message"].startswith("claimed by pid")]
     assert len(claims) == 1
 
@@ -277,6 +278,7 @@ def test_publish_running_covers_remote_queues_only(rhome, tiny_dataset, remote, 
     far = dispatched(rhome, tiny_dataset, queue="gpu")
     queued = rhome.enqueue(tiny_dataset, queue="gpu2")
     with rhome.registry.session() as s:
+        runs.claim(s, far, "task-1", 1, HOST, PID)  # a remote child trains it (a starting run would end at once)
         runs.request_control(s, far, "cancel")
     assert remote.publish_running() == 1
     assert redis_client.get(control_key(local)) is None and redis_client.get(control_key(queued)) is None
@@ -342,7 +344,7 @@ def test_a_claim_nobody_answers_is_withdrawn_and_never_applied(rhome, tiny_datas
     with pytest.raises(ChannelError, match="no control state in Redis"):
         channel.control()
     assert remote.poll() == 1  # the daemon comes back: the withdrawn claim is skipped
-    assert rhome.run(rid)["worker_pid"] is None and rhome.run(rid)["state"] == "running"
+    assert rhome.run(rid)["worker_pid"] is None and rhome.run(rid)["state"] == "starting"
 
 
 def test_a_claim_answered_as_the_child_gives_up_is_undone(rhome, tiny_dataset, remote, redis_client, monkeypatch):
@@ -411,7 +413,7 @@ def test_daemon_tick_applies_reports_and_publishes_control(rhome, tiny_dataset, 
     rid = rhome.enqueue(tiny_dataset, queue="gpu")
     d.tick()
     (msg,) = app.sent
-    assert msg["kwargs"] == {"report": "redis"} and rhome.run(rid)["state"] == "running"
+    assert msg["kwargs"] == {"report": "redis"} and rhome.run(rid)["state"] == "starting"
     push(redis_client, report("claim", rid, task_id=msg["task_id"]),
          report("event", rid, task_id=msg["task_id"], kind="progress", payload={"step": 2}, row={"step": 2}))
     d.tick()
@@ -427,7 +429,7 @@ def test_daemon_tick_applies_reports_and_publishes_control(rhome, tiny_dataset, 
     d.remote.client = fakeredis.FakeRedis(server=down)
     queued = rhome.enqueue(tiny_dataset, queue="pi")
     assert d.safe_tick() is True and d._remote_failures == 2  # poll and publish both failed...
-    assert rhome.run(queued)["state"] == "running"  # ...and the local queue was still dispatched
+    assert rhome.run(queued)["state"] == "starting"  # ...and the local queue was still dispatched
     d.stop()
 
 

@@ -66,9 +66,10 @@ def test_fifo_with_priority_and_one_running_per_queue(home, tiny_dataset, dispat
     urgent = home.enqueue(tiny_dataset, priority=5)
     sent = dispatcher.dispatch(0)
     assert [d.run_id for d in sent] == [urgent] and broker.sent[0][:3] == (urgent, 1, "pi")
-    assert home.run(urgent)["state"] == "running" and home.run(urgent)["celery_task_id"] == broker.sent[0][3]
+    assert home.run(urgent)["state"] == "starting" and home.run(urgent)["celery_task_id"] == broker.sent[0][3]
     assert dispatcher.dispatch(0) == []  # one at a time
     claim(home, urgent, 4242)
+    assert home.run(urgent)["state"] == "running"
     assert dispatcher.dispatch(0) == []
     finish(home, urgent, 4242)
     assert [d.run_id for d in dispatcher.dispatch(0)] == [a]
@@ -321,8 +322,9 @@ def test_daemon_tick_throttles_the_active_run_and_pauses_it_when_hot(home, tiny_
     assert sink.of("system.throttle")[-1]["level"] == 1 and sink.of("system.throttle")[-1]["run_id"] is None
     rid = home.enqueue(tiny_dataset)
     d.tick()
-    assert home.run(rid)["state"] == "running" and home.run(rid)["throttle_level"] == 1
+    assert home.run(rid)["state"] == "starting" and home.run(rid)["throttle_level"] == 1
     claim(home, rid, os.getpid())
+    assert home.run(rid)["state"] == "running" and home.run(rid)["throttle_level"] == 1
     zone.write_text("83000\n")
     d.tick()
     assert home.run(rid)["throttle_level"] == 2
@@ -338,8 +340,8 @@ def test_daemon_tick_throttles_the_active_run_and_pauses_it_when_hot(home, tiny_
     assert home.run(rid)["state"] == "paused"  # not below resume yet
     zone.write_text("65000\n")
     d.tick()  # cooled: requeued, and dispatched again in the same tick
-    assert home.run(rid)["state"] == "running" and home.run(rid)["throttle_level"] == 0
-    assert home.states(rid)[-3:] == ["paused", "queued", "running"]
+    assert home.run(rid)["state"] == "starting" and home.run(rid)["throttle_level"] == 0
+    assert home.states(rid)[-3:] == ["paused", "queued", "starting"]
     d.stop()
 
 
@@ -363,7 +365,7 @@ def test_run_forever_ticks_until_stopped_and_notifies(home, tiny_dataset, broker
         assert listener.recv(256).startswith(b"READY=1")
         assert listener.recv(256) == b"WATCHDOG=1"
         deadline = time.monotonic() + 5
-        while home.run(rid)["state"] != "running":
+        while home.run(rid)["state"] != "starting":
             assert time.monotonic() < deadline
             time.sleep(0.02)
     finally:
@@ -439,7 +441,7 @@ def test_wake_makes_the_loop_tick_now(home, tiny_dataset, broker, tmp_path):
             time.sleep(0.01)
         rid = home.enqueue(tiny_dataset)
         d.wake()
-        while home.run(rid)["state"] != "running":
+        while home.run(rid)["state"] != "starting":
             assert time.monotonic() < deadline, "wake() did not make the daemon dispatch at once"
             time.sleep(0.01)
     finally:
@@ -463,5 +465,52 @@ def test_daemon_start_resends_a_dispatch_a_crash_left_unsent(home, tiny_dataset,
     d.start()
     assert [sent[0] for sent in broker.sent] == [rid]
     run = home.run(rid)
-    assert run["state"] == "running" and run["celery_task_id"] == broker.sent[0][3] != "never-sent"
+    assert run["state"] == "starting" and run["celery_task_id"] == broker.sent[0][3] != "never-sent"
+    d.stop()
+
+
+def test_a_run_on_a_queue_with_no_worker_waits_visibly_and_cancel_ends_it_at_once(home, tiny_dataset, broker,
+                                                                                   tmp_path):
+    """enqueue --queue gpu with no gpu worker: the run is sent but nothing claims it. It must read as
+    waiting (not running), hold its queue with the reason on the run behind it, end at once on
+    cancel (not be re-sent any more), and its message, taken by a worker that comes up later, must
+    not train it."""
+    from daemon.cli.status import collect, format_table
+    from workers.job import run_job
+
+    zone = tmp_path / "temp"
+    zone.write_text("40000\n")
+    d = make_daemon(home, broker, zone, ListSink(), claim_timeout_s=600)
+    rid = home.enqueue(tiny_dataset, queue="gpu")
+    behind = home.enqueue(tiny_dataset, queue="gpu")
+    for _ in range(3):
+        d.tick()
+    assert [sent[0] for sent in broker.sent] == [rid]  # sent once, and nothing else started on gpu
+    stale_task = broker.sent[0][3]
+    run = home.run(rid)
+    assert run["state"] == "starting" and run["worker_pid"] is None
+    assert run["waiting"].startswith("waiting for a worker on queue 'gpu' since ")
+    with home.registry.session(readonly=True) as s:
+        shown = {o["id"]: o for o in collect(s, None, False)}
+    assert shown[behind]["state"] == "queued" and f"behind run {rid}, waiting for a worker" in shown[behind]["waiting"]
+    table = format_table(list(shown.values())).splitlines()
+    assert [row.split()[3] for row in table if row.startswith(rid + " ")] == ["starting"]  # STATE
+    assert any(row.startswith(f"{rid}: waiting for a worker on queue 'gpu' since") for row in table)
+    assert "waiting for a worker on queue gpu" in d.status_text()
+
+    with home.registry.session() as s:
+        assert runs.request_control(s, rid, "cancel").state == "cancelled"  # at once, no daemon involved
+    with home.registry.session() as s:  # long after: the re-send of unclaimed runs leaves it alone
+        runs.get_run(s, rid).heartbeat_at = utcnow() - timedelta(seconds=3600)
+    d.tick()
+    assert [sent[0] for sent in broker.sent] == [rid, behind]  # the queue moved on to the next run
+    assert home.run(rid)["state"] == "cancelled"
+
+    # a gpu worker comes up and its child takes the old message: refused, nothing trained
+    out = run_job(home.settings, rid, 1, task_id=stale_task, host=HOST, pid=os.getpid())
+    assert out["status"] == "stale"
+    run = home.run(rid)
+    assert run["state"] == "cancelled" and run["worker_pid"] is None and run["step"] == 0
+    assert not (home.settings.runs_dir / rid / "checkpoints").exists()
+    assert any("ignored a stale delivery" in e["payload"]["message"] for e in home.events(rid, ["log"]))
     d.stop()

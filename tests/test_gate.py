@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from promote_fixtures import build_models, completed_run, copy_run, poison_with_nan
+from promote_fixtures import build_models, completed_run, copy_run, poison_with_nan, write_config
 
 import run_trainer
 from daemon import promotion
@@ -32,7 +32,12 @@ def models(tmp_path_factory):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("gate")
+    # The gate follows a checkpoint's data and cache paths only inside the data roots: the models'
+    # datasets and caches are under root, which is therefore these tests' data root (also for the
+    # CLI, through the environment the `home` fixture sets).
+    ENV["HOPE_DATA_ROOTS"] = str(root)
     yield {"root": root, **build_models(root)}
+    ENV.pop("HOPE_DATA_ROOTS")
     torch.set_num_threads(threads)
 
 
@@ -144,6 +149,109 @@ def test_not_a_checkpoint_is_a_gate_error(tmp_path):
         gate_candidate(tmp_path / "nope", None, settings=settings())
 
 
+# -- a candidate's config.json is untrusted input ---------------------------------------------------
+
+def hostile(models, tmp_path, edit) -> Path:
+    """A copy of the good candidate (outside the data root) whose config.json `edit` changed."""
+    ckpt = copy_run(models["good"], tmp_path, "hostile")
+    cfg = json.loads((ckpt / "config.json").read_text())
+    edit(cfg)
+    write_config(ckpt, cfg)
+    return ckpt
+
+
+@pytest.fixture
+def no_data_reads(monkeypatch):
+    """Fail the test if the gate opens a dataset, a spec or a cache (or makes a cache dir)."""
+    import hope_models.data.cache
+    import hope_models.train.loop
+
+    def refuse(*args, **kwargs):
+        raise AssertionError(f"the gate read or created {args!r}")
+
+    monkeypatch.setattr(hope_models.data.cache, "load_or_build", refuse)
+    monkeypatch.setattr(hope_models.train.loop, "dataset_dir_for", refuse)
+
+
+@pytest.mark.parametrize("field", ["data", "cache_dir", "spec_path"])
+def test_config_paths_outside_the_data_roots_are_refused_before_anything_is_read(models, tmp_path, no_data_reads,
+                                                                                field):
+    outside = tmp_path / "elsewhere"  # not under the data root (models["root"])
+    outside.mkdir()
+    value = {"data": str(outside), "cache_dir": str(outside / "cache"), "spec_path": "/etc/passwd"}[field]
+    ckpt = hostile(models, tmp_path, lambda c: c["train"].update({field: value}))
+    res = gate_candidate(ckpt, None, settings=settings())
+    val = next(c for c in res.checks if c["check"] == "val_loss")
+    assert not res.passed and val["status"] == "failed"
+    assert f"train.{field}: {value} is outside the allowed data roots" in val["detail"]
+    assert str(ckpt / "config.json") in val["detail"] and str(models["root"]) in val["detail"]
+    assert list(outside.iterdir()) == []  # no cache dir was made there
+
+
+def test_a_symlink_inside_the_data_root_to_outside_is_outside(models, tmp_path, no_data_reads):
+    link = models["root"] / f"link-{tmp_path.name}"
+    link.symlink_to(tmp_path)
+    try:
+        ckpt = hostile(models, tmp_path, lambda c: c["train"].update(cache_dir=str(link / "cache")))
+        val = next(c for c in gate_candidate(ckpt, None, settings=settings()).checks if c["check"] == "val_loss")
+        assert val["status"] == "failed" and "train.cache_dir" in val["detail"] and "outside" in val["detail"]
+        assert not (tmp_path / "cache").exists()
+    finally:
+        link.unlink()
+
+
+def test_the_promotions_own_dataset_replaces_every_path_of_config_json(models, tmp_path):
+    """`promote RUN` passes the run's dataset from the registry: config.json's paths are not followed."""
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    ckpt = hostile(models, tmp_path, lambda c: c["train"].update(data="/etc", cache_dir=str(outside / "cache"),
+                                                                 spec_path="/etc/passwd"))
+    st = load_settings(tmp_path / "home", env=ENV)
+    res = gate_candidate(ckpt, None, data=models["demos"], settings=st)
+    assert res.passed, res.reasons
+    assert math.isfinite(res.metrics["candidate_val_loss"]) and res.metrics["val_data"] == str(models["demos"])
+    assert list(outside.iterdir()) == [] and (st.cache_dir).is_dir()  # compiled under $HOPE_HOME/cache
+
+
+@pytest.mark.parametrize("train,needle", [
+    ([1, 2], "'train' must be an object, got list"),
+    ({"batch_size": "64"}, "train: batch_size='64' is not an integer"),
+    ({"batch_size": 10**12}, "train: batch_size=1000000000000 is outside 1..65536"),
+    ({"batch_size": 32, "val_batches": 10**9}, "train: val_batches=1000000000 is outside 1..1000"),
+    ({"batch_size": 32, "val_fraction": {"a": [[1]]}}, "train: val_fraction={'a': [[1]]} is not a number"),
+    ({"batch_size": 32, "data": 5}, "train.data: expected a path, got 5"),
+    ({"batch_size": 32, "spec_path": ["nested", {"junk": 1}]}, "train.spec_path: expected a path"),
+])
+def test_malformed_train_values_fail_the_check_naming_the_field(models, tmp_path, no_data_reads, train, needle):
+    ckpt = hostile(models, tmp_path, lambda c: c.update(train=train))
+    res = gate_candidate(ckpt, None, settings=settings())
+    val = next(c for c in res.checks if c["check"] == "val_loss")
+    assert not res.passed and val["status"] == "failed"
+    assert needle in val["detail"] and str(ckpt / "config.json") in val["detail"], val["detail"]
+
+
+@pytest.mark.parametrize("edit,needle", [
+    (lambda c: c["model_config"].update(d_model=10**7), "weights do not fit the model its config.json describes"),
+    (lambda c: c["model_config"].update(d_state=2**40), "does not describe a usable component"),
+    (lambda c: c["window"].update(k=10**12), "must be an integer in 1-4096"),
+    (lambda c: c["feature_spec"].update(notes={"deep": [[["x"]]]}), "notes must be a list of strings"),
+    (lambda c: c["feature_spec"]["observation"].update(mean=[3.5e38] * 6), "within float32's range"),
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ('{"component": "fast_loop", "format": NaN}', "not readable JSON"),
+])
+def test_a_config_json_that_describes_no_usable_model_is_a_gate_error(models, tmp_path, edit, needle):
+    """Huge dims are compared with the weights file before anything is allocated: an error, not the
+    Pi's memory; junk is an error naming config.json, not a traceback."""
+    if isinstance(edit, str):
+        ckpt = copy_run(models["good"], tmp_path, "hostile")
+        write_config(ckpt, edit)
+    else:
+        ckpt = hostile(models, tmp_path, edit)
+    with pytest.raises(GateError) as err:
+        gate_candidate(ckpt, None, settings=settings())
+    assert needle in str(err.value) and str(ckpt) in str(err.value)
+
+
 def test_sim_task_comes_from_the_dataset_metadata(models):
     from hope_models.data.cache import load_or_build
 
@@ -201,7 +309,7 @@ def test_promote_cli_force_and_nan(models, home, capsys, tmp_path):
 def test_promote_cli_by_run_id_and_usage_errors(models, home, capsys):
     st = load_settings(home, env={})
     with Registry.open(st) as reg:
-        run_id = completed_run(reg, models["good"].parent.parent)
+        run_id = completed_run(reg, models["good"].parent.parent, data=models["demos"])
         from daemon import runs
         with reg.session() as s:
             queued = runs.create_run(s, component="fast_loop", config={}, total_steps=5, run_dir="/nowhere").id

@@ -215,5 +215,32 @@ def test_0002_promotion_columns_up_and_down_keep_the_data(engine):
         sql = c.exec_driver_sql("SELECT sql FROM sqlite_master WHERE name='uq_models_promoted_component'").scalar()
         assert "WHERE promoted_at IS NOT NULL" in sql
     migrate(engine)
-    assert current_revision(engine) == head() == "0002"
+    assert current_revision(engine) == head()
+    assert diffs(engine, Base.metadata) == []
+
+
+def test_0003_unclaimed_running_runs_become_starting_and_back(engine):
+    """0003 adds runs.dispatched_at and the `starting` state: a run that 0002's rules left running
+    with no worker pid (sent, never claimed) is starting after the upgrade, so claim(), cancel and
+    the re-send treat it by the new rules; a claimed one stays running. Down reverses it, keeping
+    every row and event."""
+    migrate(engine, "0002")
+    with engine.begin() as c:
+        for rid, pid in (("sent", None), ("claimed", 4242)):
+            c.exec_driver_sql("INSERT INTO runs (id, component, config, state, total_steps, run_dir, worker_pid, "
+                              "celery_task_id, heartbeat_at, created_at, updated_at) VALUES (?, 'fast_loop', '{}', "
+                              "'running', 5, '/r', ?, 't-1', '2026-01-01 10:00:00.000000', '2026-01-01', "
+                              "'2026-01-01')", (rid, pid))
+        c.exec_driver_sql("INSERT INTO run_events (run_id, time, kind, payload) VALUES ('sent', '2026-01-01', 'log', '{}')")
+    migrate(engine, "0003")
+    with engine.begin() as c:
+        rows = c.exec_driver_sql("SELECT id, state, dispatched_at FROM runs ORDER BY id").all()
+    assert rows == [("claimed", "running", None), ("sent", "starting", "2026-01-01 10:00:00.000000")]
+    downgrade(engine, "0002")
+    assert "dispatched_at" not in _columns(engine, "runs")
+    with engine.begin() as c:
+        assert c.exec_driver_sql("SELECT id, state FROM runs ORDER BY id").all() == [("claimed", "running"),
+                                                                                      ("sent", "running")]
+        assert c.exec_driver_sql("SELECT count(*) FROM run_events").scalar() == 1
+    migrate(engine)
     assert diffs(engine, Base.metadata) == []

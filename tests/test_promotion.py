@@ -302,7 +302,7 @@ def trained(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("auto")
     record_dataset(root / "demos", 12, task="reach", noise=1.0, steps=200)
-    out = {"good": train_fast_loop(root, "good", 150, root / "demos"),
+    out = {"demos": root / "demos", "good": train_fast_loop(root, "good", 150, root / "demos"),
            "weak": train_fast_loop(root, "weak", 2, root / "demos")}
     torch.set_num_threads(threads)
     return out
@@ -327,14 +327,14 @@ def test_auto_promoter_gates_completed_runs_one_at_a_time(trained, tmp_path, mon
     monkeypatch.delenv("HOPE_GATE_REFLEX_EPISODES", raising=False)  # the child gets it from the daemon's settings
     st = load_settings(tmp_path / "home", env={"HOPE_GATE_REFLEX_EPISODES": "2"})
     with Registry.open(st) as registry:
-        old = completed_run(registry, trained["good"].parent.parent)  # finished before the promoter started
+        old = completed_run(registry, trained["good"].parent.parent, data=trained["demos"])  # before the promoter
         time.sleep(0.01)
         promoter = AutoPromoter(st, registry)
         promoter.tick()
         assert not promoter.busy  # the old run is not gated
         time.sleep(0.01)
-        good = completed_run(registry, trained["good"].parent.parent)
-        weak = completed_run(registry, trained["weak"].parent.parent)
+        good = completed_run(registry, trained["good"].parent.parent, data=trained["demos"])
+        weak = completed_run(registry, trained["weak"].parent.parent, data=trained["demos"])
         started = time.monotonic()
         promoter.tick()
         assert time.monotonic() - started < 1.0  # spawning does not wait for the gate

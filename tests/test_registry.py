@@ -70,7 +70,7 @@ def dispatch_and_claim(s, run: Run, task="t-1", pid=4242) -> Run:
 # --- opening -------------------------------------------------------------------------------
 
 def test_open_creates_home_and_db_with_pragmas(settings):
-    assert not settings.home.exists()
+    assert not db_path(settings).exists()
     with Registry.open(settings) as reg:
         assert db_path(settings) == settings.home / "hope.db" and db_path(settings).is_file()
         with reg.engine.connect() as c:
@@ -237,9 +237,11 @@ def test_transition_table(shared_reg, old, new):
         assert ev.kind == "state" and ev.payload == {"state": new, "from": old, "reason": "thermal", "message": "why"}
         assert (run.finished_at is not None) == (new in runs.TERMINAL)
         assert run.pause_reason == ("thermal" if new == "paused" else None)
-        if old == "running":  # the child's claim and the served request are cleared
+        if old in runs.ACTIVE and new not in runs.ACTIVE:  # the child's claim and the served request are cleared
             assert (run.worker_pid, run.worker_host, run.desired_state, run.requested_reason, run.throttle_level) \
                 == (None, None, "run", None, 0)
+        if (old, new) == ("starting", "running"):  # claimed: what the dispatch set (throttle level) is kept
+            assert run.throttle_level == 2
         if new == "queued":
             assert run.desired_state == "run" and run.queued_at >= run.created_at
         if new == "failed":
@@ -248,13 +250,14 @@ def test_transition_table(shared_reg, old, new):
 
 def test_transition_table_is_the_documented_one():
     assert runs.ALLOWED == {
-        "queued": {"running", "cancelled", "paused"},
+        "queued": {"starting", "cancelled", "paused"},
+        "starting": {"running", "queued", "cancelled", "paused"},
         "running": {"paused", "completed", "failed", "cancelled", "interrupted", "queued"},
         "paused": {"queued", "cancelled"},
         "interrupted": {"queued", "failed", "cancelled"},
         "completed": set(), "failed": set(), "cancelled": set(),
     }
-    assert runs.TERMINAL == {"completed", "failed", "cancelled"} and runs.ACTIVE == {"running"}
+    assert runs.TERMINAL == {"completed", "failed", "cancelled"} and runs.ACTIVE == {"starting", "running"}
 
 
 def test_transition_refuses_unknown_state_and_pause_without_reason(reg):
@@ -273,6 +276,10 @@ CONTROL_TABLE = [
     ("queued", "run", "cancel", ("cancelled", "run", None, None)),
     ("queued", "run", "pause", ("paused", "run", None, "user")),
     ("queued", "run", "resume", ("queued", "run", None, None)),
+    # sent to its queue, no child yet: done at once, like a queued run
+    ("starting", "run", "cancel", ("cancelled", "run", None, None)),
+    ("starting", "run", "pause", ("paused", "run", None, "user")),
+    ("starting", "run", "resume", ("starting", "run", None, None)),
     ("running", "run", "cancel", ("running", "cancel", "user", None)),
     ("running", "run", "pause", ("running", "pause", "user", None)),
     ("running", "run", "resume", ("running", "run", None, None)),
@@ -466,13 +473,66 @@ def test_claim_refuses_stale_tasks(reg):
         assert claimed is not None and claimed.worker_pid == 321 and claimed.worker_host == "host-b"
         assert claimed.started_at is not None
         assert runs.claim(s, rid, "t-2", 1, "host-b", 322) is None  # a second delivery of the same task
-        with pytest.raises(RunError, match="only a running, unclaimed run"):
+        with pytest.raises(RunError, match="only a starting .* run can be re-sent"):
             runs.resend(s, claimed, "t-3")
     with reg.session(readonly=True) as s:
         run = runs.get_run(s, rid)
         assert run.worker_pid == 321 and run.celery_task_id == "t-2"
         logs = [e.payload["message"] for e in runs.run_events(s, rid, kinds=["log"])]
         assert any("re-sent as task t-2" in m for m in logs) and any("claimed by pid 321" in m for m in logs)
+
+
+def test_a_sent_run_is_starting_until_a_child_claims_it_and_says_what_it_waits_for(reg):
+    with reg.session() as s:
+        first, behind = make(s, queue="gpu"), make(s, queue="gpu")
+        runs.mark_dispatched(s, first, "t-1")
+        assert first.state == "starting" and first.dispatched_at is not None and first.worker_pid is None
+        obj = first.to_json_obj()
+        assert obj["state"] == "starting" and obj["dispatched_at"] == first.dispatched_at.isoformat()
+        assert obj["waiting"].startswith(f"waiting for a worker on queue 'gpu' since "
+                                         f"{first.dispatched_at:%Y-%m-%d %H:%M:%S} UTC")
+        assert "start one with: run_trainer.py worker -Q gpu" in obj["waiting"]
+        # it holds its queue, and the run behind it says why it does not start
+        assert runs.next_dispatchable(s, "gpu") is None
+        held = {o["id"]: o["waiting"] for o in runs.to_json(s, [first, behind])}
+        assert held[behind.id] == (f"behind run {first.id}, waiting for a worker on queue 'gpu' "
+                                   "(one run per queue at a time)")
+        runs.resend(s, first, "t-2")  # a re-send keeps the time it has waited since
+        assert first.state == "starting" and first.to_json_obj()["waiting"] == obj["waiting"]
+        claimed = runs.claim(s, first.id, "t-2", 1, "gpu-box", 77)
+        assert claimed.state == "running" and claimed.to_json_obj()["waiting"] is None
+        assert states_of(s, first.id)[-2:] == [("queued", "starting"), ("starting", "running")]
+        assert runs.to_json(s, [behind])[0]["waiting"] == (f"behind run {first.id}, running on queue 'gpu' "
+                                                           "(one run per queue at a time)")
+
+
+def test_cancel_of_a_starting_run_ends_it_at_once_and_its_task_is_refused(reg):
+    with reg.session() as s:
+        run, nxt = make(s, queue="gpu"), make(s, queue="gpu")
+        rid = run.id
+        runs.mark_dispatched(s, run, "t-1")
+    with reg.session() as s:
+        cancelled = runs.request_control(s, rid, "cancel")
+        assert cancelled.state == "cancelled" and cancelled.finished_at is not None
+        assert cancelled.error_message == "cancelled by user" and cancelled.to_json_obj()["waiting"] is None
+        assert "cancelled before a worker took it (task t-1" in runs.run_events(s, rid, kinds=["log"])[-1].payload["message"]
+        assert runs.next_dispatchable(s, "gpu").id == nxt.id  # the queue is free again
+    with reg.session() as s:  # a worker comes up later and takes the old message
+        assert runs.claim(s, rid, "t-1", 1, "gpu-box", 78) is None
+        assert runs.get_run(s, rid).state == "cancelled" and runs.get_run(s, rid).worker_pid is None
+
+
+def test_pause_of_a_starting_run_is_at_once_and_resume_sends_it_again(reg):
+    with reg.session() as s:
+        run = make(s)
+        rid = run.id
+        runs.mark_dispatched(s, run, "t-1", throttle_level=1)
+        runs.request_control(s, rid, "pause")
+        assert (run.state, run.pause_reason, run.throttle_level) == ("paused", "user", 0)
+        assert runs.claim(s, rid, "t-1", 1, "h", 1) is None
+        runs.request_control(s, rid, "resume")
+        runs.mark_dispatched(s, runs.next_dispatchable(s, "pi"), "t-2")
+        assert runs.claim(s, rid, "t-1", 1, "h", 1) is None and runs.claim(s, rid, "t-2", 1, "h", 1) is not None
 
 
 def test_heartbeat_is_pid_guarded(reg):
@@ -585,9 +645,9 @@ def test_mark_interrupted_retries_then_gives_up(reg):
         assert runs.next_dispatchable(s, "pi") is None
         assert states_of(s, rid) == [
             (None, "queued"),
-            ("queued", "running"), ("running", "interrupted"), ("interrupted", "queued"),
-            ("queued", "running"), ("running", "interrupted"), ("interrupted", "queued"),
-            ("queued", "running"), ("running", "interrupted"), ("interrupted", "failed"),
+            ("queued", "starting"), ("starting", "running"), ("running", "interrupted"), ("interrupted", "queued"),
+            ("queued", "starting"), ("starting", "running"), ("running", "interrupted"), ("interrupted", "queued"),
+            ("queued", "starting"), ("starting", "running"), ("running", "interrupted"), ("interrupted", "failed"),
         ]
         msgs = [e.payload["message"] for e in runs.run_events(s, rid, kinds=["state"])]
         assert "attempt 2 of 3 after: worker pid 101 is gone" in msgs

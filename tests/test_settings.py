@@ -27,3 +27,50 @@ def test_unknown_key_in_config_names_it(tmp_path):
 def test_bad_env_value_names_the_variable(tmp_path):
     with pytest.raises(SettingsError, match="HOPE_PORT"):
         load_settings(env={"HOPE_HOME": str(tmp_path), "HOPE_PORT": "eighty"})
+
+
+def test_loading_the_settings_makes_home_private(tmp_path, caplog):
+    """$HOPE_HOME holds the registry and the API token: created 0700 whatever the umask, and a
+    too-open one we own is tightened to 0700 with a warning (the state before this existed)."""
+    import logging
+    import os
+    import stat
+
+    previous = os.umask(0o022)
+    try:
+        fresh = tmp_path / "parent" / "home"
+        load_settings(env={"HOPE_HOME": str(fresh)})
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o700
+        assert stat.S_IMODE(fresh.parent.stat().st_mode) == 0o755  # parents are not ours to lock down
+
+        old = tmp_path / "old-home"
+        old.mkdir(mode=0o755)
+        with caplog.at_level(logging.WARNING, logger="hope_models.settings"):
+            load_settings(env={"HOPE_HOME": str(old)})
+        assert stat.S_IMODE(old.stat().st_mode) == 0o700
+        assert [r.getMessage() for r in caplog.records] == [
+            f"HOPE_HOME {old} was mode 0755 (other local users could read the registry and the API token); "
+            "changed to 0700"]
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="hope_models.settings"):
+            load_settings(env={"HOPE_HOME": str(old)})
+        assert caplog.records == []  # said once, when it changed
+    finally:
+        os.umask(previous)
+
+
+def test_private_umask_applies_to_what_the_process_writes(tmp_path):
+    import os
+    import stat
+
+    from hope_models.settings import PRIVATE_UMASK, use_private_umask
+
+    previous = os.umask(0o022)
+    try:
+        assert use_private_umask() == 0o022 and PRIVATE_UMASK == 0o077
+        (tmp_path / "d").mkdir()
+        (tmp_path / "d" / "f").write_text("x")
+        assert stat.S_IMODE((tmp_path / "d").stat().st_mode) == 0o700
+        assert stat.S_IMODE((tmp_path / "d" / "f").stat().st_mode) == 0o600
+    finally:
+        os.umask(previous)

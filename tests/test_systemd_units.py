@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import configparser
 import shutil
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -46,6 +47,10 @@ def test_units_carry_the_promised_settings():
         assert "HOPE_HOME=/var/lib/hope-trainer" in env
         assert "HOPE_REDIS_URL=redis://127.0.0.1:6379/0" in env
         assert u["Install"]["WantedBy"] == "multi-user.target"
+        # the state dir (registry, broker, token, runs) is the service user's alone, so are its files
+        assert u["Service"]["UMask"] == "0077", path.name
+        assert u["Service"]["StateDirectory"] == "hope-trainer" and u["Service"]["StateDirectoryMode"] == "0700"
+        assert 1024 < int(u["Service"]["LimitNOFILE"]) <= 65536, path.name
     daemon, worker, webapp = unit(d)["Service"], unit(w)["Service"], unit(a)["Service"]
     assert daemon["Type"] == "notify" and daemon["WatchdogSec"] == "30"
     assert daemon["ExecStart"].endswith("run_trainer.py daemon")
@@ -63,7 +68,7 @@ def test_install_script_renders_units(tmp_path):
         assert "@REPO@" not in text and "@PYTHON@" not in text
         assert f"ExecStart={sys.executable} {REPO}/run_trainer.py" in text
         assert f"HOPE_HOME={tmp_path / 'state'}" in text
-    assert (tmp_path / "state").is_dir()
+    assert (tmp_path / "state").is_dir() and stat.S_IMODE((tmp_path / "state").stat().st_mode) == 0o700
     assert "HOPE_REDIS_URL" in (tmp_path / "default").read_text()
     # re-running keeps the site's overrides file
     (tmp_path / "default").write_text("HOPE_MEMORY_BUDGET_MB=2048\n")

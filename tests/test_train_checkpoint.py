@@ -116,6 +116,47 @@ def test_pickle_as_model_safetensors_is_refused_even_with_a_matching_manifest(tm
         ckpt.load_tensors(f)
 
 
+def _manifest_with(path: Path, name: str, target: Path) -> None:
+    manifest = json.loads((path / "manifest.json").read_text())
+    manifest["files"][name] = {"sha256": ckpt.file_sha256(target), "size": target.stat().st_size}
+    (path / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_a_manifest_cannot_send_the_hash_outside_the_checkpoint_dir(tmp_path):
+    """The manifest is untrusted: a name with a path, or a file that is a link (to /dev/zero, whose
+    hash would never end), makes the dir not a checkpoint instead of being read."""
+    outside = tmp_path / "secret.txt"
+    outside.write_text("not a checkpoint file")
+    path = _save(tmp_path / "a", 1)
+    _manifest_with(path, "../../../secret.txt", outside)
+    assert "not a file of a checkpoint dir" in ckpt.verify(path)
+    path = _save(tmp_path / "b", 1)
+    (path / "config.json").unlink()
+    (path / "config.json").symlink_to(outside)
+    _manifest_with(path, "config.json", outside)
+    assert ckpt.verify(path) == "config.json is not a regular file"
+
+
+@pytest.mark.parametrize("text,reason", [
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ('{"step": NaN}', "not readable JSON: NaN is not JSON"),
+    ("[1, 2]", "must be a JSON object, not list"),
+    ("\udcff", "not UTF-8 text"),
+])
+def test_checkpoint_json_is_read_as_untrusted_input(tmp_path, text, reason):
+    f = tmp_path / "config.json"
+    f.write_text(text, errors="surrogateescape")
+    with pytest.raises(ckpt.CheckpointError, match=reason) as err:
+        ckpt.read_json_object(f)
+    assert str(f) in str(err.value)
+    size = f.stat().st_size
+    with pytest.raises(ckpt.CheckpointError, match=f"{size} bytes, more than the {size - 1} a checkpoint's JSON"):
+        ckpt.read_json_object(f, max_bytes=size - 1)
+    os.mkfifo(tmp_path / "fifo")  # a read that would never end is refused, not waited on
+    with pytest.raises(ckpt.CheckpointError, match="not a regular file"):
+        ckpt.read_json_object(tmp_path / "fifo")
+
+
 def test_module_never_calls_torch_load():
     src = Path(ckpt.__file__).read_text()
     loop_src = (Path(ckpt.__file__).parent / "loop.py").read_text()

@@ -243,3 +243,39 @@ def test_runtime_baseline_matches_a_process_that_imported_torch_and_took_a_step(
     assert proc.returncode == 0, proc.stderr[-2000:]
     measured = float(proc.stdout.strip().splitlines()[-1])
     assert 0.7 * RUNTIME_MB <= measured <= 1.3 * RUNTIME_MB, measured
+
+
+def _expanded(layers):
+    from collections import Counter
+    from dataclasses import replace
+
+    return Counter(replace(layer, repeat=1) for layer in layers for _ in range(layer.repeat))
+
+
+@pytest.mark.parametrize("frames", [False, True])
+def test_the_layers_from_a_config_are_the_layers_of_the_model_built_from_it(frames):
+    """estimate_from_config() runs where torch is not imported (the webapp, the daemon) and before
+    the loop builds anything; it must see the model build_component would build: the same layers
+    (kind, parameter shapes, trainable or frozen, conv settings) and so the same estimate."""
+    from hope_models.data.features import FeatureField, FeatureGroup, FeatureSpec, FrameFeature
+    from hope_models.models.fast_loop import FastLoop
+    from hope_models.models.mid_loop import MidLoop
+    from hope_models.models.vqvae import VQVAE
+    from hope_models.train.estimate import config_layers, estimate_from_config, model_layers
+    from hope_models.train.model_config import resolve
+
+    spec = FeatureSpec(FeatureGroup([FeatureField("observation.state", 7)]),
+                       FeatureGroup([FeatureField("action.command", 3)]),
+                       FrameFeature("observation.rgb", (64, 64, 3)) if frames else None)
+    vq = resolve("vqvae", spec, {"channels": 8, "n_codes": 16, "hidden": 40}).cfg
+    cases = [("vqvae", {"channels": 4, "code_dim": 8}, None), ("vqvae", {}, None),
+             ("fast_loop", {"d_model": 24, "d_state": 12}, None), ("fast_loop", {"window": {"k": 3}}, vq),
+             ("mid_loop", {"n_layers": 3, "d_model": 16, "mlp_ratio": 3}, vq), ("mid_loop", {}, vq)]
+    for name, model_config, vq_cfg in cases:
+        r = resolve(name, spec, model_config, vq_cfg)
+        model = {"vqvae": lambda: VQVAE(r.cfg), "fast_loop": lambda: FastLoop(r.cfg, vq_cfg and VQVAE(vq_cfg)),
+                 "mid_loop": lambda: MidLoop(r.cfg, VQVAE(vq_cfg))}[name]()
+        assert _expanded(config_layers(r)) == _expanded(model_layers(model)), (name, model_config)
+        built = estimate_memory(name, model, 32, r.window.k, 7, 3, bool(model.wants_frames),
+                                horizons=len(r.window.horizons_s))
+        assert estimate_from_config(r, 32, 7, 3) == built, (name, model_config)

@@ -190,6 +190,26 @@ def test_resume_with_other_settings_is_refused(ds, tmp_path):
         train(cfg_for(ds, tmp_path, steps=40, seed=4), component_factory=factory())
 
 
+@pytest.mark.parametrize("file,edit,match", [
+    ("config.json", lambda c: c.update(train=["not", "an", "object"]), r"config.json: 'train' must be an object"),
+    ("config.json", lambda c: c.update(train={"seed": {"deep": [[3]]}}), r"seed: \{'deep'.* in the run dir, 3 now"),
+    ("training_state.json", lambda s: s["rng"].update(numpy="junk"), r"cannot resume from it: TypeError"),
+])
+def test_resume_from_a_checkpoint_with_malformed_json_is_a_clear_error(ds, tmp_path, file, edit, match):
+    """A run dir's checkpoint JSON is read as untrusted input: wrong types are a TrainSetupError
+    naming the checkpoint, never a traceback (an unreadable newest checkpoint is skipped on load)."""
+    from brain_fixtures import rewrite_manifest
+
+    train(cfg_for(ds, tmp_path, steps=20), component_factory=factory())
+    last = ckpt.latest_complete(tmp_path)
+    obj = json.loads((last / file).read_text())
+    edit(obj)
+    (last / file).write_text(json.dumps(obj))
+    rewrite_manifest(last)
+    with pytest.raises(TrainSetupError, match=match):
+        train(cfg_for(ds, tmp_path, steps=40), component_factory=factory())
+
+
 def test_setup_errors_name_the_problem(ds, tmp_path):
     with pytest.raises(TrainSetupError, match="no such file"):
         train(cfg_for(ds, tmp_path, data=str(tmp_path / "missing")), component_factory=factory())
@@ -276,3 +296,21 @@ def test_a_second_job_in_the_same_run_dir_is_refused_while_the_first_runs(ds, tm
     assert "in use by another training job" in c.err and f"pid {__import__('os').getpid()}" in c.err
     # released afterwards
     assert train(cfg_for(ds, tmp_path, steps=12), component_factory=factory()).resumed_from == 10
+
+
+def test_a_model_that_cannot_fit_is_refused_from_its_config_before_it_is_built(ds, tmp_path, monkeypatch):
+    """The pre-flight estimate runs on the configuration (model_config.resolve, estimate_from_config):
+    a model_config too big for the budget never reaches build_component, whose allocations were
+    what took the memory, and leaves no run dir behind; nor does a model_config with a typo."""
+    from hope_models.train import components
+
+    def build_nothing(*args, **kwargs):
+        raise AssertionError("the model was built before the pre-flight looked at its configuration")
+
+    monkeypatch.setattr(components, "build_component", build_nothing)
+    run_dir = tmp_path / "run"
+    with pytest.raises(TrainSetupError, match=r"fast_loop: estimated .* exceeds the budget of 3072 MB"):
+        train(cfg_for(ds, run_dir, model_config={"d_model": 4096}, memory_budget_mb=3072))
+    with pytest.raises(TrainSetupError, match=r"cannot build fast_loop: model_config for fast_loop: unknown key"):
+        train(cfg_for(ds, run_dir, model_config={"d_modle": 64}))
+    assert not run_dir.exists()

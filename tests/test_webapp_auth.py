@@ -116,8 +116,10 @@ def test_runs_api_create_control_and_4xx(webapp, settings):
     app, _socketio, token = webapp
     client = app.test_client()
     h = bearer(token)
+    from hope_models.data.synthetic import generate_dataset
+
     dataset = settings.datasets_dir / "ds"
-    dataset.mkdir(parents=True)
+    generate_dataset(dataset, 200, obs_dim=6, act_dim=2, seed=0, episode_seconds=(4.0, 6.0))  # checked at the door
 
     created = client.post("/api/runs", headers=h, json={"component": "fast_loop", "data": "ds", "steps": 40,
                                                         "threads": 1, "seed": 3})

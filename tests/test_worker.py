@@ -358,6 +358,7 @@ def test_vqvae_run_resolves_to_a_completed_vqvae_runs_dir(reg_home, tmp_path):
         resolve(nope)
     with reg_home.registry.session() as s:
         run = runs.get_run(s, vq)
+        runs.transition(s, run, "starting")
         runs.transition(s, run, "running")
         runs.transition(s, run, "completed")
     assert resolve(fast) == reg_home.run(vq)["run_dir"]
@@ -383,18 +384,17 @@ def world(tmp_path_factory):
 
 @pytest.fixture
 def cleanup(world):
-    """Runs a test leaves running are cancelled, so the next test's jobs are not stuck behind them."""
+    """Runs a test leaves starting or running are cancelled, so the next test's jobs are not stuck
+    behind them."""
     from daemon import runs
 
     home = world[0]
     yield
     with home.registry.session() as s:
         live = []
-        for run in runs.list_runs(s, states=["running"]):
-            if run.worker_pid is None:  # never claimed: no child will answer a request
-                runs.transition(s, run, "cancelled", reason="test", message="test cleanup")
-            else:
-                runs.request_control(s, run.id, "cancel")
+        for run in runs.list_runs(s, states=runs.ACTIVE):
+            runs.request_control(s, run.id, "cancel")  # a starting one (never claimed) ends at once
+            if run.state == "running":
                 live.append(run.id)
     for rid in live:
         wait_state(home, rid, {"cancelled", "completed", "failed", "paused", "queued"}, 30)
@@ -422,7 +422,7 @@ def test_real_worker_trains_a_run_to_completion(world, cleanup):
     # log_every=1: the trainer emitted 300 progress events; the registry got a handful
     assert len(progress) < 300 / 5
     assert [e["payload"]["step"] for e in events if e["kind"] == "checkpoint"] == [100, 200, 300]
-    assert home.states(rid) == ["queued", "running", "completed"]
+    assert home.states(rid) == ["queued", "starting", "running", "completed"]
     claimed = [e for e in events if e["kind"] == "log" and e["payload"]["message"].startswith("claimed by pid")]
     assert len(claimed) == 1 and f"pid {worker.pid} " not in claimed[0]["payload"]["message"]
     assert not maps_has_libtorch(worker.pid), "the worker parent loaded libtorch"
@@ -441,7 +441,7 @@ def test_stale_delivery_does_not_train(world, cleanup):
 
     wait_until(lambda: len(stale_notes()) == 2, 30, "two stale deliveries to be refused", home)
     run = home.run(rid)
-    assert run["state"] == "running" and run["worker_pid"] is None and run["step"] == 0
+    assert run["state"] == "starting" and run["worker_pid"] is None and run["step"] == 0
     assert home.events(rid, ["progress", "checkpoint"]) == [] and not Path(run["run_dir"]).exists()
 
     dispatch(home, app, rid, task_id=task_id)  # the real delivery trains
@@ -457,7 +457,7 @@ def test_pickle_message_is_refused(world, cleanup):
     wait_until(lambda: "Refusing to deserialize" in worker.log.read_text(errors="replace"), 30,
                "the worker to refuse a pickled message", home)
     run = home.run(rid)
-    assert run["state"] == "running" and run["worker_pid"] is None and run["step"] == 0
+    assert run["state"] == "starting" and run["worker_pid"] is None and run["step"] == 0
     with home.registry.session() as s:  # nobody will claim it: retire it
         runs.transition(s, runs.get_run(s, rid), "cancelled", reason="test")
 
@@ -500,7 +500,8 @@ def test_pause_resume_cancel_through_the_registry(world, cleanup):
     assert done["state"] == "cancelled", home.describe()
     assert time.monotonic() - t0 < 3.0
     assert checkpoint_step(done["last_checkpoint"]) == done["step"] > resumed_at + 10
-    assert home.states(rid) == ["queued", "running", "paused", "queued", "running", "cancelled"]
+    assert home.states(rid) == ["queued", "starting", "running", "paused", "queued", "starting", "running",
+                                "cancelled"]
 
 
 def test_bad_config_and_bad_data_fail_with_a_message(world, cleanup):
@@ -551,3 +552,22 @@ def test_service_stop_checkpoints_requeues_and_exits(target, tmp_path, tmp_path_
     finally:
         worker.stop()
         home.close()
+
+
+def test_a_run_may_not_take_more_memory_than_the_worker_was_given(reg_home, tmp_path):
+    """memory_budget_mb in a run's config may lower the worker's budget, never raise it: a row
+    that asks for more (written past the door's check, run_request.preflight) is refused before
+    the job builds anything."""
+    from daemon.models import Run
+    from workers.job import JobConfigError, build_train_config
+
+    settings = reg_home.settings
+    rid = create(reg_home, tmp_path / "d", steps=5)
+    with reg_home.registry.session(readonly=True) as s:
+        run = s.get(Run, rid)
+    for budget in (settings.memory_budget_mb + 1, 1e12):
+        run.config = {"data": "/d", "memory_budget_mb": budget}
+        with pytest.raises(JobConfigError, match=f"more than this worker's budget of {settings.memory_budget_mb} MB"):
+            build_train_config(settings, run, lambda r: pytest.fail("no vqvae_run here"))
+    run.config = {"data": "/d", "memory_budget_mb": 100}
+    assert build_train_config(settings, run, lambda r: pytest.fail("no vqvae_run here")).memory_budget_mb == 100

@@ -37,12 +37,15 @@ class HopeState:
     children: Any = None  # webapp.commands.ChildProcesses: promote / eval-reflex children
     reflex_jobs: Any = None  # webapp.api.sim.ReflexJobs
     monitor: Any = None  # daemon.monitor.SystemMonitor, made on the first GET /api/system without a daemon
+    socket_guard: Any = None  # webapp.socket_guard.SocketGuard: Socket.IO sessions must log in in time
     started: float = field(default_factory=time.monotonic)
 
     def close(self) -> None:
         """Stop the children this app started (a running promotion gate or sim reflex)."""
         if self.children is not None:
             self.children.close()
+        if self.socket_guard is not None:
+            self.socket_guard.close()
 
     def wake_daemon(self) -> None:
         """Ask an embedded daemon to look at the queue now rather than at its next tick."""
@@ -56,7 +59,8 @@ MAX_BODY_BYTES = 1 << 20  # 1 MiB: an observation of 4096 floats is ~100 kB of J
 
 
 def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None,
-               message_queue: str | None = None, brain: Any = None):
+               message_queue: str | None = None, brain: Any = None,
+               socket_auth_timeout_s: float = 10.0):
     """(Flask app, SocketIO). `registry` defaults to Registry.open(settings) (migrated)."""
     from flask import Flask
     from flask_socketio import SocketIO
@@ -65,6 +69,9 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     from webapp.api import register
     from webapp.api.sim import ReflexJobs
     from webapp.commands import ChildProcesses
+    from webapp.hosts import HostAllowlist, HostPolicy
+    from webapp.json_provider import FiniteJSONProvider
+    from webapp.socket_guard import SocketGuard
 
     if not isinstance(token, str) or len(token) < auth.MIN_TOKEN_CHARS:
         raise ValueError(f"create_app: the token must be a string of at least {auth.MIN_TOKEN_CHARS} characters")
@@ -74,13 +81,17 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
         registry = Registry.open(settings)
     app = Flask("webapp")
     app.config.update(JSON_SORT_KEYS=False, MAX_CONTENT_LENGTH=MAX_BODY_BYTES)
+    app.json = FiniteJSONProvider(app)  # no NaN/Infinity in any answer: webapp/json_provider.py
     app.json.sort_keys = False
     children = ChildProcesses(settings)
     app.extensions["hope"] = HopeState(settings=settings, registry=registry, token=token, daemon=daemon,
                                        brain=brain, children=children, reflex_jobs=ReflexJobs(children))
+    hosts = HostPolicy.from_settings(settings)
     # threading mode: no eventlet/gevent monkey-patching; WebSocket through simple-websocket.
+    # Browser origins follow the Host rule (webapp/hosts.py), never X-Forwarded-* headers.
     socketio = SocketIO(app, async_mode="threading", message_queue=message_queue, logger=False,
-                        engineio_logger=False)
+                        engineio_logger=False, cors_allowed_origins=hosts.origin_allowed)
+    app.extensions["hope"].socket_guard = SocketGuard(socketio, auth_timeout_s=socket_auth_timeout_s)
     app.extensions["hope"].reflex_jobs.socketio = socketio  # sim.frame events of the reflex jobs
     errors.install(app)  # first: the body size is checked before the token
     auth.install(app, socketio)
@@ -91,6 +102,8 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     from webapp.pages import bp as pages_bp
 
     app.register_blueprint(pages_bp)  # the Robot Editor: "/" and its pages (webapp/pages.py)
+    # Outermost, around Socket.IO's middleware too: no route or handshake answers a foreign Host.
+    app.wsgi_app = HostAllowlist(app.extensions["hope"].socket_guard.middleware(app.wsgi_app), hosts)
 
     return app, socketio
 

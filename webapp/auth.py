@@ -18,6 +18,8 @@ from typing import Any, Callable
 
 from flask import Flask, current_app, jsonify, request
 
+from webapp.socket_guard import mark_authorized
+
 TOKEN_FILENAME = "token"
 TOKEN_BYTES = 32  # 256 bits, urlsafe base64 (43 characters)
 MIN_TOKEN_CHARS = 16
@@ -137,6 +139,7 @@ def install(app: Flask, socketio) -> None:
     def _socket_connect(auth=None):
         if not socket_authorized(auth):
             raise SocketRefused("unauthorized: connect with auth={'token': <token>} (the token is in $HOPE_HOME/token)")
+        mark_authorized(request.environ)  # the session may stay past its login deadline (socket_guard.py)
 
 
 def socket_authorized(auth: Any) -> bool:

@@ -1,14 +1,37 @@
-"""The HTTP server for the webapp: Werkzeug's threaded WSGI server in a background thread.
+"""The HTTP server for the webapp: Werkzeug's threaded WSGI server, bounded, in a background thread.
 
-Flask-SocketIO's threading mode runs on it (WebSocket through simple-websocket); that is enough
-for a handful of Robot Editor browsers on a robot. We bind first and serve in a thread (rather
-than socketio.run(), which blocks and cannot be stopped from outside) so that `serve` can stop it
-in order with the daemon and the worker, and so port 0 (tests) reports the port it got.
+Flask-SocketIO's threading mode runs on it (WebSocket through simple-websocket). Werkzeug's server
+gives every connection a thread and waits on it as long as the client likes, so a neighbour that
+opens sockets and sends nothing (or half a request line) would take a thread each until the
+process runs out of threads or descriptors. Here every connection lives under limits:
+
+    accept --(cap reached?)-- yes --> "503 too many connections", closed at once
+       |
+       v  one thread per connection (as Werkzeug)
+    headers  -- all of the request line and headers within `header_timeout_s`
+       |
+    body     -- the declared body read within `body_timeout_s` (or until the answer starts)
+       |
+    app      -- no deadline: a long-poll GET waits for events, a view runs
+       |        every socket read/write may stall at most `io_timeout_s`
+    drain    -- after the answer, unread request bytes are discarded for `drain_timeout_s` at most
+       |        (at the cap, the oldest connection still sending its request is dropped for a newcomer)
+    websocket-- reads and writes may stall at most `ws_idle_timeout_s` (Engine.IO pings every 25 s);
+                logging in within a deadline is Socket.IO's part (webapp/socket_guard.py)
+
+A deadline is enforced by a reaper thread that shuts the socket down, which wakes the handler's
+blocked read with EOF. We bind first and serve in a thread (rather than socketio.run(), which blocks
+and cannot be stopped from outside) so that `serve` can stop it in order with the daemon and the
+worker, and so port 0 (tests) reports the port it got.
 """
 from __future__ import annotations
 
+import json
 import logging
+import socket
 import threading
+import time
+from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
@@ -17,14 +40,248 @@ class ServerError(RuntimeError):
     """The server cannot start (the port is taken, the address is not local); the message says which."""
 
 
-class HttpServer:
-    def __init__(self, app, host: str, port: int):
-        import socket
+@dataclass(frozen=True)
+class ConnectionLimits:
+    max_connections: int = 200
+    header_timeout_s: float = 10.0
+    body_timeout_s: float = 30.0
+    io_timeout_s: float = 30.0
+    ws_idle_timeout_s: float = 60.0  # > Engine.IO ping interval + ping timeout (25 + 20 s)
+    drain_timeout_s: float = 2.0  # after the answer: reading what is left of an unread request body
 
-        from werkzeug.serving import make_server, select_address_family
+    @classmethod
+    def from_settings(cls, settings) -> "ConnectionLimits":
+        return cls(max_connections=int(getattr(settings, "max_connections", cls.max_connections)))
+
+
+class _Connection:
+    __slots__ = ("sock", "phase", "deadline", "opened", "evicted")
+
+    def __init__(self, sock, deadline: float):
+        self.sock = sock
+        self.phase = "headers"
+        self.deadline: float | None = deadline
+        self.opened = time.monotonic()
+        self.evicted = False
+
+    def cut(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)  # wakes the handler's blocked read with EOF
+        except OSError:
+            pass
+
+    def enter(self, phase: str, deadline: float | None) -> None:
+        self.phase, self.deadline = phase, deadline
+
+
+_CONN_KEY = "hope.connection"
+# At the cap, a stalled request may be evicted for a new connection; the evicted ones take a moment
+# to leave, so the count may pass the cap by this much before newcomers are refused outright.
+EVICTION_SLACK = 32
+
+
+def _refusal(limit: int) -> bytes:
+    body = json.dumps({"error": f"the server has {limit} connections open, its limit; try again shortly"}).encode()
+    head = ("HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 2\r\n"
+            f"Connection: close\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+    return head + body
+
+
+def _make_server_classes():
+    from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler
+
+    class GuardedRequestHandler(WSGIRequestHandler):
+        def setup(self):
+            self.timeout = self.server.limits.io_timeout_s  # StreamRequestHandler applies it to the socket
+            super().setup()
+
+        def make_environ(self):
+            environ = super().make_environ()
+            conn = self.server.connection_of(self.connection)
+            environ[_CONN_KEY] = conn
+            limits = self.server.limits
+            if conn is not None:
+                if environ.get("HTTP_UPGRADE", "").lower() == "websocket":
+                    conn.enter("websocket", None)
+                    self.connection.settimeout(limits.ws_idle_timeout_s)
+                elif _has_body(environ):
+                    conn.enter("body", time.monotonic() + limits.body_timeout_s)
+                    environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ)
+                else:
+                    conn.enter("app", None)
+            return environ
+
+        def log_error(self, format, *args):  # noqa: A002 - http.server's signature
+            # "Request timed out" and friends from clients we cut off are not the service's errors.
+            log.debug("http: " + format, *args)
+
+    class GuardedServer(ThreadedWSGIServer):
+        def __init__(self, *args, limits: ConnectionLimits, **kwargs):
+            self.limits = limits
+            self._conns: dict[int, _Connection] = {}
+            self._conns_lock = threading.Lock()
+            self.refused = 0
+            super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
+            self._reaper_stop = threading.Event()
+            self._reaper = threading.Thread(target=self._reap, name="http-deadlines", daemon=True)
+            self._reaper.start()
+
+        def connection_of(self, sock) -> _Connection | None:
+            with self._conns_lock:
+                return self._conns.get(id(sock))
+
+        @property
+        def open_connections(self) -> int:
+            with self._conns_lock:
+                return len(self._conns)
+
+        def process_request(self, request, client_address):
+            victim = None
+            with self._conns_lock:
+                full = len(self._conns) >= self.limits.max_connections
+                if full and len(self._conns) < self.limits.max_connections + EVICTION_SLACK:
+                    # A client still sending its request after others have been served is the one
+                    # to drop (slow-header floods), not the newcomer: evict the oldest such.
+                    stalled = [c for c in self._conns.values() if c.phase in ("headers", "body") and not c.evicted]
+                    if stalled:
+                        victim = min(stalled, key=lambda c: c.opened)
+                        victim.evicted, full = True, False
+                if not full:
+                    self._conns[id(request)] = _Connection(request, time.monotonic() + self.limits.header_timeout_s)
+            if victim is not None:
+                victim.cut()
+            if full:
+                self.refused += 1
+                self._refuse(request)
+                return
+            try:
+                super().process_request(request, client_address)
+            except Exception:  # e.g. "can't start new thread": the connection must not stay counted
+                self._forget(request)
+                self.shutdown_request(request)
+                raise
+
+        def process_request_thread(self, request, client_address):
+            try:
+                super().process_request_thread(request, client_address)
+            finally:
+                self._forget(request)
+
+        def _forget(self, request) -> None:
+            with self._conns_lock:
+                self._conns.pop(id(request), None)
+
+        def _refuse(self, request) -> None:
+            # On the accepting thread: never block it. Read what the client already sent (so closing
+            # does not reset the connection before it sees the answer), say why, close.
+            try:
+                request.setblocking(False)
+                try:
+                    request.recv(65536)
+                except OSError:
+                    pass
+                request.send(_refusal(self.limits.max_connections))
+            except OSError:
+                pass
+            if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+                log.warning("refused a connection: %d open, the limit (%d refused so far)",
+                            self.limits.max_connections, self.refused)
+            self.shutdown_request(request)
+
+        def _reap(self) -> None:
+            while not self._reaper_stop.wait(0.25):
+                now = time.monotonic()
+                with self._conns_lock:
+                    late = [c for c in self._conns.values() if c.deadline is not None and now >= c.deadline]
+                for conn in late:
+                    conn.deadline = None
+                    log.debug("http: closing a connection that overran its %s deadline", conn.phase)
+                    conn.cut()
+
+        def server_close(self):
+            stop = getattr(self, "_reaper_stop", None)
+            if stop is not None:
+                stop.set()
+            super().server_close()
+
+    return GuardedServer
+
+
+def _has_body(environ) -> bool:
+    if environ.get("HTTP_TRANSFER_ENCODING", "").lower() == "chunked":
+        return True
+    try:
+        return int(environ.get("CONTENT_LENGTH") or 0) > 0
+    except ValueError:
+        return False
+
+
+class _BodyReader:
+    """wsgi.input that ends the connection's body deadline once the declared body is read."""
+
+    def __init__(self, raw, conn: _Connection, environ):
+        self._raw = raw
+        self._conn = conn
+        try:
+            self._left = int(environ.get("CONTENT_LENGTH") or -1)
+        except ValueError:
+            self._left = -1
+
+    def _consumed(self, data: bytes) -> bytes:
+        if self._left >= 0:
+            self._left -= len(data)
+        if self._conn.phase == "body" and (not data or self._left == 0):
+            self._conn.enter("app", None)
+        return data
+
+    def read(self, *args):
+        return self._consumed(self._raw.read(*args))
+
+    def readline(self, *args):
+        return self._consumed(self._raw.readline(*args))
+
+    def readlines(self, *args):
+        return [self._consumed(line) for line in self._raw.readlines(*args)]
+
+    def __iter__(self):
+        return iter(self.readline, b"")
+
+    def __getattr__(self, name):
+        return getattr(self._raw, name)
+
+
+class _AnswerSent:
+    """The app's response iterable; once it is exhausted, the connection only has Werkzeug's drain
+    of unread request bytes left, which reads until EOF: give that `drain_s` and no more."""
+
+    def __init__(self, iterable, conn: _Connection | None, drain_s: float):
+        self._iterable, self._conn, self._drain_s = iterable, conn, drain_s
+
+    def __iter__(self):
+        yield from self._iterable
+        if self._conn is not None and self._conn.phase != "websocket":
+            self._conn.enter("drain", time.monotonic() + self._drain_s)
+
+    def close(self):
+        close = getattr(self._iterable, "close", None)
+        if close is not None:
+            close()
+
+
+def _bounded_drain(app, drain_s: float):
+    def guarded(environ, start_response):
+        return _AnswerSent(app(environ, start_response), environ.get(_CONN_KEY), drain_s)
+
+    return guarded
+
+
+class HttpServer:
+    def __init__(self, app, host: str, port: int, limits: ConnectionLimits | None = None):
+        from werkzeug.serving import select_address_family
 
         # Werkzeug logs every request at INFO; keep the service logs about the service.
         logging.getLogger("werkzeug").setLevel(logging.WARNING)
+        self.limits = limits or ConnectionLimits()
         # Bind here (werkzeug would print its own message and sys.exit on a taken port).
         family = select_address_family(host, port)
         sock = socket.socket(family, socket.SOCK_STREAM)
@@ -33,7 +290,8 @@ class HttpServer:
             sock.bind((host, port))
             sock.listen(128)
             bound_port = sock.getsockname()[1]
-            self._server = make_server(host, bound_port, app, threaded=True, fd=sock.fileno())
+            self._server = _make_server_classes()(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
+                                                  fd=sock.fileno(), limits=self.limits)
         except OSError as exc:
             raise ServerError(f"cannot listen on {host}:{port}: {exc.strerror or exc} "
                               "(set another port with --port or HOPE_PORT)") from None
@@ -52,13 +310,24 @@ class HttpServer:
             host = f"[{host}]"
         return f"http://{host}:{self.port}/"
 
+    @property
+    def open_connections(self) -> int:
+        return self._server.open_connections
+
+    @property
+    def refused_connections(self) -> int:
+        return self._server.refused
+
     def start(self) -> None:
         self._thread = threading.Thread(target=self._server.serve_forever, name="http", daemon=True)
         self._thread.start()
-        log.info("webapp listening on %s", self.url)
+        log.info("webapp listening on %s (at most %d connections)", self.url, self.limits.max_connections)
 
     def stop(self, timeout: float = 5.0) -> None:
         self._server.shutdown()
         self._server.server_close()
         if self._thread is not None:
             self._thread.join(timeout)
+
+
+__all__ = ["ConnectionLimits", "HttpServer", "ServerError"]

@@ -26,9 +26,9 @@ import signal
 from pathlib import Path
 
 from celery import Celery
-from celery.signals import worker_shutting_down
+from celery.signals import worker_init, worker_shutting_down
 
-from hope_models.settings import Settings, load_settings
+from hope_models.settings import Settings, load_settings, use_private_umask
 
 TASK_TRAIN_RUN = "hope.train_run"
 DEFAULT_QUEUE = "pi"
@@ -115,6 +115,14 @@ def create_celery(settings: Settings) -> Celery:
     app.conf.update(conf)
     app.hope_settings = settings
     return app
+
+
+@worker_init.connect
+def _private_files(**_kw) -> None:
+    """A worker started as `celery -A workers.celery:app worker` (serve, tests, by hand) rather than
+    through run_trainer.py: its job children write checkpoints, logs and the registry under
+    $HOPE_HOME, which are its user's alone (they inherit the umask from this parent)."""
+    use_private_umask()
 
 
 @worker_shutting_down.connect

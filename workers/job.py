@@ -92,7 +92,13 @@ def build_train_config(settings, run: RunSnapshot, run_dir_of: Callable[[str], s
         if cfg.get("vqvae_dir"):
             raise JobConfigError(f"run {run.id}: config sets both vqvae_run and vqvae_dir; give one")
         cfg["vqvae_dir"] = run_dir_of(str(vqvae_run))
-    cfg.setdefault("memory_budget_mb", float(settings.memory_budget_mb))
+    budget = cfg.setdefault("memory_budget_mb", float(settings.memory_budget_mb))
+    if isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget > settings.memory_budget_mb:
+        # the door refuses this (run_request.preflight); a run row written otherwise must not
+        # take more of this machine than its owner gave the worker either
+        raise JobConfigError(f"run {run.id}: memory_budget_mb {budget:g} is more than this worker's budget of "
+                             f"{settings.memory_budget_mb} MB (HOPE_MEMORY_BUDGET_MB); a run may ask for less, "
+                             "never for more")
     cfg.setdefault("cache_dir", str(settings.cache_dir))
     return TrainConfig(component=run.component, run_dir=run.run_dir, steps=run.total_steps,
                        thermal_zone=None, vcgencmd=None, **cfg)

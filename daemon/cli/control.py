@@ -1,7 +1,7 @@
 """`run_trainer.py cancel|pause|resume RUN [--json]`: ask for a change of a run's state.
 
-The request goes into the registry (runs.request_control): a queued or paused run changes at once;
-a running one gets its desired state set, and the job's training loop, which polls it between
+The request goes into the registry (runs.request_control): a queued, starting (sent to its queue,
+not yet taken by a worker) or paused run changes at once; a running one gets its desired state set, and the job's training loop, which polls it between
 steps, checkpoints and stops (cancel keeps the checkpoints). So these work whether the daemon is up
 or not. A request that makes no sense (cancelling a completed run) exits 2 with the reason.
 `--json` prints {"run": Run.to_json_obj()} after the request.

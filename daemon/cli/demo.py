@@ -218,7 +218,7 @@ class Demo:
 
         with self.serve.registry.session(readonly=True) as s:
             seqs = s.scalars(select(Run.sequence_id).where(Run.sequence_id.is_not(None),
-                                                           Run.state.in_(("queued", "running", "interrupted")),
+                                                           Run.state.in_(("queued", "starting", "running", "interrupted")),
                                                            Run.queue == self.args.queue).distinct()).all()
             for seq in seqs:
                 members = runs.sequence_runs(s, seq)

@@ -4,8 +4,9 @@
 
 It only writes the registry, so it works whether the daemon is up or not: the run starts when the
 daemon sees it (exactly one run trains at a time per queue, by priority then age). The options
-mirror `train`'s; everything is checked here (a missing dataset is refused now, not minutes later
-in the worker). `--json` prints {"id", "state", "run_dir"}.
+mirror `train`'s; everything is checked here, as POST /api/runs checks it (daemon/run_request.py:
+a path that holds no usable episodes, a model_config the component or the memory budget cannot
+take is refused now, not minutes later in the worker). `--json` prints {"id", "state", "run_dir"}.
 """
 from __future__ import annotations
 
@@ -86,16 +87,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from daemon.cli.registry import open_registry, print_json, run_command
-    from daemon.run_request import build_request, submit
+    from daemon.run_request import build_request, queue_run
 
     def body() -> int:
         req = build_request(component=args.component, data=args.data, steps=args.steps, queue=args.queue,
                             priority=args.priority, max_attempts=args.max_attempts, vqvae_dir=args.vqvae,
                             vqvae_run=args.vqvae_run, overrides=overrides_from_args(args))
         with open_registry() as (settings, registry):
-            with registry.session() as s:
-                run_ = submit(s, settings, req)
-                out = {"id": run_.id, "state": run_.state, "run_dir": run_.run_dir}
+            out = queue_run(registry, settings, req, show=lambda s, r: {"id": r.id, "state": r.state,
+                                                                        "run_dir": r.run_dir})
         if args.json:
             print_json(out)
         else:

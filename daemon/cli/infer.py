@@ -12,8 +12,9 @@ then lasts only this command, so every --local call is an episode's first tick).
 
 Prints the action, the model version that produced it and the latency (--json: the service's
 answer {"action", "model_version", "latency_ms", "session"} plus "via": "http" | "local").
-Exit 0 answered; 1 nothing could answer (no service running, or no promoted model yet); 2 bad
-input (the message says what is wrong: wrong length, NaN, not a list of numbers, unknown component).
+Exit 0 answered; 1 nothing could answer (no service running, no promoted model yet, or the model
+computed a non-finite action: a 500); 2 bad input (the message says what is wrong: wrong length,
+NaN, a value beyond +-1e6, not a list of numbers, unknown component).
 """
 from __future__ import annotations
 
@@ -109,7 +110,9 @@ def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
         if exc.code == 401:
             raise InferFailure(f"{base} refused the token in {path} (is that service running with another "
                                "HOPE_HOME?)", USAGE_EXIT) from None
-        code = NOT_ANSWERED_EXIT if exc.code in (404, 503) and "component" not in str(message) else USAGE_EXIT
+        # 5xx: the service could not answer (no model yet, or the model computed a non-finite action)
+        code = NOT_ANSWERED_EXIT if (exc.code == 404 and "component" not in str(message)) or exc.code >= 500 \
+            else USAGE_EXIT
         if exc.code == 404 and "component" not in str(message):
             message = f"{message} (is the service at {base} a HOPE serve/webapp with the brain API?)"
         raise InferFailure(f"{base}: {exc.code}: {message}", code) from None
@@ -143,7 +146,7 @@ def _via_local(settings, body: dict[str, Any]) -> dict[str, Any]:
     try:
         return brain.infer(body["component"], body["observation"], body.get("session"), body.get("reset", False))
     except BrainError as exc:
-        raise InferFailure(str(exc), NOT_ANSWERED_EXIT if exc.status == 503 else USAGE_EXIT) from None
+        raise InferFailure(str(exc), NOT_ANSWERED_EXIT if exc.status >= 500 else USAGE_EXIT) from None
     finally:
         brain.stop()  # runs the queued first-inference record before the process exits
 

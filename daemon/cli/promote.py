@@ -6,7 +6,9 @@ Gates a candidate and promotes it when it passes (hope_models/promote/gate.py):
    checkpoint dir or a run dir; its run is found in the registry by its run dir when it has one);
 2. the gate runs here, with torch, against the model the registry says is promoted for the
    component (finite weights, validation loss on the candidate's validation split, the sim
-   reflex for a reacher fast_loop);
+   reflex for a reacher fast_loop); a candidate of a registry run is scored on that run's
+   dataset as the registry holds it, a bare checkpoint on what its config.json names, followed
+   only inside the data roots (config.json is untrusted: hope_models/promote/gate.py);
 3. the candidate is recorded in the models table with its gate result and metrics (refused ones
    too: the history says why), and promoted when it passed, or with --force (recorded as forced;
    non-finite weights are never promoted, forced or not: a robot must not get NaN actions);
@@ -91,8 +93,14 @@ def _usage(args: argparse.Namespace, message: str) -> int:
     return USAGE_EXIT
 
 
-def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None]:
-    """(checkpoint dir, run id or None) of the request."""
+def _run_data(run) -> str | None:
+    """The dataset a registry run was submitted with (checked at the door: daemon/run_request.py)."""
+    data = run.config.get("data") if isinstance(run.config, dict) else None
+    return data if isinstance(data, str) and data else None
+
+
+def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | None]:
+    """(checkpoint dir, run id or None, the run's dataset or None) of the request."""
     from sqlalchemy import select
 
     from daemon import runs
@@ -105,7 +113,7 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None]:
             raise UsageError(f"run {run.id} is {run.state}; only a completed run is promoted "
                              "(or pass --checkpoint DIR to gate one of its checkpoints)")
         try:
-            return resolve_candidate(run.run_dir), run.id
+            return resolve_candidate(run.run_dir), run.id, _run_data(run)
         except GateError as exc:
             raise UsageError(f"run {run.id}: {exc}") from None
     try:
@@ -114,7 +122,7 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None]:
         raise UsageError(str(exc)) from None
     run_dir = str(ckpt.parent.parent)
     found = s.scalars(select(Run).where(Run.run_dir.in_([run_dir, str(Path(run_dir).resolve())]))).first()
-    return ckpt, (found.id if found is not None else None)
+    return ckpt, (found.id if found is not None else None), (_run_data(found) if found is not None else None)
 
 
 def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
@@ -126,10 +134,11 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
     from daemon.runs import RunError
     from hope_models.promote.gate import GateError, gate_candidate
     from hope_models.promote.pointers import PointerError, checkpoint_version
+    from hope_models.train.checkpoint import CheckpointError, read_json_object
 
     with registry.session(readonly=True) as s:
         try:
-            ckpt, run_id = _candidate(s, args)
+            ckpt, run_id, run_data = _candidate(s, args)
         except RunError as exc:
             raise UsageError(str(exc)) from None
         if args.auto and run_id is not None:
@@ -140,8 +149,8 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
                                        "run_id": run_id, "forced": False, "reasons": [], "metrics": {},
                                        "skipped": f"run {run_id} already has a candidate record (model {row.id})"}
         try:
-            component = json.loads((ckpt / "config.json").read_text(encoding="utf-8")).get("component")
-        except (OSError, ValueError, AttributeError) as exc:
+            component = read_json_object(ckpt / "config.json").get("component")
+        except (OSError, CheckpointError) as exc:
             raise UsageError(f"{ckpt / 'config.json'}: not readable: {exc}") from None
         if component not in COMPONENTS:
             raise UsageError(f"{ckpt / 'config.json'}: component {component!r} is not one of {', '.join(COMPONENTS)}")
@@ -164,7 +173,9 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
 
     torch.set_num_threads(max(1, int(args.threads)))
     try:
-        result = gate_candidate(ckpt, current_ckpt, settings=settings)
+        # A registry run's own dataset, not the one its checkpoint's config.json names (untrusted:
+        # the gate follows those paths only inside the data roots).
+        result = gate_candidate(ckpt, current_ckpt, data=run_data, settings=settings)
     except GateError as exc:
         raise UsageError(str(exc)) from None
     gate = result.to_json_obj()

@@ -25,8 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from daemon.cli.registry import CommandError, open_registry, print_json, run_command
-    from daemon.dispatch import create_sequence
-    from daemon.run_request import build_request, check_vqvae_run
+    from daemon.run_request import build_request, queue_sequence
     from hope_models.train.sequential import SequenceError, parse_sequence
 
     def body() -> int:
@@ -39,13 +38,10 @@ def run(args: argparse.Namespace) -> int:
                             priority=args.priority, max_attempts=args.max_attempts, vqvae_dir=args.vqvae,
                             vqvae_run=args.vqvae_run, overrides=overrides_from_args(args))
         with open_registry() as (settings, registry):
-            with registry.session() as s:
-                check_vqvae_run(s, req.vqvae_run)
-                members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
-                                          queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
-                out = {"sequence_id": members[0].sequence_id,
-                       "runs": [{"id": r.id, "component": r.component, "state": r.state, "run_dir": r.run_dir}
-                                for r in members]}
+            sequence_id, members = queue_sequence(
+                registry, settings, names, req,
+                show=lambda s, r: {"id": r.id, "component": r.component, "state": r.state, "run_dir": r.run_dir})
+            out = {"sequence_id": sequence_id, "runs": members}
         if args.json:
             print_json(out)
         else:

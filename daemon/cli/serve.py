@@ -204,14 +204,15 @@ class Serve:
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
         from webapp import create_app
         from webapp.auth import load_or_create_token
-        from webapp.server import HttpServer
+        from webapp.server import ConnectionLimits, HttpServer
 
         self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
         token = load_or_create_token(self.settings)
         self.brain = BrainService(self.settings.home)
         app, socketio = create_app(self.settings, token=token, registry=self.registry, brain=self.brain)
         self.app = app
-        self.server = HttpServer(app, self.settings.host, self.settings.port)  # bind before anything runs
+        self.server = HttpServer(app, self.settings.host, self.settings.port,  # bind before anything runs
+                                 ConnectionLimits.from_settings(self.settings))
         # remote_reports=False: serve's own worker child trains every run, on this host.
         self.daemon = Daemon(self.settings, SocketIOSink(socketio), tick_s=self.args.tick, registry=self.registry,
                              local_queues=(self.args.queue,), remote_reports=False)
@@ -239,10 +240,11 @@ class Serve:
     def _local_running(self) -> list[str]:
         from sqlalchemy import select
 
+        from daemon import runs
         from daemon.models import Run
 
         with self.registry.session(readonly=True) as s:
-            return list(s.scalars(select(Run.id).where(Run.state == "running", Run.queue == self.args.queue)))
+            return list(s.scalars(select(Run.id).where(Run.state.in_(runs.ACTIVE), Run.queue == self.args.queue)))
 
     def _hand_back_runs(self) -> list[str]:
         """Ask our worker's running job to checkpoint and requeue itself; a run dispatched but not yet
@@ -254,9 +256,9 @@ class Serve:
         for run_id in self._local_running():
             with self.registry.session() as s:
                 run = s.get(Run, run_id)
-                if run is None or run.state != "running":
+                if run is None or run.state not in runs.ACTIVE:
                     continue
-                if run.worker_pid is None:
+                if run.state == "starting":
                     runs.transition(s, run, "queued", reason="shutdown", message=runs.SHUTDOWN_MESSAGE)
                     log.info("run %s: not started yet; back in the queue", run_id)
                 else:

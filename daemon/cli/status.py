@@ -1,8 +1,12 @@
 """`run_trainer.py status [RUN] [--all] [--json]`: the runs in the registry.
 
 Without RUN: every run that has not ended plus the most recent ones (`--all`: every run), newest
-first. `--json` prints {"runs": [Run.to_json_obj(), ...]}. Reads the database only, so it works
-whether the daemon is up or not.
+first. `--json` prints {"runs": [Run.to_json_obj(), ...]} (runs.to_json). Reads the database only,
+so it works whether the daemon is up or not.
+
+A `starting` run was sent to its queue but no worker has taken it yet; under the table (and in
+`waiting` in the JSON) it says since when it waits for a worker on which queue, and a queued run
+held behind it says so too.
 
 CLOSURE is the run's loop-closure time: from the run completing to the first inference BrainService
 answered with its weights (promotion gate and hot reload included; recorded by the webapp that hosts
@@ -76,9 +80,11 @@ def format_table(runs: list[dict[str, Any]]) -> str:
                      closure_text(r.get("loop_closure_s"))))
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
-    for r in runs:  # why a run failed or was cancelled, under the table
+    for r in runs:  # why a run failed or was cancelled, or what it waits for, under the table
         if r["state"] in ("failed", "cancelled") and r.get("error"):
             lines.append(f"{r['id']}: {r['error']}")
+        elif r.get("waiting"):
+            lines.append(f"{r['id']}: {r['waiting']}")
     return "\n".join(lines)
 
 
@@ -86,15 +92,15 @@ def collect(session, run_id: str | None, all_runs: bool) -> list[dict[str, Any]]
     from daemon import runs
 
     if run_id:
-        return [runs.get_run(session, run_id).to_json_obj()]
+        return runs.to_json(session, [runs.get_run(session, run_id)])
     if all_runs:
-        return [r.to_json_obj() for r in runs.list_runs(session)]
+        return runs.to_json(session, runs.list_runs(session))
     live = [s for s in runs.STATES if s not in runs.TERMINAL]
     chosen = {r.id: r for r in runs.list_runs(session, states=live)}
     for r in runs.list_runs(session, limit=RECENT):
         chosen.setdefault(r.id, r)
     ordered = sorted(chosen.values(), key=lambda r: (r.created_at, r.id), reverse=True)
-    return [r.to_json_obj() for r in ordered]
+    return runs.to_json(session, ordered)
 
 
 def run(args: argparse.Namespace) -> int:

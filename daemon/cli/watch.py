@@ -62,6 +62,8 @@ def progress_line(run: dict[str, Any]) -> str:
         parts.append(f"throttle {run['throttle_level']}")
     if run["state"] in ("queued", "interrupted") and run.get("attempt", 1) > 1:
         parts.append(f"attempt {run['attempt']}/{run['max_attempts']}")
+    if run.get("waiting"):
+        parts.append(run["waiting"])
     return "  ".join(parts)
 
 
@@ -113,7 +115,7 @@ def watch(registry, run_id: str, interval: float, display: Display) -> dict[str,
 
     while True:
         with registry.session(readonly=True) as s:
-            obj = runs.get_run(s, run_id).to_json_obj()
+            obj = runs.to_json(s, [runs.get_run(s, run_id)])[0]
         display.show(obj)
         if obj["state"] in END_EXIT_CODES:
             return obj

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.settings import SettingsError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
-    from webapp.server import HttpServer, ServerError
+    from webapp.server import ConnectionLimits, HttpServer, ServerError
 
     logging.basicConfig(level=getattr(logging, args.log_level.upper()), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         token = load_or_create_token(settings)
         app, socketio = create_app(settings, token=token, registry=registry, message_queue=settings.redis_url,
                                    brain=brain)
-        server = HttpServer(app, settings.host, settings.port)
+        server = HttpServer(app, settings.host, settings.port, ConnectionLimits.from_settings(settings))
     except (TokenError, ServerError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         registry.close()

@@ -185,9 +185,11 @@ class FeatureSpec:
         if missing:
             raise FeatureSpecError(f"{where}: not a complete spec: {', '.join(missing)} needs fields with sizes, "
                                    "mean and std")
+        notes = obj.get("notes", [])
+        if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+            raise FeatureSpecError(f"{where}: notes must be a list of strings")
         spec = cls(observation=partial.observation.resolved(), action=partial.action.resolved(),
-                   frame=partial.frame, std_floor=partial.std_floor,
-                   notes=[str(n) for n in obj.get("notes", [])] if isinstance(obj, dict) else [])
+                   frame=partial.frame, std_floor=partial.std_floor, notes=list(notes))
         return spec
 
     @classmethod
@@ -273,6 +275,9 @@ class SpecRequest:
         return any(g is None or any(f.size is None for f in g.fields) for g in groups) or not self.frame_given
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -305,8 +310,10 @@ def _parse_group(obj: Any, root: str, where: str, std_floor: float) -> PartialGr
     if mean is not None:
         dim = sum(f.size for f in fields) if all(f.size is not None for f in fields) else None
         for name, vec in (("mean", mean), ("std", std)):
-            if not isinstance(vec, list) or not all(_is_number(v) and math.isfinite(v) for v in vec):
-                raise FeatureSpecError(f"{where}: {name} must be a list of finite numbers")
+            # within float32's range: the models and the runtime normalise in float32, where a
+            # larger statistic (from a hand-edited or hostile spec) would become Inf
+            if not isinstance(vec, list) or not all(_is_number(v) and abs(v) <= _F32_MAX for v in vec):
+                raise FeatureSpecError(f"{where}: {name} must be a list of finite numbers within float32's range")
             if dim is not None and len(vec) != dim:
                 raise FeatureSpecError(f"{where}: {name} has {len(vec)} values, the fields make {dim}")
         if dim is None:

@@ -35,41 +35,16 @@ call forward() on the last K grid points (make_windows), or init_state() and ste
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hope_models.models.ssm import SSMConfig, SSMStack, count_params
+from hope_models.models.configs import MidLoopConfig
+from hope_models.models.ssm import SSMStack, count_params
 from hope_models.models.vqvae import VQVAE
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class MidLoopConfig:
-    act_dim: int = 0
-    n_codes: int = 0  # codebook size of the frozen VQ-VAE
-    horizon_steps: tuple[int, ...] = (5, 10)  # grid steps ahead, one prediction head each
-    d_model: int = 128
-    n_layers: int = 2
-    d_state: int = 64
-    mlp_ratio: int = 2
-    min_timescale: float = 1.0  # grid steps (100 ms each in the default window)
-    max_timescale: float = 64.0
-
-    def ssm_config(self) -> SSMConfig:
-        return SSMConfig(self.d_model, self.d_state, self.n_layers, self.mlp_ratio, self.min_timescale,
-                         self.max_timescale)
-
-    def validate(self) -> None:
-        if self.act_dim < 1 or self.n_codes < 2:
-            raise ValueError(f"act_dim={self.act_dim} must be >= 1 and n_codes={self.n_codes} >= 2")
-        if not self.horizon_steps or any(int(s) != s or s < 1 for s in self.horizon_steps):
-            raise ValueError(f"horizon_steps={self.horizon_steps} must be positive whole grid steps")
-        if self.d_model < 1 or self.n_layers < 1 or self.d_state < 1 or self.mlp_ratio < 1:
-            raise ValueError("d_model, n_layers, d_state and mlp_ratio must be >= 1")
 
 
 def previous_actions(act: torch.Tensor) -> torch.Tensor:

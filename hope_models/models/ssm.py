@@ -31,23 +31,13 @@ what forward() gives on the whole stepped sequence, not on the last K points.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-@dataclass
-class SSMConfig:
-    d_model: int = 128
-    d_state: int = 64
-    n_layers: int = 2
-    mlp_ratio: int = 2  # gated MLP hidden width = mlp_ratio * d_model
-    min_timescale: float = 1.0  # initial decay timescales (in grid steps), log-spaced over the state
-    max_timescale: float = 64.0
-    chunk: int = 64  # longest stretch the parallel form handles with one kernel
+from hope_models.models.configs import SSMConfig
 
 
 class DiagonalSSM(nn.Module):

@@ -17,6 +17,13 @@ Checks, in order (the later ones only when the earlier ones could run):
    demos are recorded from seed 100000 up), and so is the promoted one; refused when the
    candidate's mean return is below the promoted one's minus gate_reflex_tolerance.
 
+The dataset (train_source): the promotion's own when it has one (`promote RUN` passes the run's
+from the registry), else the one the candidate's config.json names, with its cache dir and spec
+override. config.json is untrusted input: those paths are followed only inside the data roots
+($HOPE_HOME and settings.data_roots, the rule POST /api/runs applies), and a value of the wrong
+type or out of range is a failed val_loss check naming the field and the file, before anything is
+read or created.
+
 Each model sees the data normalised with its own feature spec's statistics (what it was trained
 with; the anchors do not depend on it). When the two specs' statistics differ, the losses are in
 each model's own normalised units and a note says so; likewise when two mid_loops predict the codes
@@ -79,13 +86,14 @@ class _Gate:
 # -- loading -------------------------------------------------------------------------------------
 
 def _read_config(ckpt: Path) -> dict[str, Any]:
+    from hope_models.train.checkpoint import CheckpointError, read_json_object
+
     try:
-        obj = json.loads((ckpt / "config.json").read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise GateError(f"{ckpt / 'config.json'}: not readable JSON: {exc}") from None
-    if not isinstance(obj, dict):
-        raise GateError(f"{ckpt / 'config.json'}: must be a JSON object")
-    return obj
+        return read_json_object(ckpt / "config.json")
+    except FileNotFoundError:
+        raise GateError(f"{ckpt / 'config.json'}: not found") from None
+    except CheckpointError as exc:
+        raise GateError(str(exc)) from None
 
 
 def resolve_candidate(path: str | Path) -> Path:
@@ -126,16 +134,59 @@ def _load_component(ckpt: Path):
 
 # -- data ------------------------------------------------------------------------------------------
 
-def _open_data(data: str, train_cfg: dict[str, Any], settings: Any):
+@dataclass(frozen=True)
+class TrainSource:
+    """What the val_loss check reads: the dataset, the cache root it is compiled under, the
+    feature spec override (None: inferred, as the trainer does without one)."""
+    data: str
+    cache_root: Path
+    spec_path: Path | None
+
+
+def train_source(cand_cfg: dict[str, Any], where: Path, data: str | Path | None, settings: Any) -> TrainSource | None:
+    """The candidate's training data. With `data` (the promotion's own dataset: `promote RUN`
+    passes the run's, from the registry), config.json's paths are not followed at all: the cache
+    is compiled under settings.cache_dir with the inferred spec, as a run the worker trained.
+    Otherwise train.data, train.cache_dir and train.spec_path come from config.json, which is
+    untrusted (anyone who can write a checkpoint dir under a data root can ask for its promotion):
+    each must lie inside the data roots (hope_models/paths.py, the rule POST /api/runs applies),
+    because the gate reads the spec, walks the dataset and creates the cache dir. ValueError names
+    the field and the file; None when config.json names no dataset."""
+    from hope_models.paths import PathError, confine_path, data_roots
+
+    if data is not None:
+        return TrainSource(str(data), Path(settings.cache_dir), None)
+    train = cand_cfg.get("train", {})
+    if not isinstance(train, dict):
+        raise ValueError(f"{where}: 'train' must be an object, got {type(train).__name__}")
+    roots = data_roots(settings)
+
+    def confined(name: str, must_exist: bool) -> Path | None:
+        value = train.get(name)
+        if value is None:
+            return None
+        try:
+            return confine_path(f"train.{name}", value, allowed_roots=roots, must_exist=must_exist)
+        except PathError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    # all three checked before anything is read or created
+    dataset, cache_root, spec_path = confined("data", True), confined("cache_dir", False), confined("spec_path", True)
+    if dataset is None:
+        return None
+    return TrainSource(str(dataset), cache_root or Path(settings.cache_dir), spec_path)
+
+
+def _open_data(source: TrainSource):
     """The candidate run's dataset cache (built like the trainer builds it); ValueError with the reason."""
     from hope_models.data.cache import CacheError, load_or_build
     from hope_models.data.features import FeatureSpecError
     from hope_models.train.loop import TrainSetupError, dataset_dir_for
 
-    cache_root = Path(train_cfg.get("cache_dir") or settings.cache_dir)
+    data, cache_root = source.data, source.cache_root
     try:
         data_dir = dataset_dir_for(data, cache_root)
-        cache, _info = load_or_build(data_dir, cache_root, train_cfg.get("spec_path"))
+        cache, _info = load_or_build(data_dir, cache_root, None if source.spec_path is None else str(source.spec_path))
     except (TrainSetupError, CacheError, FeatureSpecError) as exc:
         raise ValueError(str(exc)) from None
     except OSError as exc:
@@ -210,9 +261,9 @@ def sim_task(cache) -> str | None:
 
 def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, data: str | Path | None = None,
                    settings: Any) -> GateResult:
-    """Run the checks of the module doc. `data` overrides the dataset the candidate was trained
-    on (default: its config.json "train"."data"). Raises GateError only when the candidate itself
-    cannot be read; every other problem is a failed or skipped check in the result."""
+    """Run the checks of the module doc. `data` is the promotion's own dataset, which replaces
+    what the candidate's config.json names (train_source). Raises GateError only when the
+    candidate itself cannot be read; every other problem is a failed or skipped check in the result."""
     gate = _Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
     cand_cfg = _read_config(cand_dir)
@@ -244,26 +295,34 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
         prom_problem = "nothing promoted yet to compare with"
 
     # 2. validation loss on the candidate's split, 3. the sim reflex (fast_loop on reacher data)
-    train_cfg = cand_cfg.get("train") if isinstance(cand_cfg.get("train"), dict) else {}
-    cache = _val_check(gate, metrics, cand, cand_dir, prom, prom_problem, train_cfg,
-                       str(data) if data is not None else train_cfg.get("data"))
+    cache = _val_check(gate, metrics, cand, cand_dir, prom, prom_problem, cand_cfg, data)
     _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, cache)
     return gate.result(metrics)
 
 
 def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_problem: str | None,
-               train_cfg: dict[str, Any], data: str | None):
+               cand_cfg: dict[str, Any], data: str | Path | None):
     """The val_loss check; returns the candidate's dataset cache (None when it cannot be opened)."""
     from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
 
     tol = float(gate.settings.gate_val_tolerance)
-    if not data:
-        gate.record("val_loss", FAILED, f"{cand_dir / 'config.json'} names no training data ('train'.'data'); "
+    where = cand_dir / "config.json"
+    try:
+        source = train_source(cand_cfg, where, data, gate.settings)
+        train_cfg = cand_cfg.get("train") or {"batch_size": 64}
+        if not isinstance(train_cfg, dict):
+            raise ValueError(f"{where}: 'train' must be an object, got {type(train_cfg).__name__}")
+        setup = ValidationSetup.from_train_config(train_cfg, where=f"{where}: train")
+    except ValueError as exc:
+        gate.record("val_loss", FAILED, f"the validation loss was not measured: {exc}")
+        return None
+    if source is None:
+        gate.record("val_loss", FAILED, f"{where} names no training data ('train'.'data'); "
                                         "the validation loss cannot be measured (pass data=)")
         return None
+    data = source.data
     try:
-        cache = _open_data(data, train_cfg, gate.settings)
-        setup = ValidationSetup.from_train_config(train_cfg or {"batch_size": 64})
+        cache = _open_data(source)
     except ValueError as exc:
         gate.record("val_loss", FAILED, f"cannot measure the validation loss on {data}: {exc}")
         return None
@@ -363,5 +422,5 @@ def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, pr
         gate.record("reflex", PASSED, text)
 
 
-__all__ = ["GateResult", "GateError", "gate_candidate", "resolve_candidate", "non_finite_tensors", "fit_problem",
-           "normalised_view", "sim_task"]
+__all__ = ["GateResult", "GateError", "TrainSource", "gate_candidate", "resolve_candidate", "non_finite_tensors",
+           "fit_problem", "normalised_view", "sim_task", "train_source"]

@@ -133,6 +133,8 @@ def checkpoint_version(ckpt_dir: str | os.PathLike) -> tuple[str, str]:
     (checkpoints/<step> sits in <run dir>/checkpoints), a bare checkpoint dir gives its own name;
     the step comes from config.json's "checkpoint"."step", else from a numeric dir name, else 0.
     """
+    from hope_models.train.checkpoint import CheckpointError, read_json_object
+
     ckpt = Path(ckpt_dir)
     weights = ckpt / MODEL_FILE
     try:
@@ -141,9 +143,9 @@ def checkpoint_version(ckpt_dir: str | os.PathLike) -> tuple[str, str]:
         raise PointerError(f"{weights}: not found (a checkpoint dir holds {MODEL_FILE})") from None
     except OSError as exc:
         raise PointerError(f"{weights}: cannot read: {exc.strerror or exc}") from None
-    try:
-        step = json.loads((ckpt / CONFIG_FILE).read_text(encoding="utf-8")).get("checkpoint", {}).get("step")
-    except (OSError, ValueError, AttributeError):
+    try:  # the config is untrusted: read bounded, and any shape of it only loses the step
+        step = read_json_object(ckpt / CONFIG_FILE).get("checkpoint", {}).get("step")
+    except (OSError, CheckpointError, AttributeError):
         step = None
     if not isinstance(step, int) or isinstance(step, bool):
         step = int(ckpt.name) if ckpt.name.isdigit() else 0

@@ -33,6 +33,13 @@ FastLoop.forward over the session's last K observations); without one the call i
 fresh state, i.e. a 1-point window). Sessions are kept per component in an LRU of `max_sessions`;
 `reset=True` starts the session's episode again, and a version change resets every session (a state
 computed by other weights means nothing to the new ones).
+
+Every answer is finite. An observation value beyond +-MAX_ABS_OBSERVATION (1e6) is refused (400,
+the message gives the range): no robot sends one, and near float32's limit it overflowed. If the
+served model still computes NaN or Inf from a valid observation, that is the model's fault: the
+request gets BrainError status 500 naming the version, the event is logged and counted
+(status()["<component>"]["non_finite"]), and the session's recurrent state is committed only when
+the tick's action and state are finite, so the next tick answers as if the bad one never happened.
 """
 from __future__ import annotations
 
@@ -57,11 +64,19 @@ RUNTIMES = {"fast_loop": FastLoopNumpy}  # component -> its torch-free inference
 MAX_SESSIONS = 256
 MAX_SESSION_CHARS = 128
 MAX_OBSERVATION = 4096  # longer lists are refused before any conversion
+# The largest |value| an observation may hold. Robot observations are joint angles (rad),
+# velocities, positions (m), forces: none comes within orders of magnitude of this, so a larger
+# value is a unit or encoding error of the client. The bound also keeps the float32 arithmetic of
+# the tick finite: normalised by a std of at least the default floor (1e-3), a value of 1e6 is
+# 1e9, and its squares stay far below float32's 3.4e38 (values near that limit overflowed to Inf
+# and answered NaN, poisoning the session's recurrent state).
+MAX_ABS_OBSERVATION = 1e6
 
 
 class BrainError(ValueError):
     """A request BrainService cannot answer; `.status` is the HTTP status that fits (400 bad input,
-    404 unknown component, 503 no model to serve yet)."""
+    404 unknown component, 503 no model to serve yet, 500 the served model computed a non-finite
+    answer from a valid observation)."""
 
     def __init__(self, message: str, status: int = 400):
         super().__init__(message)
@@ -92,7 +107,7 @@ class _Session:
     version: str
     state: NumpyWindowState
     lock: threading.Lock = field(default_factory=threading.Lock)
-    ticks: int = 0
+    ticks: int = 0  # ticks committed to the state
 
 
 @dataclass(eq=False)
@@ -105,6 +120,7 @@ class _Slot:
     pointer_version: str | None = None
     sessions: "OrderedDict[str, _Session]" = field(default_factory=OrderedDict)
     lock: threading.Lock = field(default_factory=threading.Lock)  # sessions and first-inference flag
+    non_finite: int = 0  # answers refused because the served model computed NaN/Inf (status())
 
 
 class BrainService:
@@ -311,21 +327,43 @@ class BrainService:
                              f"({model.describe_observation()})")
         xn = model.normalise(np.asarray(values, dtype=np.float64))
         if session is None:
-            a, _ = model.tick(xn, model.init_state())
+            a, state = model.tick(xn, model.init_state())
+            action = model.denormalise(a)
+            if not _finite(action, state):
+                self._non_finite(slot, served, session, values)
         else:
             sess = self._session(slot, session, served.version, model, reset)
             with sess.lock:
                 if sess.version != served.version:  # a swap happened since: start afresh on these weights
                     sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
-                a, sess.state = model.tick(xn, sess.state)
+                a, state = model.tick(xn, sess.state)
+                action = model.denormalise(a)
+                # Committed only when finite: one bad tick must not leave NaN in the recurrent state,
+                # which every later tick of the session would read (K ticks of NaN answers).
+                if not _finite(action, state):
+                    self._non_finite(slot, served, session, values)
+                sess.state = state
                 sess.ticks += 1
-        action = model.denormalise(a)
         latency_ms = (time.perf_counter() - started) * 1000.0
         out = {"action": [float(v) for v in action], "model_version": served.version,
                "latency_ms": round(latency_ms, 4), "session": session}
         if not served.first_inference_done:
             self._first_inference(slot, served)
         return out
+
+    @staticmethod
+    def _non_finite(slot: _Slot, served: _Served, session: str | None, values: list[float]) -> None:
+        """A valid observation gave NaN/Inf: the served weights' fault, not the request's, so a
+        500 (the robot should fall back to its safe behaviour and the operator look at the model),
+        logged, and never the NaN itself (JSON has none)."""
+        with slot.lock:
+            slot.non_finite += 1
+        log.error("BrainService: %s %s computed a non-finite action or state (session %r, observation range "
+                  "[%.3g, %.3g]); answered 500, the session's state left as it was", slot.component, served.version,
+                  session, min(values), max(values))
+        raise BrainError(f"{served.version} computed a non-finite action for this observation (a fault of the served "
+                         "model, not of the request); no action is given, and a session's recurrent state is left "
+                         "as it was before this tick", 500)
 
     def _session(self, slot: _Slot, name: str, version: str, model: FastLoopNumpy, reset: bool) -> _Session:
         with slot.lock:
@@ -389,6 +427,7 @@ class BrainService:
                 "loaded_at": served.loaded_at.isoformat() if served else None,
                 "last_error": slot.last_error,
                 "sessions": len(slot.sessions),
+                "non_finite": slot.non_finite,
                 "pointer_version": slot.pointer_version,
                 "obs_dim": model.obs_dim if model else None,
                 "act_dim": model.act_dim if model else None,
@@ -402,8 +441,15 @@ class BrainService:
         return slot.served.version if slot and slot.served else None
 
 
+def _finite(action: np.ndarray, state: NumpyWindowState) -> bool:
+    # The whole state, not only the action: a NaN can sit in the ring for K ticks before it
+    # reaches an action. K x N floats: about a microsecond.
+    return bool(np.isfinite(action).all() and np.isfinite(state.h).all() and np.isfinite(state.ring).all())
+
+
 def observation_values(observation: Any) -> list[float]:
-    """A JSON list of finite numbers -> floats; BrainError(400) naming what is wrong otherwise."""
+    """A JSON list of finite numbers within +-MAX_ABS_OBSERVATION -> floats; BrainError(400)
+    naming what is wrong otherwise."""
     if not isinstance(observation, (list, tuple)):
         raise BrainError(f"observation must be a list of numbers, got {type(observation).__name__}")
     if not observation:
@@ -420,8 +466,11 @@ def observation_values(observation: Any) -> list[float]:
             raise BrainError(f"observation[{i}] is too large for a float") from None
         if not math.isfinite(f):
             raise BrainError(f"observation[{i}] = {f} is not finite (NaN and Inf are refused)")
+        if abs(f) > MAX_ABS_OBSERVATION:
+            raise BrainError(f"observation[{i}] = {f:g} is outside the accepted range [-{MAX_ABS_OBSERVATION:g}, "
+                             f"{MAX_ABS_OBSERVATION:g}] (robot observations are far smaller: check the units)")
         values.append(f)
     return values
 
 
-__all__ = ["BrainService", "BrainError", "RUNTIMES", "MAX_SESSIONS", "observation_values"]
+__all__ = ["BrainService", "BrainError", "RUNTIMES", "MAX_ABS_OBSERVATION", "MAX_SESSIONS", "observation_values"]

@@ -42,7 +42,6 @@ and the reason.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,7 +50,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.windows import MAX_K
 from hope_models.promote.pointers import PointerError, checkpoint_version
+from hope_models.train.checkpoint import CheckpointError, read_json_object
 
 CONFIG_FORMAT = "hope.component_config/1"  # components.CONFIG_FORMAT (that module imports torch)
 MODEL_FILE = "model.safetensors"
@@ -263,12 +264,12 @@ class FastLoopNumpy:
         if not ckpt.is_dir():
             raise FastLoopNumpyError(f"{ckpt}: checkpoint dir not found")
         try:
-            config = json.loads(cfg_path.read_text(encoding="utf-8"))
+            config = read_json_object(cfg_path)  # untrusted: size, depth and type bounded there
         except FileNotFoundError:
             raise FastLoopNumpyError(f"{cfg_path}: not found (a checkpoint dir holds {MODEL_FILE} + "
                                      f"{CONFIG_FILE})") from None
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            raise FastLoopNumpyError(f"{cfg_path}: not readable JSON: {exc}") from None
+        except CheckpointError as exc:
+            raise FastLoopNumpyError(str(exc)) from None
         spec = _check_config(config, cfg_path)
         try:
             data = weights_path.read_bytes()
@@ -524,6 +525,11 @@ def _check_config(config: Any, where: Path) -> FeatureSpec:
             raise FastLoopNumpyError(f"{where}: model_config.{key}={mc[key]!r} must be an integer >= 1")
     if not isinstance(mc["n_codes"], int) or mc["n_codes"] < 0:
         raise FastLoopNumpyError(f"{where}: model_config.n_codes={mc['n_codes']!r} must be an integer >= 0")
+    # Every other dim is the shape of a weight (checked against the file); window_k only sizes the
+    # recurrent state's ring, which init_state allocates per session, so it is bounded here.
+    if mc["window_k"] > MAX_K:
+        raise FastLoopNumpyError(f"{where}: model_config.window_k={mc['window_k']} is more than a window's "
+                                 f"{MAX_K} points")
     window = config.get("window")
     if isinstance(window, dict) and window.get("k") != mc["window_k"]:
         raise FastLoopNumpyError(f"{where}: window.k={window.get('k')!r} differs from model_config.window_k="

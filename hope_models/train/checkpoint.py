@@ -25,6 +25,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,9 @@ _STEP_DIR = re.compile(r"^\d{8}$")
 _PICKLE_PROTOCOL_BYTE = 0x80
 _ZIP_MAGIC = b"PK\x03\x04"  # torch.save's default format: a zip of pickles
 _MAX_HEADER = 100_000_000  # safetensors' own limit on the JSON header
+# config.json, training_state.json and manifest.json are a few kB to a few MB (the feature spec's
+# statistics, the loss history); a bigger one is not something this code wrote.
+MAX_JSON_BYTES = 64 << 20
 
 
 class CheckpointError(RuntimeError):
@@ -204,26 +208,75 @@ def list_step_dirs(run_dir: str | Path) -> list[tuple[int, Path]]:
     return sorted(out, reverse=True)
 
 
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not JSON (JSON has no NaN or Infinity)")
+
+
+def read_json_object(path: str | Path, max_bytes: int = MAX_JSON_BYTES) -> dict[str, Any]:
+    """A checkpoint's JSON file (config.json, training_state.json, manifest.json) as a dict.
+
+    A checkpoint dir may come from anyone who can write one (a promotion names any dir under the
+    data roots), so its JSON is untrusted: only a regular file (not a FIFO or a device, whose read
+    would never end), at most max_bytes, strict JSON (no NaN/Infinity: this module writes none),
+    not nested deeper than the parser's recursion limit, and an object. CheckpointError names the
+    file and the reason; FileNotFoundError passes through for callers that say what is missing."""
+    path = Path(path)
+    try:
+        # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer, forever
+        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise CheckpointError(f"{path}: not a regular file")
+            if st.st_size > max_bytes:
+                raise CheckpointError(f"{path}: {st.st_size} bytes, more than the {max_bytes} a checkpoint's JSON "
+                                      "may have")
+            data = f.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:  # grew while we looked
+        raise CheckpointError(f"{path}: more than the {max_bytes} bytes a checkpoint's JSON may have")
+    try:
+        obj = json.loads(data.decode("utf-8"), parse_constant=_no_constant)
+    except UnicodeDecodeError as exc:
+        raise CheckpointError(f"{path}: not UTF-8 text: {exc.reason} at byte {exc.start}") from None
+    except ValueError as exc:  # JSONDecodeError, NaN / Infinity
+        raise CheckpointError(f"{path}: not readable JSON: {exc}") from None
+    except RecursionError:
+        raise CheckpointError(f"{path}: not readable JSON: nested too deeply") from None
+    if not isinstance(obj, dict):
+        raise CheckpointError(f"{path}: must be a JSON object, not {type(obj).__name__}")
+    return obj
+
+
 def verify(path: str | Path) -> str | None:
     """None when the dir is a complete checkpoint, else the reason it is not."""
     path = Path(path)
     try:
-        manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+        manifest = read_json_object(path / MANIFEST)
     except FileNotFoundError:
         return "no manifest.json (the write never finished)"
-    except (OSError, ValueError) as exc:
+    except CheckpointError as exc:
         return f"manifest.json unreadable: {exc}"
-    if not isinstance(manifest, dict) or manifest.get("format") != CHECKPOINT_FORMAT:
+    if manifest.get("format") != CHECKPOINT_FORMAT:
         return f"manifest.json is not a {CHECKPOINT_FORMAT} manifest"
     files = manifest.get("files")
     if not isinstance(files, dict) or not {MODEL_FILE, CONFIG_FILE, STATE_TENSORS, STATE_JSON} <= set(files):
         return "manifest.json does not list the four checkpoint files"
     for fname, entry in files.items():
+        # Only plain files of this dir: a name like "../../x" or a symlink would have the
+        # hash below read any file (or /dev/zero, forever) on the word of the manifest.
+        if not isinstance(entry, dict) or fname in (".", "..") or "/" in fname or "\\" in fname or "\x00" in fname:
+            return f"manifest.json lists {fname!r}, which is not a file of a checkpoint dir"
         f = path / fname
         try:
-            size = f.stat().st_size
-        except OSError:
+            st = f.lstat()
+        except (OSError, ValueError):
             return f"{fname} is missing"
+        if not stat.S_ISREG(st.st_mode):
+            return f"{fname} is not a regular file"
+        size = st.st_size
         if size != entry.get("size"):
             return f"{fname} is {size} bytes, the manifest says {entry.get('size')} (truncated or overwritten)"
         if file_sha256(f) != entry.get("sha256"):
@@ -282,13 +335,16 @@ def load_checkpoint(path: str | Path) -> LoadedCheckpoint:
     if reason is not None:
         raise CheckpointError(f"{path}: not a complete checkpoint: {reason}")
     try:
-        config = json.loads((path / CONFIG_FILE).read_text(encoding="utf-8"))
-        state = json.loads((path / STATE_JSON).read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise CheckpointError(f"{path}: unreadable JSON: {exc}") from None
+        config = read_json_object(path / CONFIG_FILE)
+        state = read_json_object(path / STATE_JSON)
+    except FileNotFoundError as exc:
+        raise CheckpointError(f"{path}: {Path(exc.filename).name} is missing") from None
+    step = state.get("step")
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise CheckpointError(f"{path / STATE_JSON}: step={step!r} is not a step number")
     model = load_tensors(path / MODEL_FILE)
     tensors = load_tensors(path / STATE_TENSORS)
-    return LoadedCheckpoint(path, int(state["step"]), config, state, model, tensors)
+    return LoadedCheckpoint(path, step, config, state, model, tensors)
 
 
 def load_latest(run_dir: str | Path, warn: Callable[[str], None] | None = None) -> LoadedCheckpoint | None:

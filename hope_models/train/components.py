@@ -9,10 +9,11 @@ are built from a feature spec or rebuilt from a checkpoint.
     mid_loop   window mid, 2 s, K=20,           codes (frozen VQ-VAE, required) + past actions
                horizons 0.5 s and 1 s           -> codes ahead; loss cross-entropy
 
-build_component() takes the defaults of each model's config dataclass, the dims of the feature
-spec, and `model_config` overrides (any config field, plus "window": {"duration_s", "k",
-"horizons_s"}); an unknown key or a dim that does not fit the spec is a ValueError naming it.
-It draws the initial weights from torch's global RNG: seed before building.
+build_component() builds the configuration model_config.resolve() gives: the defaults of each
+model's config dataclass, the dims of the feature spec, and `model_config` overrides (any config
+field, plus "window": {"duration_s", "k", "horizons_s"}); an unknown key or a dim that does not fit
+the spec is a ValueError naming it. It draws the initial weights from torch's global RNG: seed
+before building.
 
 A frozen VQ-VAE (fast_loop optionally, mid_loop always) is loaded from `vqvae_dir`, a checkpoint
 dir, and becomes a frozen submodule of the model: its weights travel in the same
@@ -25,11 +26,9 @@ pickle.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import logging
-import math
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -40,27 +39,20 @@ import torch.nn.functional as F
 from safetensors.torch import load_file
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
-from hope_models.data.windows import WindowSpec, window_spec
+from hope_models.data.windows import WindowSpec
 from hope_models.durable import file_sha256
-from hope_models.models.fast_loop import FastLoop, FastLoopConfig
-from hope_models.models.mid_loop import MidLoop, MidLoopConfig, mid_loop_loss, previous_actions
+from hope_models.models.fast_loop import FastLoop
+from hope_models.models.mid_loop import MidLoop, mid_loop_loss, previous_actions
 from hope_models.models.ssm import count_params
 from hope_models.models.vqvae import VQVAE, VQVAEConfig
 from hope_models.train.contract import COMPONENTS
+from hope_models.train.model_config import make_config, resolve
 
 log = logging.getLogger(__name__)
 
 CONFIG_FORMAT = "hope.component_config/1"
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
-
-# component -> (window scale, default window_spec kwargs)
-DEFAULT_WINDOWS: dict[str, tuple[str, dict[str, Any]]] = {
-    "vqvae": ("fast", {"k": 1}),  # one point: the anchor's own frame / observation
-    "fast_loop": ("fast", {}),  # 100 ms, K=5
-    "mid_loop": ("mid", {"horizons_s": (0.5, 1.0)}),  # 2 s, K=20 (100 ms grid): 5 and 10 grid steps ahead
-}
-
 
 class CheckpointError(ValueError):
     """A checkpoint cannot be used; the message names the file and why."""
@@ -193,104 +185,17 @@ class MidLoopComponent(_Component):
 _CLASSES = {"vqvae": VQVAEComponent, "fast_loop": FastLoopComponent, "mid_loop": MidLoopComponent}
 
 
-# -- configs from defaults, spec dims and overrides ---------------------------------------------
-
-def _config(cls, derived: dict[str, Any], overrides: dict[str, Any], component: str):
-    """cls(**defaults | derived | overrides); overriding a derived dim with another value is refused."""
-    names = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(overrides) - set(names))
-    if unknown:
-        raise ValueError(f"model_config for {component}: unknown key(s) {unknown}; valid keys: "
-                         f"{sorted(names) + ['window']}")
-    values = dict(derived)
-    for key, value in overrides.items():
-        default = names[key].default
-        if isinstance(default, tuple):
-            if not isinstance(value, (list, tuple)):
-                raise ValueError(f"model_config.{key}={value!r} must be a list")
-            value = tuple(value)
-        elif isinstance(default, bool) or isinstance(value, bool):
-            raise ValueError(f"model_config.{key}={value!r} has the wrong type")
-        elif isinstance(default, int) and not isinstance(value, int):
-            raise ValueError(f"model_config.{key}={value!r} must be an integer")
-        elif isinstance(default, float) and not (isinstance(value, (int, float)) and math.isfinite(value)):
-            raise ValueError(f"model_config.{key}={value!r} must be a finite number")
-        elif isinstance(default, str) and not isinstance(value, str):
-            raise ValueError(f"model_config.{key}={value!r} must be a string")
-        if key in derived and value != derived[key]:
-            raise ValueError(f"model_config.{key}={value!r} does not fit: the {component} for this data needs "
-                             f"{key}={derived[key]!r}")
-        values[key] = float(value) if isinstance(default, float) else value
-    cfg = cls(**values)
-    if hasattr(cfg, "validate"):
-        cfg.validate()
-    return cfg
-
-
-def _window(name: str, over: Any) -> WindowSpec:
-    scale, kwargs = DEFAULT_WINDOWS[name]
-    kwargs = dict(kwargs)
-    if over is not None:
-        if not isinstance(over, dict):
-            raise ValueError(f"model_config.window must be an object with duration_s, k, horizons_s; got {over!r}")
-        over = dict(over)
-        if over.pop("scale", scale) != scale:
-            raise ValueError(f"model_config.window.scale must be {scale!r} for {name}")
-        unknown = sorted(set(over) - {"duration_s", "k", "horizons_s"})
-        if unknown:
-            raise ValueError(f"model_config.window: unknown key(s) {unknown}; valid: duration_s, k, horizons_s")
-        kwargs.update(over)
-    spec = window_spec(scale, kwargs.get("duration_s"), kwargs.get("k"), kwargs.get("horizons_s", ()))
-    if name == "vqvae" and (spec.k != 1 or spec.horizons_s):
-        raise ValueError("model_config.window: the vqvae reads one frame (k=1, no horizons)")
-    if name == "fast_loop" and spec.horizons_s:
-        raise ValueError("model_config.window.horizons_s: the fast_loop predicts the current action, not horizons")
-    if name == "mid_loop" and not spec.horizons_s:
-        raise ValueError("model_config.window.horizons_s: the mid_loop needs at least one horizon")
-    return spec
-
-
-def _horizon_steps(spec: WindowSpec) -> tuple[int, ...]:
-    steps = []
-    for h in spec.horizons_s:
-        s = h / spec.grid_step_s
-        if abs(s - round(s)) > 1e-6 or round(s) < 1:
-            raise ValueError(f"horizons_s: {h} s is not a whole number of the mid window's {spec.grid_step_s:g} s "
-                             "grid steps (choose duration_s/k so that it is)")
-        steps.append(int(round(s)))
-    return tuple(steps)
-
+# -- building from a resolved configuration ----------------------------------------------------
 
 def _build(name: str, spec: FeatureSpec, model_config: dict | None, vq: tuple[VQVAE, dict] | None,
            data_fingerprint: str) -> _Component:
-    if name not in COMPONENTS:
-        raise ValueError(f"component {name!r} is not one of {', '.join(COMPONENTS)}")
-    if model_config is not None and not isinstance(model_config, dict):
-        raise ValueError(f"model_config must be an object (dict), got {type(model_config).__name__}")
-    overrides = dict(model_config or {})
-    window = _window(name, overrides.pop("window", None))
-    if name == "vqvae":
-        frame = spec.frame
-        derived: dict[str, Any] = {"obs_dim": spec.obs_dim}
-        want = overrides.get("input", "frame" if frame is not None else "vector")
-        if want == "frame":
-            if frame is None:
-                raise ValueError("model_config.input='frame' but the feature spec has no frame feature")
-            derived["frame_shape"] = tuple(frame.shape)
-        cfg = _config(VQVAEConfig, {"input": want, **derived}, overrides, name)
-        return VQVAEComponent(spec, VQVAE(cfg), cfg, window, data_fingerprint)
     vqvae, ref = vq if vq is not None else (None, None)
+    r = resolve(name, spec, model_config, None if vqvae is None or name == "vqvae" else vqvae.cfg)
+    if name == "vqvae":
+        return VQVAEComponent(spec, VQVAE(r.cfg), r.cfg, r.window, data_fingerprint)
     if name == "fast_loop":
-        # window_k follows the window: the policy is window-exact over the K points it is trained on
-        cfg = _config(FastLoopConfig, {"obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "window_k": window.k,
-                                       "n_codes": 0 if vqvae is None else vqvae.cfg.n_codes}, overrides, name)
-        return FastLoopComponent(spec, FastLoop(cfg, vqvae), cfg, window, data_fingerprint, ref)
-    if vqvae is None:
-        raise ValueError("mid_loop needs vqvae_dir: the checkpoint dir (model.safetensors + config.json) of a "
-                         "trained VQ-VAE whose codes it predicts; train the vqvae component first")
-    cfg = _config(MidLoopConfig, {"act_dim": spec.act_dim, "n_codes": vqvae.cfg.n_codes,
-                                  "horizon_steps": _horizon_steps(window)}, overrides, name)
-    return MidLoopComponent(spec, MidLoop(cfg, vqvae), cfg, window, data_fingerprint, ref)
+        return FastLoopComponent(spec, FastLoop(r.cfg, vqvae), r.cfg, r.window, data_fingerprint, ref)
+    return MidLoopComponent(spec, MidLoop(r.cfg, vqvae), r.cfg, r.window, data_fingerprint, ref)
 
 
 # -- public API ----------------------------------------------------------------------------------
@@ -312,14 +217,43 @@ def component_from_checkpoint(ckpt_dir: str | Path) -> _Component:
     if not cfg_path.is_file() and (ckpt / "checkpoints").is_dir():
         raise CheckpointError(f"{ckpt}: this looks like a run dir; pass one of its checkpoints/<step> dirs")
     obj = _read_json(cfg_path)
-    try:
-        comp = _from_config(obj, cfg_path)
-    except (ValueError, FeatureSpecError, TypeError) as exc:
-        if isinstance(exc, CheckpointError):
-            raise
-        raise CheckpointError(f"{cfg_path}: does not describe a usable component: {exc}") from None
+    # config.json is untrusted (a promotion names any checkpoint dir under the data roots), and its
+    # dims decide how much memory building the model takes. So the model is first built on the
+    # meta device, which allocates nothing, and compared with the shapes the weights file's header
+    # lists: only a config describing exactly the tensors the file holds is built for real, and a
+    # huge dim costs an error message instead of the Pi's memory.
+    with torch.device("meta"):
+        described = _from_config_checked(obj, cfg_path)
+    _check_header_fits(described.model, ckpt / WEIGHTS_FILE)
+    comp = _from_config_checked(obj, cfg_path)
     load_model_weights(comp.model, ckpt / WEIGHTS_FILE)
     return comp
+
+
+def _from_config_checked(obj: dict, cfg_path: Path) -> _Component:
+    try:
+        return _from_config(obj, cfg_path)
+    except CheckpointError:
+        raise
+    except (ValueError, FeatureSpecError, TypeError, KeyError, OverflowError, RuntimeError, MemoryError,
+            RecursionError) as exc:
+        # RuntimeError / OverflowError / MemoryError: torch refusing a tensor of the sizes the config names
+        raise CheckpointError(f"{cfg_path}: does not describe a usable component: {exc}") from None
+
+
+def _check_header_fits(model: torch.nn.Module, path: Path) -> None:
+    """The shapes of model's state_dict against those model.safetensors's header lists (the
+    header only: no tensor is read)."""
+    from safetensors import safe_open
+
+    if not path.is_file():
+        raise CheckpointError(f"{path}: weights file not found")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            found = {k: list(f.get_slice(k).get_shape()) for k in f.keys()}
+    except Exception as exc:  # safetensors raises its own SafetensorError (an Exception), or OSError
+        raise _not_safetensors(path, exc) from None
+    _raise_unless_fits(path, {k: list(v.shape) for k, v in model.state_dict().items()}, found)
 
 
 def load_model_weights(model: torch.nn.Module, path: str | Path) -> None:
@@ -327,21 +261,31 @@ def load_model_weights(model: torch.nn.Module, path: str | Path) -> None:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: weights file not found")
-    with open(path, "rb") as f:
-        head = f.read(2)
     try:
         state = load_file(str(path))
     except Exception as exc:  # safetensors raises its own SafetensorError (an Exception), or OSError
-        kind = ""
-        if head[:1] == b"\x80" or head == b"PK":
-            kind = " It looks like a pickle / torch.save file;"
-        raise CheckpointError(f"{path}: not a valid safetensors file ({exc}).{kind} pickle checkpoints are "
-                              "never loaded (they can run code); only safetensors weights are accepted") from None
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    wrong = [f"{k}: file {list(state[k].shape)} {state[k].dtype}, model {list(v.shape)} {v.dtype}"
-             for k, v in expected.items() if k in state and (state[k].shape != v.shape or state[k].dtype != v.dtype)]
+        raise _not_safetensors(path, exc) from None
+    _raise_unless_fits(path, {k: f"{list(v.shape)} {v.dtype}" for k, v in model.state_dict().items()},
+                       {k: f"{list(v.shape)} {v.dtype}" for k, v in state.items()})
+    model.load_state_dict(state, strict=True)
+
+
+def _not_safetensors(path: Path, exc: Exception) -> CheckpointError:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(2)
+    except OSError:
+        head = b""
+    kind = " It looks like a pickle / torch.save file;" if head[:1] == b"\x80" or head == b"PK" else ""
+    return CheckpointError(f"{path}: not a valid safetensors file ({exc}).{kind} pickle checkpoints are "
+                           "never loaded (they can run code); only safetensors weights are accepted")
+
+
+def _raise_unless_fits(path: Path, expected: dict[str, Any], found: dict[str, Any]) -> None:
+    """expected / found: tensor name -> its shape (and dtype) as the model and the file have them."""
+    missing = sorted(set(expected) - set(found))
+    unexpected = sorted(set(found) - set(expected))
+    wrong = [f"{k}: file {found[k]}, model {v}" for k, v in expected.items() if k in found and found[k] != v]
     if missing or unexpected or wrong:
         parts = []
         if wrong:
@@ -351,21 +295,20 @@ def load_model_weights(model: torch.nn.Module, path: str | Path) -> None:
         if unexpected:
             parts.append(f"unexpected: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
         raise CheckpointError(f"{path}: weights do not fit the model its config.json describes ({', '.join(parts)})")
-    model.load_state_dict(state, strict=True)
 
 
 # -- helpers -------------------------------------------------------------------------------------
 
 def _read_json(path: Path) -> dict:
+    from hope_models.train.checkpoint import CheckpointError as FileError
+    from hope_models.train.checkpoint import read_json_object
+
     try:
-        obj = json.loads(path.read_text(encoding="utf-8"))
+        return read_json_object(path)
     except FileNotFoundError:
         raise CheckpointError(f"{path}: not found (a checkpoint dir holds {WEIGHTS_FILE} + {CONFIG_FILE})") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CheckpointError(f"{path}: not readable JSON: {exc}") from None
-    if not isinstance(obj, dict):
-        raise CheckpointError(f"{path}: must be a JSON object")
-    return obj
+    except FileError as exc:
+        raise CheckpointError(str(exc)) from None
 
 
 def _config_sha256(obj: dict) -> str:
@@ -390,7 +333,7 @@ def _from_config(obj: dict, where: Path) -> _Component:
     if name != "vqvae" and ref is not None:
         if not isinstance(ref, dict) or not isinstance(ref.get("model_config"), dict):
             raise CheckpointError(f"{where}: 'vqvae' must name the VQ-VAE with its model_config")
-        vq_cfg = _config(VQVAEConfig, {}, ref["model_config"], "vqvae")
+        vq_cfg = make_config(VQVAEConfig, {}, ref["model_config"], "vqvae")
         vq = (VQVAE(vq_cfg), ref)  # weights arrive with this checkpoint's model.safetensors (prefix vqvae.)
     return _build(name, spec, model_config, vq, str(obj.get("data_fingerprint", "")))
 

@@ -36,11 +36,15 @@ delta of real forward/backward steps (tests/test_train_estimate.py re-checks the
 0.5x-2x); on the Pi's aarch64 torch the runtime differs by some tens of MB, well inside the
 soft limit's 10% margin of a 3 GiB budget.
 
-No torch import at module level: the model passed in is a torch module, but only its parameters
-and module tree are inspected.
+Two ways in, one formula: estimate_memory() reads the layers off a built torch module (any model,
+e.g. a test's stand-in), estimate_from_config() derives the same layers from a configuration
+(model_config.resolve) with no model and no torch. The training loop runs the latter before it
+builds anything, and the webapp and the daemon run it on a request (daemon/run_request.py): a model
+too big for the budget is refused before it can take the memory it would be refused for.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -83,54 +87,81 @@ class MemoryEstimate:
                 "batch_size": self.batch_size, "window_k": self.window_k, "details": self.details}
 
 
-def _conv_out(h: float, m: Any) -> float:
-    """Output height of a (square) conv given the input height, from the module's settings."""
-    k, s, d = m.kernel_size[0], m.stride[0], m.dilation[0]
-    if isinstance(m.padding, str):  # "same" keeps the size at stride 1, "valid" pads nothing
-        p = (d * (k - 1)) // 2 if m.padding == "same" else 0
-    else:
-        p = m.padding[0]
-    if type(m).__name__.startswith("ConvTranspose"):
-        return (h - 1) * s - 2 * p + d * (k - 1) + m.output_padding[0] + 1
-    return math.floor((h + 2 * p - d * (k - 1) - 1) / s + 1)
+CONVS = ("Conv1d", "Conv2d", "ConvTranspose1d", "ConvTranspose2d")
 
 
-def _leaf_outputs(model: Any) -> list[tuple[float, float, bool]]:
-    """(floats per token, floats per frame, trainable) of every module that produces activations."""
+@dataclass(frozen=True)
+class Layer:
+    """A module with parameters of its own, as the estimate sees it: what model_layers() reads off a
+    torch module and config_layers() derives from a configuration alone (they must agree: tested)."""
+    kind: str  # the module's class name (Linear, Embedding, LayerNorm, Conv2d, ..., WindowSSM)
+    params: tuple[tuple[int, ...], ...]  # the shapes of its own parameters
+    trainable: bool
+    conv: tuple[int, int, int, int, int | str, int, int] | None = None
+    #      (in_channels, out_channels, kernel, stride, padding, dilation, output_padding) of a conv
+    repeat: int = 1  # the same layer this many times (a stack's blocks): counted, not listed
+
+
+def model_layers(model: Any) -> list[Layer]:
+    """The layers of a torch module, in registration order (the order the convs see the image)."""
     out = []
-    h: float = FRAME_HW
     for m in model.modules():
-        name = type(m).__name__
         own = list(m.parameters(recurse=False))
-        trainable = any(p.requires_grad for p in own)
-        if name in ("Conv2d", "ConvTranspose2d", "Conv1d", "ConvTranspose1d"):
-            if name.endswith("2d") and m.in_channels == 3 and not name.startswith("ConvTranspose"):
-                h = FRAME_HW  # an RGB input conv starts a new image path (an encoder)
-            h = max(1.0, _conv_out(h, m))
-            spatial = h * h if name.endswith("2d") else h
-            out.append((0.0, m.out_channels * spatial, trainable))
-        elif name == "Linear":
-            out.append((float(m.out_features), 0.0, trainable))
-        elif name == "Embedding":
-            out.append((float(m.embedding_dim), 0.0, trainable))
-        elif "Norm" in name and own:
-            out.append((float(own[0].numel()), 0.0, trainable))
-        elif own:  # e.g. the SSM layer's own decay/B/C/D: each yields about one vector of its widest axis
-            out.append((float(sum(max(p.shape, default=1) for p in own)), 0.0, trainable))
+        if not own:
+            continue
+        name = type(m).__name__
+        conv = None
+        if name in CONVS:
+            padding = m.padding if isinstance(m.padding, str) else m.padding[0]
+            conv = (m.in_channels, m.out_channels, m.kernel_size[0], m.stride[0], padding, m.dilation[0],
+                    m.output_padding[0])
+        out.append(Layer(name, tuple(tuple(p.shape) for p in own), any(p.requires_grad for p in own), conv))
     return out
 
 
-def activation_floats_per_sample(model: Any, window_k: int, frames: bool, horizons: int = 0) -> tuple[float, float]:
+def _conv_out(h: float, kind: str, conv: tuple) -> float:
+    """Output height of a (square) conv given the input height, from the module's settings."""
+    _, _, k, s, p, d, output_padding = conv
+    if isinstance(p, str):  # "same" keeps the size at stride 1, "valid" pads nothing
+        p = (d * (k - 1)) // 2 if p == "same" else 0
+    if kind.startswith("ConvTranspose"):
+        return (h - 1) * s - 2 * p + d * (k - 1) + output_padding + 1
+    return math.floor((h + 2 * p - d * (k - 1) - 1) / s + 1)
+
+
+def _leaf_outputs(layers: list[Layer]) -> list[tuple[float, float, bool, int]]:
+    """(floats per token, floats per frame, trainable, repeat) of every layer."""
+    out = []
+    h: float = FRAME_HW
+    for layer in layers:
+        kind, own = layer.kind, layer.params
+        if layer.conv is not None:
+            if kind.endswith("2d") and layer.conv[0] == 3 and not kind.startswith("ConvTranspose"):
+                h = FRAME_HW  # an RGB input conv starts a new image path (an encoder)
+            h = max(1.0, _conv_out(h, kind, layer.conv))
+            spatial = h * h if kind.endswith("2d") else h
+            per = (0.0, layer.conv[1] * spatial)
+        elif kind == "Linear":
+            per = (float(own[0][0]), 0.0)  # weight [out, in]
+        elif kind == "Embedding":
+            per = (float(own[0][1]), 0.0)  # weight [num, dim]
+        elif "Norm" in kind:
+            per = (float(math.prod(own[0])), 0.0)
+        else:  # e.g. the SSM layer's own decay/B/C/D: each yields about one vector of its widest axis
+            per = (float(sum(max(shape, default=1) for shape in own)), 0.0)
+        out.append((*per, layer.trainable, layer.repeat))
+    return out
+
+
+def activation_floats_per_sample(layers: list[Layer], window_k: int, frames: bool,
+                                 horizons: int = 0) -> tuple[float, float]:
     """(kept for backward, frozen transient peak) floats per sample; see the module doc."""
-    custom = getattr(model, "activation_floats_per_sample", None)
-    if callable(custom):
-        return float(custom(window_k)), 0.0
     frames_per_sample = window_k if frames else 0
     kept = 0.0
     frozen_peak = 0.0
-    for per_token, per_frame, trainable in _leaf_outputs(model):
+    for per_token, per_frame, trainable, repeat in _leaf_outputs(layers):
         if trainable:
-            kept += per_token * window_k + per_frame * max(1, frames_per_sample)
+            kept += repeat * (per_token * window_k + per_frame * max(1, frames_per_sample))
         else:
             tokens = window_k + horizons
             frozen_peak = max(frozen_peak, per_token * tokens + per_frame * max(1, frames_per_sample + horizons))
@@ -150,17 +181,39 @@ def cache_resident_mb(cache: Any) -> float:
 def estimate_memory(component_name: str, model: Any, batch_size: int, window_k: int, obs_dim: int,
                     act_dim: int, frames: bool, *, horizons: int = 0, cache_mb: float | None = None,
                     runtime_mb: float | None = None, loader_chunk: int = LOADER_CHUNK) -> MemoryEstimate:
-    """Estimated peak RSS of training `model` with this batch and window (module doc: the formula)."""
+    """Estimated peak RSS of training a built `model` (a torch module) with this batch and window."""
+    custom = getattr(model, "activation_floats_per_sample", None)
+    return _estimate(component_name, model_layers(model), batch_size, window_k, obs_dim, act_dim, frames,
+                     horizons=horizons, cache_mb=cache_mb, runtime_mb=runtime_mb, loader_chunk=loader_chunk,
+                     custom_kept=float(custom(window_k)) if callable(custom) else None)
+
+
+def estimate_from_config(resolved: Any, batch_size: int, obs_dim: int, act_dim: int, *,
+                         cache_mb: float | None = None, runtime_mb: float | None = None,
+                         loader_chunk: int = LOADER_CHUNK) -> MemoryEstimate:
+    """The same estimate from a model_config.Resolved, before (or without) building the model:
+    no torch, so the webapp, the daemon and the CLI refuse what cannot fit at the door."""
+    win = resolved.window
+    return _estimate(resolved.name, config_layers(resolved), batch_size, win.k, obs_dim, act_dim,
+                     resolved.wants_frames, horizons=len(win.horizons_s), cache_mb=cache_mb, runtime_mb=runtime_mb,
+                     loader_chunk=loader_chunk)
+
+
+def _estimate(component_name: str, layers: list[Layer], batch_size: int, window_k: int, obs_dim: int,
+              act_dim: int, frames: bool, *, horizons: int, cache_mb: float | None, runtime_mb: float | None,
+              loader_chunk: int, custom_kept: float | None = None) -> MemoryEstimate:
     for name, value in (("batch_size", batch_size), ("window_k", window_k)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} = {value!r} must be a positive integer")
     if cache_mb is None:
         from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB
         cache_mb = float(DEFAULT_RESIDENT_BUDGET_MB)
-    params = list(model.parameters())
-    n_params = sum(p.numel() for p in params)
-    n_train = sum(p.numel() for p in params if p.requires_grad)
-    kept, frozen = activation_floats_per_sample(model, window_k, frames, horizons)
+    n_params = sum(layer.repeat * math.prod(shape) for layer in layers for shape in layer.params)
+    n_train = sum(layer.repeat * math.prod(shape) for layer in layers if layer.trainable for shape in layer.params)
+    if custom_kept is not None:
+        kept, frozen = custom_kept, 0.0
+    else:
+        kept, frozen = activation_floats_per_sample(layers, window_k, frames, horizons)
     act_bytes = FLOAT_BYTES * batch_size * (ACT_FACTOR * kept + FROZEN_FACTOR * frozen)
     if runtime_mb is None:
         runtime_mb = RUNTIME_MB + (CONV_RUNTIME_MB if frames else 0.0)
@@ -182,6 +235,65 @@ def estimate_memory(component_name: str, model: Any, batch_size: int, window_k: 
     return MemoryEstimate(component_name, sum(breakdown.values()), breakdown, batch_size, window_k, details)
 
 
+# -- the layers of the three components, from their configuration (model_config.Resolved) -----------
+# These mirror the modules' __init__ (hope_models/models/*.py) in registration order;
+# tests/test_train_estimate.py compares them with model_layers() of the built models.
+
+def _linear(n_in: int, n_out: int, trainable: bool) -> Layer:
+    return Layer("Linear", ((n_out, n_in), (n_out,)), trainable)
+
+
+def _layer_norm(d: int, trainable: bool) -> Layer:
+    return Layer("LayerNorm", ((d,), (d,)), trainable)
+
+
+def _gated_mlp(d: int, hidden: int, trainable: bool) -> list[Layer]:
+    return [_linear(d, hidden, trainable), _linear(d, hidden, trainable), _linear(hidden, d, trainable)]
+
+
+def _ssm(kind: str, d: int, n: int, trainable: bool) -> Layer:
+    return Layer(kind, ((n,), (n, d), (d, n), (d,)), trainable)  # log_rate, B, C, D
+
+
+def _conv(kind: str, c_in: int, c_out: int, trainable: bool) -> Layer:
+    weight = (c_in, c_out, 4, 4) if kind.startswith("ConvTranspose") else (c_out, c_in, 4, 4)
+    return Layer(kind, (weight, (c_out,)), trainable, (c_in, c_out, 4, 2, 1, 1, 0))
+
+
+def _vqvae_layers(cfg: Any, trainable: bool) -> list[Layer]:
+    if cfg.input != "frame":
+        sizes = [cfg.obs_dim, cfg.hidden, cfg.hidden, cfg.code_dim, cfg.hidden, cfg.hidden, cfg.obs_dim]
+        return [_linear(sizes[i], sizes[i + 1], trainable) for i in range(len(sizes) - 1)]
+    h, w, _ = cfg.frame_shape
+    c = cfg.channels
+    flat = 2 * c * (h // 16) * (w // 16)
+    return [_conv("Conv2d", 3, c, trainable), _conv("Conv2d", c, 2 * c, trainable),
+            _conv("Conv2d", 2 * c, 2 * c, trainable), _conv("Conv2d", 2 * c, 2 * c, trainable),
+            _linear(flat, cfg.code_dim, trainable), _linear(cfg.code_dim, flat, trainable),
+            _conv("ConvTranspose2d", 2 * c, 2 * c, trainable), _conv("ConvTranspose2d", 2 * c, 2 * c, trainable),
+            _conv("ConvTranspose2d", 2 * c, c, trainable), _conv("ConvTranspose2d", c, 3, trainable)]
+
+
+def config_layers(resolved: Any) -> list[Layer]:
+    """The layers of the model a model_config.Resolved describes (vqvae, fast_loop, mid_loop)."""
+    cfg, vq = resolved.cfg, resolved.vq_cfg
+    if resolved.name == "vqvae":
+        return _vqvae_layers(cfg, True)
+    d = cfg.d_model
+    hidden = cfg.mlp_ratio * d
+    frozen = _vqvae_layers(vq, False) if vq is not None else []
+    if resolved.name == "fast_loop":
+        codes = [Layer("Embedding", ((cfg.n_codes, d),), True)] if vq is not None else []
+        return [_linear(cfg.obs_dim, d, True), *codes, _layer_norm(d, True), *_gated_mlp(d, hidden, True),
+                _layer_norm(d, True), _ssm("WindowSSM", d, cfg.d_state, True), _layer_norm(d, True),
+                *_gated_mlp(d, hidden, True), _layer_norm(d, True), _linear(d, cfg.act_dim, True), *frozen]
+    block = [_layer_norm(d, True), _ssm("DiagonalSSM", d, cfg.d_state, True), _layer_norm(d, True),
+             *_gated_mlp(d, hidden, True)]
+    return [Layer("Embedding", ((cfg.n_codes, d),), True), _linear(cfg.act_dim, d, True),
+            *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), _layer_norm(d, True),
+            _linear(d, len(cfg.horizon_steps) * cfg.n_codes, True), *frozen]
+
+
 def check_fits(estimate: MemoryEstimate, budget_mb: float, soft_fraction: float = 0.9) -> MemoryEstimate:
     """Raise MemoryBudgetError if the estimate exceeds the memory guard's soft limit
     (soft_fraction x budget: where a running job would pause), else return the estimate."""
@@ -191,8 +303,8 @@ def check_fits(estimate: MemoryEstimate, budget_mb: float, soft_fraction: float 
         return estimate
     biggest = max((k for k in ("activations", "batch", "optimizer", "params")),
                   key=lambda k: estimate.breakdown[k])
-    hint = (f"lower --batch-size (now {estimate.batch_size})" if biggest in ("activations", "batch")
-            else "use a smaller model (model_config)")
+    hint = (f"lower --batch-size (now {estimate.batch_size}) or use a smaller model (model_config)"
+            if biggest in ("activations", "batch") else "use a smaller model (model_config)")
     raise MemoryBudgetError(
         f"{estimate.component}: {estimate.describe()} exceeds the budget of {budget:.0f} MB "
         f"(the memory guard pauses training at {soft_fraction:.0%} of it, {limit:.0f} MB); "

@@ -321,6 +321,9 @@ class _Trainer:
 
     def _check_resume_matches(self, loaded: ckpt.LoadedCheckpoint) -> None:
         saved = loaded.config.get("train", {})
+        if not isinstance(saved, dict):  # config.json is read as untrusted: a clear error, not a traceback
+            raise TrainSetupError(f"{loaded.path / ckpt.CONFIG_FILE}: 'train' must be an object, got "
+                                  f"{type(saved).__name__}; choose a new --run-dir")
         mine = json.loads(json.dumps(self.cfg.identity()))  # tuples -> lists, as saved
         diffs = [f"{k}: {saved.get(k)!r} in the run dir, {v!r} now" for k, v in mine.items() if saved.get(k) != v]
         if diffs:
@@ -362,21 +365,23 @@ class _Trainer:
         import numpy as np
         import torch
 
+        # training_state.json is as untrusted as config.json: any wrong shape or type in it is one
+        # clear error naming the checkpoint, never a traceback half-way through the restore
         try:
             self.model.load_state_dict(loaded.model, strict=True)
             self.opt.load_state_dict(ckpt.unflatten_optimizer(loaded.tensors, loaded.state["optimizer"]))
             self.sampler.load_state_dict(loaded.state["sampler"])
-        except (RuntimeError, ValueError, KeyError) as exc:
-            raise TrainSetupError(f"{loaded.path}: cannot resume from it: {exc}") from None
-        torch.set_rng_state(loaded.tensors["rng.torch"])
-        rng = loaded.state["rng"]
-        keys = loaded.tensors["rng.numpy_keys"].numpy().view(np.uint32)
-        n = rng["numpy"]
-        np.random.set_state((n["name"], keys, n["pos"], n["has_gauss"], n["cached_gaussian"]))
-        p = rng["python"]
-        random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
-        self.history = LossHistory.from_json_obj(loaded.state["loss_history"])
-        self.elapsed_before = float(loaded.state.get("elapsed_s", 0.0))
+            torch.set_rng_state(loaded.tensors["rng.torch"])
+            rng = loaded.state["rng"]
+            keys = loaded.tensors["rng.numpy_keys"].numpy().view(np.uint32)
+            n = rng["numpy"]
+            np.random.set_state((n["name"], keys, n["pos"], n["has_gauss"], n["cached_gaussian"]))
+            p = rng["python"]
+            random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
+            self.history = LossHistory.from_json_obj(loaded.state["loss_history"])
+            self.elapsed_before = float(loaded.state.get("elapsed_s", 0.0))
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
+            raise TrainSetupError(f"{loaded.path}: cannot resume from it: {type(exc).__name__}: {exc}") from None
 
     def checkpoint(self, step: int) -> Path | None:
         """Write checkpoint `step` unless it is already the newest; refuses non-finite weights."""
@@ -415,20 +420,38 @@ class _Trainer:
                   {"params": no_decay, "weight_decay": 0.0}]
         return torch.optim.AdamW([g for g in groups if g["params"]], lr=self.cfg.lr, betas=(0.9, 0.95), eps=1e-8)
 
-    def _preflight(self, cache) -> None:
-        """Refuse, before the first step, a configuration whose estimated memory cannot fit the budget."""
-        from hope_models.train.estimate import MemoryBudgetError, cache_resident_mb, check_fits, estimate_memory
+    def _estimate_from_config(self, cache):
+        """The memory estimate of the component cfg describes, from its configuration: nothing is
+        built, so a model too big for the budget is refused before it can take the memory."""
+        from hope_models.train.estimate import cache_resident_mb, estimate_from_config
+        from hope_models.train.model_config import read_vqvae_config, resolve
+
+        cfg = self.cfg
+        try:
+            vq = read_vqvae_config(self.vqvae_dir) if self.vqvae_dir is not None and cfg.component != "vqvae" else None
+            resolved = resolve(cfg.component, cache.spec, dict(cfg.model_config), vq)
+        except ValueError as exc:
+            raise TrainSetupError(f"cannot build {cfg.component}: {exc}") from None
+        return estimate_from_config(resolved, cfg.batch_size, cache.spec.obs_dim, cache.spec.act_dim,
+                                    cache_mb=cache_resident_mb(cache), loader_chunk=LOADER_CHUNK)
+
+    def _estimate_built(self, cache):
+        """A stand-in factory's component is known only once built: its estimate from the model."""
+        from hope_models.train.estimate import cache_resident_mb, estimate_memory
 
         cfg, win = self.cfg, self.component.window
-        est = estimate_memory(cfg.component, self.model, cfg.batch_size, win.k, cache.spec.obs_dim,
-                              cache.spec.act_dim, bool(self.component.wants_frames), horizons=len(win.horizons_s),
-                              cache_mb=cache_resident_mb(cache), loader_chunk=LOADER_CHUNK)
+        return estimate_memory(cfg.component, self.model, cfg.batch_size, win.k, cache.spec.obs_dim,
+                               cache.spec.act_dim, bool(self.component.wants_frames), horizons=len(win.horizons_s),
+                               cache_mb=cache_resident_mb(cache), loader_chunk=LOADER_CHUNK)
+
+    def _preflight(self, est) -> None:
+        """Refuse, before the first step, a configuration whose estimated memory cannot fit the budget."""
+        from hope_models.train.estimate import MemoryBudgetError, check_fits
+
         try:
-            check_fits(est, cfg.memory_budget_mb, cfg.memory_soft_fraction)
+            check_fits(est, self.cfg.memory_budget_mb, self.cfg.memory_soft_fraction)
         except MemoryBudgetError as exc:
             raise TrainSetupError(str(exc)) from None
-        self.log(f"{cfg.component}: {sum(p.numel() for p in self.params):,} trainable parameters, "
-                 f"{est.describe()} of the {cfg.memory_budget_mb:.0f} MB budget")
 
     # -- run ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
@@ -448,6 +471,9 @@ class _Trainer:
             raise TrainSetupError(str(exc)) from None
         self.vqvae_dir = self._resolve_vqvae()
         cache, _info = self._open_data()
+        self.estimate = None if self.factory is not None else self._estimate_from_config(cache)
+        if self.estimate is not None:
+            self._preflight(self.estimate)  # before torch is imported, and before the run dir exists
         self.run_dir.mkdir(parents=True, exist_ok=True)
         with _RunDirLock(self.run_dir):
             return self._train(cache)
@@ -482,7 +508,11 @@ class _Trainer:
             split = "all"
             self.log(f"training on all episodes (no validation split): {exc}", "warning")
         self.opt = self._optimizer()
-        self._preflight(cache)
+        if self.estimate is None:
+            self.estimate = self._estimate_built(cache)
+            self._preflight(self.estimate)
+        self.log(f"{cfg.component}: {sum(p.numel() for p in self.params):,} trainable parameters, "
+                 f"{self.estimate.describe()} of the {cfg.memory_budget_mb:.0f} MB budget")
 
         self.history = LossHistory(cfg.log_every)
         self.elapsed_before = 0.0

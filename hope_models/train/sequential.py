@@ -46,9 +46,13 @@ class SequenceError(ValueError):
 
 
 def parse_sequence(text: str) -> list[str]:
-    names = [n.strip() for n in text.split(",") if n.strip()]
+    parts = [n.strip() for n in text.split(",")]
+    names = [n for n in parts if n]
     if not names:
         raise SequenceError("--sequential needs at least one component, e.g. vqvae,fast_loop,mid_loop")
+    if len(names) != len(parts):  # "vqvae,,fast_loop" is a typo, not a shorter chain
+        raise SequenceError(f"--sequential {text[:100]!r}: an empty component name (two commas in a row, or a "
+                            "comma at an end)")
     unknown = [n for n in names if n not in COMPONENTS]
     if unknown:
         raise SequenceError(f"--sequential: unknown component(s) {', '.join(unknown)} "

@@ -35,15 +35,38 @@ class ValidationSetup:
     batches: int = 4  # TrainConfig.val_batches
 
     @classmethod
-    def from_train_config(cls, cfg: Any) -> "ValidationSetup":
-        """From a TrainConfig or a checkpoint's config.json "train" dict (TrainConfig.to_json_obj)."""
+    def from_train_config(cls, cfg: Any, where: str = "the training config") -> "ValidationSetup":
+        """From a TrainConfig or a checkpoint's config.json "train" dict (TrainConfig.to_json_obj).
+        The dict is untrusted (the gate reads it from a candidate's checkpoint): each value must be
+        of its type and within VALIDATION_LIMITS, else ValueError naming `where` and the field."""
         get = cfg.get if isinstance(cfg, Mapping) else (lambda k, d=None: getattr(cfg, k, d))
-        try:
-            return cls(batch_size=int(get("batch_size")), seed=int(get("seed", 0)),
-                       imagined_ratio=float(get("imagined_ratio", 0.0)), val_fraction=float(get("val_fraction", 0.1)),
-                       batches=int(get("val_batches", 4)))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"the training config has no usable validation settings: {exc}") from None
+        values = {}
+        for name, (kind, default, lo, hi) in VALIDATION_LIMITS.items():
+            v = get(name, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float) if kind is float else int):
+                raise ValueError(f"{where}: {name}={_short(v)} is not {'a number' if kind is float else 'an integer'}")
+            if not (lo <= v <= hi):  # also refuses NaN
+                raise ValueError(f"{where}: {name}={_short(v)} is outside {lo}..{hi}")
+            values[name] = kind(v)
+        return cls(batch_size=values["batch_size"], seed=values["seed"], imagined_ratio=values["imagined_ratio"],
+                   val_fraction=values["val_fraction"], batches=values["val_batches"])
+
+
+# TrainConfig field -> (type, default when absent, lowest, highest). batch_size has no default: a
+# training config always has one. The highs are far above any real run and keep a hostile config
+# from asking the gate for a batch or a number of batches that would take the Pi's memory or days.
+VALIDATION_LIMITS: dict[str, tuple[type, Any, Any, Any]] = {
+    "batch_size": (int, None, 1, 65536),
+    "seed": (int, 0, 0, 2**63 - 1),
+    "imagined_ratio": (float, 0.0, 0.0, 1.0),
+    "val_fraction": (float, 0.1, 0.0, 0.99),
+    "val_batches": (int, 4, 1, 1000),
+}
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, imagined_ratio: float,

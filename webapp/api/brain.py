@@ -8,6 +8,10 @@
     POST /api/brain/infer     {"component": "fast_loop", "observation": [floats], "session"?: str,
                                "reset"?: bool}
          -> {"action": [floats], "model_version": str, "latency_ms": float, "session": str | null}
+            400 an observation value that is not a number, not finite or beyond +-1e6
+                (brain_service.MAX_ABS_OBSERVATION; the message gives the range)
+            500 the served model computed NaN/Inf from a valid observation (its fault, logged; the
+                session's recurrent state is left as it was before the tick)
     POST /api/brain/promote   {"run_id": "r-..." | "checkpoint": "<dir under $HOPE_HOME or a data root>",
                                "component"?: str, "force"?: bool}
          -> 200 {"promoted": true, "model_id", "version", "reasons", "metrics", "serving"}
@@ -128,11 +132,11 @@ def infer():
 
 def _checkpoint_arg(value: str) -> str:
     from daemon.run_request import RunRequestError, resolve_path
+    from hope_models.paths import data_roots
 
     settings = _state().settings
-    roots = [Path(settings.home)] + [Path(r) for r in settings.data_roots]
     try:
-        path = resolve_path("checkpoint", value, base=Path(settings.home), allowed_roots=roots)
+        path = resolve_path("checkpoint", value, base=Path(settings.home), allowed_roots=data_roots(settings))
     except RunRequestError as exc:
         raise ApiError(str(exc), 400) from None
     if not Path(path).is_dir():

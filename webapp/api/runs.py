@@ -11,8 +11,16 @@ POST /api/runs takes the fields of `run_trainer.py enqueue` (daemon/run_request.
 data, steps, queue, priority, max_attempts, vqvae_dir | vqvae_run and the TrainConfig overrides
 such as seed, batch_size, lr, threads, checkpoint_every_steps, model_config). `data` is a path
 inside $HOPE_HOME (relative paths are taken from $HOPE_HOME/datasets) or one of the configured
-data_roots. Errors: 400 bad input (the message names the field), 404 unknown run, 409 a control
-request the run's state refuses.
+data_roots. Before the run exists, `data` must hold usable episodes and the model_config (with
+batch_size) must fit the component, the data and the memory budget (memory_budget_mb may lower
+the deployment's HOPE_MEMORY_BUDGET_MB, never raise it): daemon/run_request.preflight. Errors:
+400 bad input (the message names the field), 404 unknown run, 409 a control request the run's
+state refuses.
+
+A run's `state` is one of daemon.runs.STATES; `starting` is a run sent to its queue that no worker
+has taken yet, and its `waiting` says since when it waits for a worker on which queue (a queued
+run held behind it says that in its own `waiting`; null otherwise). cancel and pause of a
+starting run are done at once, like a queued one.
 
 Metrics are the rows of the run's metrics.jsonl (docs/training.md): metric records {"type":
 "metric", "step", "wall_time", "loss", ...} with step > `after`, in step order, at most `limit`
@@ -27,7 +35,7 @@ from pathlib import Path
 
 from flask import Blueprint, current_app, jsonify, request
 
-from webapp.api.validation import json_body, query_int
+from webapp.api.validation import json_body, no_body, query_args, query_int
 from webapp.errors import ApiError
 
 bp = Blueprint("runs", __name__, url_prefix="/api/runs")
@@ -53,6 +61,7 @@ def _get(s, run_id: str):
 def list_runs():
     from daemon import runs
 
+    query_args("state", "limit")
     states = None
     if request.args.get("state"):
         states = [x.strip() for x in request.args["state"].split(",") if x.strip()]
@@ -61,21 +70,20 @@ def list_runs():
             raise ApiError(f"state: unknown {', '.join(unknown)} (states: {', '.join(runs.STATES)})", 400)
     limit = query_int("limit", default=None, minimum=1, maximum=MAX_LIMIT)
     with _state().registry.session(readonly=True) as s:
-        items = [r.to_json_obj() for r in runs.list_runs(s, states=states, limit=limit)]
+        items = runs.to_json(s, runs.list_runs(s, states=states, limit=limit))
     return jsonify({"runs": items})
 
 
 @bp.post("")
 def create_run():
-    from daemon.run_request import RunRequestError, request_from_json, submit
+    from daemon.run_request import RunRequestError, queue_run, request_from_json
+    from hope_models.paths import data_roots
 
     state = _state()
     settings = state.settings
-    roots = [Path(settings.home)] + [Path(r) for r in settings.data_roots]
     try:
-        req = request_from_json(json_body(), allowed_roots=roots, base=Path(settings.datasets_dir))
-        with state.registry.session() as s:
-            obj = submit(s, settings, req).to_json_obj()
+        req = request_from_json(json_body(), allowed_roots=data_roots(settings), base=Path(settings.datasets_dir))
+        obj = queue_run(state.registry, settings, req)
     except RunRequestError as exc:
         raise ApiError(str(exc), 400) from None
     state.wake_daemon()
@@ -87,14 +95,18 @@ def create_run():
 
 @bp.get("/<run_id>")
 def get_run(run_id: str):
+    from daemon import runs
+
+    query_args()
     with _state().registry.session(readonly=True) as s:
-        return jsonify({"run": _get(s, run_id).to_json_obj()})
+        return jsonify({"run": runs.to_json(s, [_get(s, run_id)])[0]})
 
 
 @bp.get("/<run_id>/metrics")
 def metrics(run_id: str):
     from hope_models.train.metrics import read_metrics
 
+    query_args("after", "limit", "events")
     after = query_int("after", default=None, minimum=0)
     limit = query_int("limit", default=METRICS_DEFAULT, minimum=1, maximum=METRICS_MAX)
     events = request.args.get("events", "0")
@@ -137,6 +149,7 @@ def _stepped(records: list[dict]):
 def _control(run_id: str, action: str):
     from daemon import runs
 
+    no_body()
     state = _state()
     with state.registry.session() as s:
         _get(s, run_id)

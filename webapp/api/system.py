@@ -2,8 +2,8 @@
 
     {"stats": <daemon.monitor sample: memory, CPU, temperature, firmware flags, sources>,
      "throttle": {"level": 0|1|2|null, "source": "daemon" | "runs" | null},
-     "queue": {"counts": {state: n}, "running": [run summary], "queued": [run summary, dispatch order],
-               "paused": [run summary]},
+     "queue": {"counts": {state: n}, "starting": [run summary], "running": [run summary],
+               "queued": [run summary, dispatch order], "paused": [run summary]},
      "process": {"pid", "rss_mb"}}
 
 Under `serve` the daemon runs in this process: its last sample and its throttle level are the ones
@@ -27,7 +27,7 @@ _monitor_lock = threading.Lock()
 def _summary(run) -> dict:
     return {"id": run.id, "component": run.component, "queue": run.queue, "state": run.state,
             "step": run.step, "total_steps": run.total_steps, "priority": run.priority,
-            "pause_reason": run.pause_reason, "sequence_id": run.sequence_id}
+            "pause_reason": run.pause_reason, "sequence_id": run.sequence_id, "waiting": run.waiting_text()}
 
 
 def queue_summary(session) -> dict:
@@ -40,6 +40,8 @@ def queue_summary(session) -> dict:
                                                      .limit(LIST_LIMIT))]
 
     return {"counts": counts,
+            # sent, but no worker has taken them yet (e.g. none serves their queue)
+            "starting": of("starting", (Run.dispatched_at,)),
             "running": of("running", (Run.started_at,)),
             # the order the dispatcher takes them in (daemon.runs.next_dispatchable)
             "queued": of("queued", (Run.priority.desc(), Run.created_at, Run.id)),

@@ -7,7 +7,9 @@
 One run per component, in order, sharing a sequence id; each starts after the previous one
 completed (daemon.dispatch.create_sequence). The fields are checked by the same code as the CLI
 and POST /api/runs (daemon.run_request), with `data` / `vqvae_dir` confined to $HOPE_HOME and the
-configured data_roots (relative paths are taken from $HOPE_HOME/datasets).
+configured data_roots (relative paths are taken from $HOPE_HOME/datasets); then, before any run
+exists, each member's model_config and memory estimate against the dataset (run_request.preflight:
+a chain shares one model_config, so it must suit every member).
 """
 from __future__ import annotations
 
@@ -38,8 +40,8 @@ def _components(value) -> str:
 @bp.post("/sequential")
 def sequential():
     from daemon import runs
-    from daemon.dispatch import create_sequence
-    from daemon.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, check_vqvae_run
+    from daemon.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
+    from hope_models.paths import data_roots
     from hope_models.train.sequential import SequenceError, parse_sequence
 
     state = current_app.extensions["hope"]
@@ -50,18 +52,14 @@ def sequential():
         names = parse_sequence(_components(body["components"]))
     except SequenceError as exc:
         raise ApiError(str(exc).replace("--sequential", "components"), 400) from None
-    roots = [Path(settings.home)] + [Path(r) for r in settings.data_roots]
     main = {k: body[k] for k in REQUEST_KEYS - {"component"} if k in body}
     overrides = {k: body[k] for k in CONFIG_FIELDS if k in body}
     try:
         # the fields every member shares, checked as `sequential` checks them
         req = build_request(component=names[0], **main, overrides=overrides, base=Path(settings.datasets_dir),
-                            allowed_roots=roots)
-        with state.registry.session() as s:
-            check_vqvae_run(s, req.vqvae_run)
-            members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
-                                      queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
-            out = {"sequence_id": members[0].sequence_id, "runs": [r.to_json_obj() for r in members]}
+                            allowed_roots=data_roots(settings))
+        sequence_id, members = queue_sequence(state.registry, settings, names, req)
+        out = {"sequence_id": sequence_id, "runs": members}
     except (RunRequestError, runs.RunError) as exc:
         raise ApiError(str(exc), 400) from None
     state.wake_daemon()

@@ -2,21 +2,27 @@
 
 A JSON body must say `Content-Type: application/json` (else 415), fit MAX_CONTENT_LENGTH (else
 413, enforced before anything reads it: webapp/errors.py), be UTF-8 JSON (else 400) and, for
-these endpoints, an object. The JSON constants NaN / Infinity are refused while parsing; a number
-that overflows (1e999 parses to inf) is refused by the field checks, which want finite numbers.
-Every error is an ApiError whose message names the field.
+these endpoints, an object nested at most MAX_DEPTH levels (no endpoint needs more; deeper input
+would reach code that recurses). The JSON constants NaN / Infinity are refused while parsing; a
+number that overflows (1e999 parses to inf) is refused by the field checks, which want finite
+numbers. An endpoint that takes no input accepts an empty body or {} and refuses anything else
+(no_body), and a GET refuses query parameters it does not know (query_args). Every error is an
+ApiError whose message names the field.
 """
 from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any, Iterable
 
 from flask import current_app, request
 
+from daemon.run_request import RunRequestError, check_int, listed
 from webapp.errors import ApiError
 
 MAX_STR = 4096  # no text field of the API needs more
+MAX_DEPTH = 20  # the deepest body the API reads is 4 levels (sequential -> model_config -> window -> horizons_s)
 
 
 def _no_constants(name: str):
@@ -37,6 +43,10 @@ def json_body(*, allowed: Iterable[str] | None = None, required: Iterable[str] =
         raise ApiError(f"request body too large: at least {len(raw)} bytes; the limit is {limit} bytes", 413)
     if not raw.strip():
         raise ApiError("the request body is empty: send a JSON object", 400)
+    deep = _nesting_beyond_limit(raw)
+    if deep is not None:
+        raise ApiError(f"the request body is not valid JSON for this API: {deep} is nested more than {MAX_DEPTH} "
+                       "levels deep", 400)
     try:
         body = json.loads(raw.decode("utf-8"), parse_constant=_no_constants)
     except UnicodeDecodeError as exc:
@@ -46,7 +56,7 @@ def json_body(*, allowed: Iterable[str] | None = None, required: Iterable[str] =
                        400) from None
     except ValueError as exc:  # NaN / Infinity
         raise ApiError(f"the request body is not valid JSON: {exc}", 400) from None
-    except RecursionError:
+    except RecursionError:  # cannot happen below MAX_DEPTH; kept as the parser's own guard
         raise ApiError("the request body is not valid JSON: nested too deeply", 400) from None
     if not isinstance(body, dict):
         raise ApiError(f"the request body must be a JSON object, got {_kind(body)}", 400)
@@ -54,11 +64,52 @@ def json_body(*, allowed: Iterable[str] | None = None, required: Iterable[str] =
         known = set(allowed)
         unknown = sorted(str(k) for k in body if k not in known)
         if unknown:
-            raise ApiError(f"unknown field(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})", 400)
+            raise ApiError(f"unknown field(s) {listed(unknown)} (known: {', '.join(sorted(known)) or 'none'})", 400)
     for name in required:
         if name not in body or body[name] is None:
             raise ApiError(f"{name}: required", 400)
     return body
+
+
+_TOKENS = re.compile(rb'"(?:[^"\\]|\\.)*"\s*(:?)|[\[\]{}]')
+
+
+def _nesting_beyond_limit(raw: bytes) -> str | None:
+    """Where the body nests deeper than MAX_DEPTH: the top-level field it happens in (or "it"),
+    else None. Read off the bytes before parsing, without recursion: a parser or a check that
+    recursed would fail at a depth that depends on the stack it runs on (a RecursionError in one
+    place, a parsed body that recursion fails on later in another)."""
+    depth = 0
+    field = None
+    for m in _TOKENS.finditer(raw):
+        token = m.group(0)
+        if token[:1] == b'"':
+            if depth == 1 and m.group(1):
+                field = token[:token.rindex(b":")].rstrip()
+        elif token in b"[{":
+            depth += 1
+            if depth > MAX_DEPTH:
+                try:
+                    return "it" if field is None else str(json.loads(field))
+                except ValueError:
+                    return "it"
+        else:
+            depth -= 1
+    return None
+
+
+def no_body() -> None:
+    """For an endpoint that takes no input: an empty body (any content type) or {}. Fields are
+    refused, not ignored: a client that sends them expects them to mean something."""
+    if request.get_data(cache=True).strip():
+        json_body(allowed=())
+
+
+def query_args(*allowed: str) -> None:
+    """Refuse query parameters the endpoint does not read (a typo would otherwise be ignored)."""
+    unknown = sorted(k for k in request.args if k not in allowed)
+    if unknown:
+        raise ApiError(f"unknown query parameter(s) {listed(unknown)} (known: {', '.join(allowed) or 'none'})", 400)
 
 
 def _kind(value: Any) -> str:
@@ -84,19 +135,15 @@ def _short(value: Any) -> str:
 
 def get_int(body: dict, name: str, *, default: int | None = None, minimum: int | None = None,
             maximum: int | None = None) -> int | None:
-    """An integer field (JSON number without a fraction; booleans and strings are refused)."""
+    """An integer field, by the rule run requests follow (daemon.run_request.check_int: a JSON
+    number without a fraction; booleans and strings are refused)."""
     value = body.get(name)
     if value is None:
         return default
-    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
-        value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ApiError(f"{name}: expected an integer, got {_kind(value)} {_short(value)}", 400)
-    if minimum is not None and value < minimum:
-        raise ApiError(f"{name}: {value} must be >= {minimum}", 400)
-    if maximum is not None and value > maximum:
-        raise ApiError(f"{name}: {value} must be <= {maximum}", 400)
-    return value
+    try:
+        return check_int(name, value, minimum=minimum, maximum=maximum)
+    except RunRequestError as exc:
+        raise ApiError(str(exc), 400) from None
 
 
 def get_bool(body: dict, name: str, *, default: bool = False) -> bool:
@@ -119,6 +166,10 @@ def get_str(body: dict, name: str, *, default: str | None = None, max_len: int =
         raise ApiError(f"{name}: must not be empty", 400)
     if len(value) > max_len:
         raise ApiError(f"{name}: longer than {max_len} characters", 400)
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:  # JSON's "\ud800" escape: no file name, database or log can take it
+        raise ApiError(f"{name}: not valid Unicode text (a lone surrogate)", 400) from None
     if choices is not None:
         options = list(choices)
         if value not in options:
@@ -145,19 +196,22 @@ def get_numbers(body: dict, name: str, *, max_len: int, min_len: int = 1) -> lis
     return out
 
 
+_QUERY_INT = re.compile(r"-?[0-9]{1,18}")
+
+
 def query_int(name: str, *, default: int | None, minimum: int, maximum: int | None = None) -> int | None:
     """An integer query-string parameter (?name=...)."""
     text = request.args.get(name)
     if text is None or text == "":
         return default
-    try:
-        value = int(text)
-    except ValueError:
-        raise ApiError(f"{name}: {text[:40]!r} is not an integer", 400) from None
+    if not _QUERY_INT.fullmatch(text):  # int() would also take " 5", "1_000", "٥" and 4000 digits
+        raise ApiError(f"{name}: {text[:40]!r} is not an integer", 400)
+    value = int(text)
     if value < minimum or (maximum is not None and value > maximum):
         bound = f"between {minimum} and {maximum}" if maximum is not None else f">= {minimum}"
         raise ApiError(f"{name}: {value} must be {bound}", 400)
     return value
 
 
-__all__ = ["get_bool", "get_int", "get_numbers", "get_str", "json_body", "query_int"]
+__all__ = ["MAX_DEPTH", "get_bool", "get_int", "get_numbers", "get_str", "json_body", "no_body", "query_args",
+           "query_int"]

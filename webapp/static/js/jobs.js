@@ -1,6 +1,8 @@
 // Jobs: the queue, starting runs, pause/resume/cancel, and one selected run in detail (a loss
 // chart rebuilt from GET /api/runs/<id>/metrics, then moved by live run.progress events; the log
-// tail; the convergence summary once it has finished).
+// tail; the convergence summary once it has finished). A run in state "starting" was sent to its
+// queue but no worker has taken it; its `waiting` text (and a queued run's held behind it) is
+// shown under its state, so a queue with no worker reads as waiting, not as training.
 import { $, setText, fillKv, el, num, duration } from "./util.js";
 
 const SELECTED_KEY = "hope.selectedRun";
@@ -40,7 +42,7 @@ export const events = {
     if (run) {
       Object.assign(run, { step: d.step, total_steps: d.total ?? run.total_steps, loss: d.loss,
                            steps_per_s: d.steps_per_s });
-      if (run.state === "queued") run.state = "running";
+      if (run.state === "queued" || run.state === "starting") { run.state = "running"; run.waiting = null; }
       renderRow(run);
     } else {
       scheduleRefresh();
@@ -57,11 +59,13 @@ export const events = {
   },
   "run.state": (d) => {
     const run = runs.get(d.run_id);
-    if (run) { run.state = d.state; run.pause_reason = d.reason ?? run.pause_reason; renderRow(run); }
+    // the full `waiting` text (since when, how to start a worker) comes with the refresh below
+    const waiting = d.state === "starting" ? `waiting for a worker on queue '${run?.queue ?? "?"}'` : null;
+    if (run) { run.state = d.state; run.waiting = waiting; run.pause_reason = d.reason ?? run.pause_reason; renderRow(run); }
     if (d.run_id === selected) {
       appendLog(`[state] ${d.from ?? "?"} -> ${d.state}${d.message ? ": " + d.message : ""}`);
       if (FINISHED.has(d.state)) selectRun(selected, { keepLog: true });  // the final numbers and the summary
-      else setState(d.state);
+      else setState(d.state, waiting);
     }
     scheduleRefresh();  // queue order, a sequence's next member, ...
   },
@@ -96,7 +100,7 @@ function controls(run) {
   const b = (action, label, cls = "small secondary") => el("button", { type: "button", class: cls, text: label,
                                                                        "data-action": action });
   const out = [];
-  if (run.state === "running" || run.state === "queued") out.push(b("pause", "Pause"));
+  if (run.state === "running" || run.state === "queued" || run.state === "starting") out.push(b("pause", "Pause"));
   if (run.state === "paused" || run.state === "interrupted") out.push(b("resume", "Resume"));
   if (!FINISHED.has(run.state)) out.push(b("cancel", "Cancel", "small danger"));
   return out;
@@ -110,12 +114,18 @@ function renderRow(run) {
   tr.replaceChildren(
     el("td", { text: run.id }),
     el("td", { text: run.component + seq }),
-    el("td", {}, el("span", { class: `state ${run.state}`, text: run.state + (run.pause_reason && run.state === "paused" ? ` (${run.pause_reason})` : "") })),
+    el("td", {}, el("span", { class: `state ${run.state}`, text: run.state + (run.pause_reason && run.state === "paused" ? ` (${run.pause_reason})` : "") }),
+       ...(run.waiting ? [el("div", { class: "muted waiting", text: shortWaiting(run), title: run.waiting })] : [])),
     el("td", { text: `${run.step ?? 0}/${run.total_steps ?? "?"} (${pct}%)` }),
     el("td", { text: num(run.loss) }),
     el("td", {}, ...controls(run)));
   tr.classList.toggle("selected", run.id === selected);
   tr.dataset.state = run.state;
+}
+
+// the queue table says what a run waits for in a few words; the detail view (and the tooltip) has it all
+function shortWaiting(run) {
+  return run.state === "starting" ? `waiting for a worker on queue '${run.queue}'` : run.waiting.split(" (")[0];
 }
 
 async function onTableClick(event) {
@@ -222,11 +232,13 @@ function appendLog(line) {
   pre.scrollTop = pre.scrollHeight;
 }
 
-function setState(state) {
+function setState(state, waiting = null) {
   const badge = $("#detail-state");
   badge.textContent = state;
   badge.className = `state ${state}`;
   $("#run-detail").dataset.state = state;
+  setText("#detail-waiting", waiting ?? "");
+  $("#detail-waiting").hidden = !waiting;
 }
 
 function renderProgress(step, total, d = {}) {
@@ -272,7 +284,7 @@ async function selectRun(runId, { keepLog = false } = {}) {
   if ($("#run-detail").dataset.run !== runId) $("#run-detail").dataset.livePoints = "0";
   $("#run-detail").dataset.run = runId;
   setText("#detail-id", `${run.id} · ${run.component}`);
-  setState(run.state);
+  setState(run.state, run.waiting);
   resetChart();
   peakRss = null;
   const metrics = records.filter((r) => r.type === "metric");

@@ -1,0 +1,227 @@
+"""What a hostile neighbour on the same machine does to the webapp, as plain socket code.
+
+Used by tests/test_server_hardening.py (against a real `serve`) and bench/soak.py. Every pattern
+needs no token; each returns once its own bounded work is done, leaving whatever sockets it opened
+in `held` so the caller decides when they end.
+"""
+from __future__ import annotations
+
+import base64
+import json
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+
+# The bodies that once pinned a thread for ever (python-engineio's close() waiting on the queue).
+BAD_POLL_BODIES = (b"6", b"0", b"2probe", b"9zzz", b"4" + b"x" * 1_100_000)
+
+
+def http_request(port: int, method: str, path: str, body: bytes = b"", headers: dict | None = None,
+                 timeout: float = 5.0, host: str = "127.0.0.1") -> tuple[int, bytes]:
+    """One request on its own connection; (status, body). Status 0 when the server closed without answering."""
+    head = {"Host": f"127.0.0.1:{port}", "Connection": "close", "Content-Length": str(len(body))}
+    head.update(headers or {})
+    lines = [f"{method} {path} HTTP/1.1"] + [f"{k}: {v}" for k, v in head.items()]
+    with socket.create_connection((host, port), timeout=timeout) as s:
+        s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode() + body)
+        raw = b""
+        while not _complete(raw):
+            try:
+                data = s.recv(65536)
+            except (ConnectionResetError, socket.timeout):
+                break
+            if not data:
+                break
+            raw += data
+    if not raw.startswith(b"HTTP/"):
+        return 0, raw
+    head_end = raw.find(b"\r\n\r\n")
+    status = int(raw.split(b" ", 2)[1])
+    payload = raw[head_end + 4:] if head_end >= 0 else b""
+    if b"transfer-encoding: chunked" in raw[:head_end].lower():
+        payload = _dechunk(payload)
+    return status, payload
+
+
+def _complete(raw: bytes) -> bool:
+    """A whole response with a Content-Length has arrived (a client then hangs up, as curl does)."""
+    end = raw.find(b"\r\n\r\n")
+    if end < 0:
+        return False
+    if raw.endswith(b"\r\n0\r\n\r\n") or raw[end + 4:].startswith(b"0\r\n\r\n"):
+        return True  # the last chunk of a chunked body
+    for line in raw[:end].split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            return len(raw) - end - 4 >= int(value)
+    return False
+
+
+def _dechunk(data: bytes) -> bytes:
+    out, i = [], 0
+    while i < len(data):
+        end = data.find(b"\r\n", i)
+        if end < 0:
+            break
+        size = int(data[i:end].split(b";")[0] or b"0", 16)
+        if size == 0:
+            break
+        out.append(data[end + 2:end + 2 + size])
+        i = end + 2 + size + 2
+    return b"".join(out)
+
+
+def polling_handshake(port: int, timeout: float = 5.0) -> str | None:
+    status, body = http_request(port, "GET", "/socket.io/?EIO=4&transport=polling", timeout=timeout)
+    if status != 200 or not body.startswith(b"0"):
+        return None
+    return json.loads(body[1:])["sid"]
+
+
+def bad_poll_pair(port: int, body: bytes, timeout: float = 2.0) -> int:
+    """An Engine.IO polling handshake, then one POST of a bad packet; the POST's status (0 = no answer)."""
+    sid = polling_handshake(port)
+    if sid is None:
+        return -1
+    try:
+        status, _ = http_request(port, "POST", f"/socket.io/?EIO=4&transport=polling&sid={sid}", body=body,
+                                 headers={"Content-Type": "text/plain;charset=UTF-8"}, timeout=timeout)
+    except (socket.timeout, OSError):
+        return 0
+    return status
+
+
+def half_header_socket(port: int) -> socket.socket:
+    """A connection that sends half a request and then nothing."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+    return s
+
+
+def silent_websocket(port: int) -> socket.socket | None:
+    """A completed WebSocket handshake on the Socket.IO endpoint that never sends CONNECT. None if refused."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall((f"GET /socket.io/?EIO=4&transport=websocket HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+               f"Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+               "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+    try:
+        head = s.recv(4096)
+    except (socket.timeout, OSError):
+        head = b""
+    if not head.startswith(b"HTTP/1.1 101"):
+        s.close()
+        return None
+    return s
+
+
+@dataclass
+class HostileRound:
+    """One round of every pattern; the sockets it keeps open are in `held` until `release()`."""
+
+    port: int
+    pairs_per_body: int = 60
+    half_headers: int = 50
+    silent_websockets: int = 100
+    held: list = field(default_factory=list)
+    statuses: dict = field(default_factory=dict)
+    refused: int = 0
+
+    def run(self) -> "HostileRound":
+        for body in BAD_POLL_BODIES:
+            for _ in range(self.pairs_per_body):
+                status = bad_poll_pair(self.port, body)
+                self.statuses[status] = self.statuses.get(status, 0) + 1
+        for _ in range(self.half_headers):
+            try:
+                self.held.append(half_header_socket(self.port))
+            except OSError:
+                self.refused += 1
+        for _ in range(self.silent_websockets):
+            try:
+                ws = silent_websocket(self.port)
+            except OSError:
+                ws = None
+            if ws is None:
+                self.refused += 1
+            else:
+                self.held.append(ws)
+        return self
+
+    def release(self) -> None:
+        for s in self.held:
+            try:
+                s.close()
+            except OSError:
+                pass
+        self.held.clear()
+
+
+def process_counts(pid: int) -> tuple[int, int]:
+    """(threads, open file descriptors) of a process, from /proc."""
+    return len(os.listdir(f"/proc/{pid}/task")), len(os.listdir(f"/proc/{pid}/fd"))
+
+
+def wait_until(predicate, timeout: float, step: float = 0.25):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value or time.monotonic() >= deadline:
+            return value
+        time.sleep(step)
+
+
+class SocketIOClient:
+    """A legitimate Socket.IO client over a raw WebSocket (Engine.IO v4 framing by hand): logs in with
+    the token and answers pings, so it stays connected as the Robot Editor does."""
+
+    def __init__(self, port: int, token: str | None, host: str = "127.0.0.1", timeout: float = 20.0):
+        import simple_websocket
+
+        # timeout: socket.io-client's default connection timeout (20 s)
+        self.ws = simple_websocket.Client(f"ws://{host}:{port}/socket.io/?EIO=4&transport=websocket")
+        opened = self.ws.receive(timeout=timeout)
+        if not (isinstance(opened, str) and opened.startswith("0")):
+            raise ConnectionError(f"no Engine.IO OPEN packet: {opened!r}")
+        self.ws.send("40" + json.dumps({"token": token} if token else {}))
+        self.connect_reply = self._next_message(timeout=timeout)
+
+    @property
+    def connected(self) -> bool:
+        return isinstance(self.connect_reply, str) and self.connect_reply.startswith("40")
+
+    def _next_message(self, timeout: float):
+        from simple_websocket import ConnectionClosed
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                pkt = self.ws.receive(timeout=max(0.05, deadline - time.monotonic()))
+            except ConnectionClosed as exc:
+                raise ConnectionError(f"the server closed the Socket.IO connection: {exc}") from None
+            if pkt is None:
+                return None
+            if pkt == "2":  # Engine.IO ping
+                self.ws.send("3")
+                continue
+            return pkt
+        return None
+
+    def pump(self, seconds: float) -> list:
+        """Answer pings and collect Socket.IO messages for `seconds`; raises if the server hung up."""
+        got = []
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            pkt = self._next_message(deadline - time.monotonic())
+            if pkt is not None:
+                got.append(pkt)
+        if not self.ws.connected:
+            raise ConnectionError("the server closed the Socket.IO connection")
+        return got
+
+    def close(self) -> None:
+        try:
+            self.ws.close()
+        except Exception:  # noqa: BLE001 - already gone
+            pass

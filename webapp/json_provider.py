@@ -1,0 +1,27 @@
+"""The app's JSON provider: every answer is valid JSON, whatever a view puts in it.
+
+Python's json writes NaN and Infinity as bare words, which JSON does not have: browsers'
+JSON.parse and the robot clients' strict parsers refuse the whole answer. A non-finite float is
+turned into null (hope_models/json_finite.py, the rule of the registry and the promotion records),
+also inside what `default` makes of other objects (dataclasses, dates), and allow_nan=False makes
+any float that still slips through an error in the server's log rather than an answer no client
+can read. Views that must not answer null where a number belongs check first (BrainService refuses
+a non-finite action with a 500); this is the floor under every view.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from flask.json.provider import DefaultJSONProvider
+
+from hope_models.json_finite import finite
+
+
+class FiniteJSONProvider(DefaultJSONProvider):
+    def dumps(self, obj: Any, **kwargs: Any) -> str:
+        default = kwargs.pop("default", self.default)
+        kwargs["allow_nan"] = False
+        return super().dumps(finite(obj), default=lambda o: finite(default(o)), **kwargs)
+
+
+__all__ = ["FiniteJSONProvider"]

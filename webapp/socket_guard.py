@@ -1,0 +1,201 @@
+"""Socket.IO sessions that cannot pin a server thread: no waiting on a client, a deadline to log in.
+
+Two holes in python-engineio (4.15) as Flask-SocketIO runs it in threading mode, closed here:
+
+1. `engineio.Server.disconnect()` closes a session with `Socket.close(wait=True)`, which queues a
+   CLOSE packet and then `queue.join()`s until the client fetches it. A long-polling client fetches
+   packets only with its next GET, so when the disconnect happens inside that client's own POST
+   (any bad packet: `6`, `0`, `2probe`, an oversized payload all raise and disconnect), the POST's
+   thread waits for a GET that never comes: one thread and one socket lost per request, for ever,
+   without a token. We close without waiting: the session is dropped at once, and a client that
+   polls again gets "invalid session" and reconnects, as after any server restart.
+2. An Engine.IO session needs no token: authentication is the Socket.IO CONNECT packet. A client
+   that opens a WebSocket (or polling session) and never sends CONNECT, or sends a refused one,
+   would hold it open while answering pings. Every session must be authorised within
+   `auth_timeout_s` or it is closed.
+3. Each new session starts a ping thread that sleeps `ping_interval` (25 s) before it notices its
+   session is gone, so handshakes alone (no token) could pile up thousands of threads. New sessions
+   are therefore limited: at most `max_pending` waiting to log in at once, and no more than
+   `sessions_per_s` (with a burst) started; beyond that the handshake is refused (401 with a
+   message) and a real client retries, as it does after any refused connection.
+
+Closing a WebSocket session from the server only sends a close frame: simple-websocket then waits
+for the client's answer (a silent client never gives one) until the socket's idle timeout. A session
+closed for not logging in therefore also has its TCP connection cut (`middleware` remembers the
+sockets of WebSocket requests, including upgrades of polling sessions, by session id).
+
+The authorised flag lives in the session's WSGI environ (the connect handler sees the same dict:
+`mark_authorized`), so nothing here needs python-socketio's internals beyond the Engine.IO
+`connect`/`disconnect` handlers it registers.
+"""
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from typing import Any
+from urllib.parse import parse_qs
+
+log = logging.getLogger(__name__)
+
+AUTHORIZED_KEY = "hope.socket_authorized"
+DEFAULT_AUTH_TIMEOUT_S = 10.0
+MAX_PENDING = 64
+SESSIONS_PER_S = 20.0
+SESSIONS_BURST = 60
+
+
+def _non_waiting_engineio_class(base: type) -> type:
+    class NonWaitingEngineIOServer(base):
+        def disconnect(self, sid=None):
+            targets = [sid] if sid is not None else list(self.sockets)
+            for target in targets:
+                socket = self.sockets.get(target)
+                if socket is not None:
+                    socket.close(wait=False, reason=self.reason.SERVER_DISCONNECT)
+                self.sockets.pop(target, None)
+
+    return NonWaitingEngineIOServer
+
+
+def mark_authorized(environ: dict) -> None:
+    """Called by the Socket.IO connect handler once the token checked out."""
+    environ[AUTHORIZED_KEY] = True
+
+
+class SocketGuard:
+    def __init__(self, socketio: Any, auth_timeout_s: float = DEFAULT_AUTH_TIMEOUT_S, *,
+                 max_pending: int = MAX_PENDING, sessions_per_s: float = SESSIONS_PER_S,
+                 sessions_burst: int = SESSIONS_BURST):
+        import engineio
+
+        eio = socketio.server.eio
+        if type(eio) is not engineio.Server:  # a new python-socketio may build it differently: look again
+            raise RuntimeError(f"unexpected Engine.IO server class {type(eio).__name__}; "
+                               "webapp/socket_guard.py must be revisited")
+        eio.__class__ = _non_waiting_engineio_class(engineio.Server)
+        self.eio = eio
+        self.auth_timeout_s = float(auth_timeout_s)
+        self._pending: dict[str, tuple[float, dict]] = {}
+        self._websockets: dict[str, dict] = {}  # session id -> environ of its WebSocket request
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.max_pending = int(max_pending)
+        self._rate, self._burst = float(sessions_per_s), float(sessions_burst)
+        self._tokens, self._refilled = self._burst, time.monotonic()
+        self.refused = 0
+        inner_connect = eio.handlers.get("connect")
+        inner_disconnect = eio.handlers.get("disconnect")
+
+        def on_connect(eio_sid, environ, *args):
+            with self._lock:
+                refusal = self._admit()
+                if refusal is None:
+                    self._pending[eio_sid] = (time.monotonic() + self.auth_timeout_s, environ)
+                    self._ensure_reaper()
+            if refusal is not None:
+                return refusal  # engineio drops the session before its ping thread starts
+            return inner_connect(eio_sid, environ, *args) if inner_connect else None
+
+        def on_disconnect(eio_sid, *args):
+            with self._lock:
+                self._pending.pop(eio_sid, None)
+            return inner_disconnect(eio_sid, *args) if inner_disconnect else None
+
+        eio.on("connect", on_connect)
+        eio.on("disconnect", on_disconnect)
+
+    def middleware(self, app):
+        """WSGI: remember which TCP connection carries each session's WebSocket while it is open."""
+
+        def remember_websockets(environ, start_response):
+            if environ.get("HTTP_UPGRADE", "").lower() != "websocket":
+                return app(environ, start_response)
+            sid = parse_qs(environ.get("QUERY_STRING", "")).get("sid", [None])[0]
+            if sid is None:
+                return app(environ, start_response)  # a new session: its connect environ is this one
+            with self._lock:
+                self._websockets[sid] = environ
+            try:
+                return app(environ, start_response)  # returns when the WebSocket has ended
+            finally:
+                with self._lock:
+                    if self._websockets.get(sid) is environ:
+                        del self._websockets[sid]
+
+        return remember_websockets
+
+    @staticmethod
+    def _cut(environ: dict | None) -> None:
+        if not environ or environ.get("HTTP_UPGRADE", "").lower() != "websocket":
+            return
+        sock = environ.get("werkzeug.socket")
+        try:
+            sock.shutdown(socket.SHUT_RDWR)  # the reader thread wakes with EOF; the handler ends
+        except (OSError, AttributeError):
+            pass
+
+    def _admit(self) -> str | None:
+        """None when a new session may start, else why not (under self._lock)."""
+        now = time.monotonic()
+        self._tokens = min(self._burst, self._tokens + (now - self._refilled) * self._rate)
+        self._refilled = now
+        if len(self._pending) >= self.max_pending:
+            why = f"{len(self._pending)} Socket.IO sessions are waiting to log in, the limit"
+        elif self._tokens < 1.0:
+            why = f"more than {self._rate:g} new Socket.IO sessions a second"
+        else:
+            self._tokens -= 1.0
+            return None
+        self.refused += 1
+        if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+            log.warning("refused a Socket.IO session: %s (%d refused so far)", why, self.refused)
+        return f"{why}; try again in a few seconds"
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._pending)
+
+    def _ensure_reaper(self) -> None:
+        # A thread only while sessions wait to log in: an idle webapp (and each test app) has none.
+        if self._thread is None and not self._closed:
+            self._thread = threading.Thread(target=self._reap, name="socket-auth-deadline", daemon=True)
+            self._thread.start()
+
+    def _reap(self) -> None:
+        while True:
+            time.sleep(min(0.5, self.auth_timeout_s / 4))
+            now = time.monotonic()
+            expired = []
+            with self._lock:
+                for sid, (deadline, environ) in list(self._pending.items()):
+                    if environ.get(AUTHORIZED_KEY):
+                        del self._pending[sid]
+                    elif now >= deadline:
+                        del self._pending[sid]
+                        expired.append((sid, environ, self._websockets.get(sid)))
+                if not self._pending or self._closed:
+                    self._thread = None
+                    stop = True
+                else:
+                    stop = False
+            for sid, environ, upgraded in expired:
+                log.info("socket.io session %s did not log in within %.0f s; closed", sid, self.auth_timeout_s)
+                try:
+                    self.eio.disconnect(sid)
+                except Exception:  # noqa: BLE001 - the session may have gone meanwhile
+                    log.debug("closing %s failed", sid, exc_info=True)
+                self._cut(environ)
+                self._cut(upgraded)
+            if stop:
+                return
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+
+
+__all__ = ["AUTHORIZED_KEY", "SocketGuard", "mark_authorized"]
