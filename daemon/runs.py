@@ -294,6 +294,7 @@ def request_control(s: Session, run_id: str, action: str) -> Run:
                              "is refused if a worker picks it up later)")
             else:
                 _log(s, run, "cancel requested by user; cancelled")
+            _cancel_followers(s, run)
     elif action == "pause":
         if state in ("queued", "starting"):
             transition(s, run, "paused", reason="user")
@@ -332,6 +333,17 @@ def _predecessor(s: Session, run: Run) -> Run | None:
     return s.scalars(
         select(Run).where(Run.sequence_id == run.sequence_id, Run.sequence_index == run.sequence_index - 1)
     ).first()
+
+
+def _cancel_followers(s: Session, run: Run) -> None:
+    """The later members of `run`'s chain can never start once it is cancelled: end them now, so
+    the user sees the whole chain cancelled at once (not when its queue next frees up)."""
+    if run.sequence_id is None:
+        return
+    for later in sequence_runs(s, run.sequence_id):
+        if (later.sequence_index or 0) > (run.sequence_index or 0) and later.state not in TERMINAL | ACTIVE:
+            transition(s, later, "cancelled", reason="sequence",
+                       message=f"previous run {run.id} in sequence {run.sequence_id} ended cancelled")
 
 
 def next_dispatchable(s: Session, queue: str) -> Run | None:

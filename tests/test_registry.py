@@ -447,6 +447,20 @@ def test_dispatch_chain_cancelled_after_failed_predecessor(reg, outcome):
         assert states_of(s, f.id)[-1] == ("queued", "cancelled")
 
 
+def test_cancelling_a_chain_member_that_has_not_started_cancels_the_rest_at_once(reg):
+    with reg.session() as s:
+        seq, (v, f, m) = _chain(s)
+        blocker = dispatch_and_claim(s, make(s, queue="pi"))  # the queue is busy: nothing dispatches
+        runs.request_control(s, v.id, "cancel")
+        assert [runs.get_run(s, r.id).state for r in (v, f, m)] == ["cancelled"] * 3
+        assert runs.get_run(s, f.id).error_message == f"previous run {v.id} in sequence {seq} ended cancelled"
+        assert runs.get_run(s, blocker.id).state == "running"
+        # a later member cancelled on its own leaves the ones before it alone
+        seq2, (v2, f2, m2) = _chain(s)
+        runs.request_control(s, f2.id, "cancel")
+        assert [runs.get_run(s, r.id).state for r in (v2, f2, m2)] == ["queued", "cancelled", "cancelled"]
+
+
 def test_dispatch_chain_member_with_missing_predecessor_is_cancelled(reg):
     with reg.session() as s:
         orphan = make(s, sequence_id="q-orphan", sequence_index=1)
