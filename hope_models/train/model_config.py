@@ -13,7 +13,6 @@ the door and to estimate its memory (estimate.estimate_from_config) before a mod
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import reprlib
 from dataclasses import dataclass
@@ -188,11 +187,15 @@ def vqvae_config_of(obj: Any, where: str) -> VQVAEConfig:
 
 def read_vqvae_config(ckpt_dir: str | Path) -> VQVAEConfig:
     """The VQVAEConfig of a vqvae checkpoint dir, from its config.json alone (no weights, no torch)."""
+    from hope_models.train.checkpoint import CheckpointError, read_json_object
+
     path = Path(ckpt_dir) / "config.json"
     try:
-        obj = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: not readable JSON: {exc}") from None
+        obj = read_json_object(path)  # untrusted: a FIFO, a huge or deeply nested file is refused
+    except FileNotFoundError:
+        raise ValueError(f"{path}: missing (not a checkpoint dir)") from None
+    except (CheckpointError, OSError) as exc:
+        raise ValueError(str(exc) if isinstance(exc, CheckpointError) else f"{path}: {exc}") from None
     return vqvae_config_of(obj, str(path))
 
 
