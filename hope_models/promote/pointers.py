@@ -22,7 +22,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from hope_models.durable import file_sha256, fsync_path
+from hope_models.durable import atomic_write, file_sha256, fsync_path
 
 POINTER_DIR = "promoted"
 MODEL_FILE = "model.safetensors"
@@ -101,17 +101,10 @@ def write_pointer(home: str | os.PathLike, component: str, obj: dict[str, Any]) 
     obj = _validate(dict(obj), f"pointer for {component}", component)
     data = (json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n").encode("utf-8")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{os.urandom(3).hex()}.tmp")
     try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        atomic_write(path, data)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise PointerError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    fsync_path(path.parent)
     return path
 
 

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable
 
+from ..durable import atomic_open
 from .episode import Episode
 from .validate import (derive_action_source, exception_entry, read_reports, report_entries, robot_type,
                        unique_paths)
@@ -111,22 +112,16 @@ def export_episode(ep: Episode, out_dir: str | os.PathLike, created_ns: int | No
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     final = out / f"{episode_id}.tar.gz"
-    tmp = out / f".{episode_id}.tar.gz.tmp"
     mtime = created // 1_000_000_000
-    try:
-        with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as gz, \
-                tarfile.open(fileobj=gz, mode="w", format=tarfile.PAX_FORMAT) as tar:
-            _tar_add(tar, episode_id, None, mtime)
-            _tar_add(tar, f"{episode_id}/{EPISODE_FILE}", episode_json, mtime)
-            for directory in _parent_dirs(prepared.blobs):
-                _tar_add(tar, f"{episode_id}/{directory}", None, mtime)
-            for name, source in sorted(prepared.blobs.items()):
-                _tar_add(tar, f"{episode_id}/{name}", None, mtime, source=source)
-            _tar_add(tar, f"{episode_id}/{UPLOAD_MANIFEST}", manifest_json, mtime)
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_open(final, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as gz, \
+            tarfile.open(fileobj=gz, mode="w", format=tarfile.PAX_FORMAT) as tar:
+        _tar_add(tar, episode_id, None, mtime)
+        _tar_add(tar, f"{episode_id}/{EPISODE_FILE}", episode_json, mtime)
+        for directory in _parent_dirs(prepared.blobs):
+            _tar_add(tar, f"{episode_id}/{directory}", None, mtime)
+        for name, source in sorted(prepared.blobs.items()):
+            _tar_add(tar, f"{episode_id}/{name}", None, mtime, source=source)
+        _tar_add(tar, f"{episode_id}/{UPLOAD_MANIFEST}", manifest_json, mtime)
     return final
 
 

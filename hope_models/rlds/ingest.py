@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
+from ..durable import atomic_write
 from .episode import Episode
 from .validate import exception_entry, read_reports, report_entries, unique_paths
 from .write_episode_dir import (PreparedEpisode, prepare_episode, remove_stale_tmp_dirs,
@@ -89,12 +90,7 @@ def write_manifest(dataset_dir: Path, manifest: Manifest) -> bool:
     text = manifest.text()
     if path.exists() and path.read_text(encoding="utf-8") == text:
         return False
-    tmp = dataset_dir / f".{MANIFEST}.tmp"
-    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, text)
     return True
 
 

@@ -6,8 +6,9 @@ Two channels, JSON message encoding with jsonschema schemas:
 log_time of a step is its timestamp_ns (or index * 100 ms when the episode has no clock); the
 step's own `timestamp_ns` field stays the source of truth when reading back.
 
-The file is written to `<path>.partial` in small uncompressed chunks, fsynced and renamed, so
-a crash never leaves a half-written `.mcap` that a reader would take for an episode.
+The file is written in small uncompressed chunks to a hidden temp file (hope_models.durable.atomic_open:
+fsynced, renamed, the dir fsynced), so a crash never leaves a half-written `.mcap` that a reader
+would take for an episode.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
+from ..durable import atomic_open
 from .episode import Episode
 
 METADATA_TOPIC = "/episode/metadata"
@@ -62,8 +64,7 @@ def _dumps(obj: object) -> bytes:
 def write_episode_mcap(episode: Episode, path: str | os.PathLike) -> Path:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    partial = target.with_name(target.name + ".partial")
-    with open(partial, "wb") as stream:
+    with atomic_open(target, "wb") as stream:
         writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
         writer.start(profile=PROFILE, library="hope-seed-trainer")
         meta_schema = writer.register_schema(name="hope.rlds.EpisodeMetadata", encoding="jsonschema",
@@ -84,7 +85,4 @@ def write_episode_mcap(episode: Episode, path: str | os.PathLike) -> Path:
             writer.add_message(step_channel, log_time=t, publish_time=t, sequence=i,
                                data=_dumps(step.to_json_obj(i)))
         writer.finish()
-        stream.flush()
-        os.fsync(stream.fileno())
-    os.replace(partial, target)
     return target

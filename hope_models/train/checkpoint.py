@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from hope_models.durable import file_sha256, fsync_path
+from hope_models.durable import atomic_write, file_sha256, fsync_path
 
 CHECKPOINT_FORMAT = "hope.checkpoint/1"
 MANIFEST = "manifest.json"
@@ -109,11 +109,8 @@ def _safetensors_bytes(tensors: dict[str, Any], metadata: dict[str, str] | None 
 
 def write_pointer(run_dir: str | Path, step: int) -> None:
     """checkpoints/last names the newest complete checkpoint (write a temp file, rename, fsync)."""
-    ckdir = checkpoints_dir(run_dir)
-    tmp = ckdir / f".{POINTER}.tmp-{os.getpid()}"
-    _write_bytes(tmp, (step_dir_name(step) + "\n").encode("ascii"))
-    os.replace(tmp, ckdir / POINTER)
-    fsync_path(ckdir)
+    # its temp file is `.last.tmp-*`, which clean_temp removes after a crash
+    atomic_write(checkpoints_dir(run_dir) / POINTER, (step_dir_name(step) + "\n").encode("ascii"))
 
 
 def save_checkpoint(run_dir: str | Path, step: int, *, model_state: dict[str, Any], config: dict[str, Any],

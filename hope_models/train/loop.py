@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
+from hope_models.durable import atomic_write
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import COMPONENTS, OUTCOME_EXIT_CODES, Control, ControlCommand, NoControl
 
@@ -190,6 +191,7 @@ def dataset_dir_for(data: str | os.PathLike, cache_root: Path) -> Path:
     link = link_dir / p.name
     link_dir.mkdir(parents=True, exist_ok=True)
     if not (link.is_symlink() and Path(os.readlink(link)) == p):
+        # a symlink, not file data: durable.atomic_write does not apply; symlink + rename is atomic
         tmp = link_dir / f".{p.name}.{os.getpid()}.tmp"
         tmp.unlink(missing_ok=True)
         os.symlink(p, tmp)
@@ -693,9 +695,4 @@ class _RunDirLock:
 
 
 def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(obj, f, indent=1, default=str)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(obj, indent=1, default=str))
