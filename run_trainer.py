@@ -22,7 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
     "demo": ("daemon.cli.demo", "the whole loop through the services: sim demos, chain training, gate, serve, reflex"),
     "demo-data": ("hope_models.cli.demo", "the data-layer demo on generated episodes (no server)"),
-    # the service side (issue 5): none of these imports torch in its own process
+    # the service side: none of these imports torch in its own process (training runs in job children)
     "serve": ("daemon.cli.serve", "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
     "daemon": ("daemon.cli.daemon", "the supervisor service: dispatch, monitors, recovery, events (systemd)"),
     "worker": ("workers.cli", "the Celery worker that trains one queued run at a time (-Q queue)"),
@@ -34,7 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cancel": ("daemon.cli.cancel", "cancel a run (a running job checkpoints first)"),
     "pause": ("daemon.cli.pause", "pause a run (a running job checkpoints and stops)"),
     "resume": ("daemon.cli.resume", "queue a paused run again; it resumes from its checkpoint"),
-    # promotion (issue 6): promote gates with torch in its own process; rollback is torch-free
+    # promotion: promote gates with torch in its own process; rollback is torch-free
     "promote": ("daemon.cli.promote", "gate a completed run's checkpoint and promote it if it passes"),
     "rollback": ("daemon.cli.rollback", "serve the previously promoted model of a component again"),
     "infer": ("daemon.cli.infer", "one tick of the promoted model: action, version, latency (serve, or --local)"),

@@ -35,6 +35,7 @@ from sqlalchemy import exists, func, select
 from daemon import runs
 from daemon.models import Model, Run, utcnow
 from hope_models.cli.json_result import last_json_object
+from hope_models.settings import GATE_ENV
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,6 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "run_trainer.py"
 LOG_FILE = "promote.log"
 STOP_TIMEOUT_S = 10.0
-GATE_ENV = {"HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance", "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
-            "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes"}
 
 
 class AutoPromoter:

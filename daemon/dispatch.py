@@ -40,10 +40,9 @@ from sqlalchemy import select
 
 from daemon import runs
 from daemon.models import Run, new_run_id, utcnow
+from hope_models.train.contract import NEEDS_VQVAE
 
 log = logging.getLogger(__name__)
-
-NEEDS_VQVAE = {"mid_loop"}
 
 
 @dataclass

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.paths import PathError, confine_path
-from hope_models.train.contract import COMPONENTS
+from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
 from hope_models.train.model_config import short
 
 QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
@@ -216,8 +216,6 @@ def check_vqvae_run(session, run_id: str | None) -> str | None:
 
 def _check_vqvae_source(req: RunRequest, components: list[str], chain: bool) -> None:
     """Each member that predicts VQ-VAE codes has a VQ-VAE: given, or trained earlier in the chain."""
-    from hope_models.train.sequential import NEEDS_VQVAE  # torch-free
-
     have = bool(req.vqvae_dir or req.vqvae_run)
     for name in components:
         if name in NEEDS_VQVAE and not have:

@@ -81,6 +81,8 @@ _ENV = {
     "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
 }
+# the promotion gate's part of _ENV: the daemon passes these to the gate it spawns
+GATE_ENV = {var: name for var, name in _ENV.items() if name.startswith("gate_")}
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake

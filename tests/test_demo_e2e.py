@@ -22,13 +22,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _demo_argv() -> list[str]:
-    """`run_trainer.py demo` once it points at the daemon's demo; until then the module itself."""
-    sys.path.insert(0, str(REPO))
-    from run_trainer import COMMANDS
-
-    if COMMANDS["demo"][0] == "daemon.cli.demo":
-        return [sys.executable, str(REPO / "run_trainer.py"), "demo"]
-    return [sys.executable, "-m", "daemon.cli.demo"]
+    """`run_trainer.py demo`, the daemon's demo (daemon/cli/demo.py)."""
+    return [sys.executable, str(REPO / "run_trainer.py"), "demo"]
 
 
 def _env(home: Path) -> dict[str, str]:

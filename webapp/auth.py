@@ -9,7 +9,6 @@ Default deny: every route under /api/ needs the token unless its view is marked 
 """
 from __future__ import annotations
 
-import functools
 import hmac
 import os
 import secrets
@@ -107,17 +106,6 @@ def public(view: Callable) -> Callable:
     return view
 
 
-def require_token(view: Callable) -> Callable:
-    """Require the token on one view (routes under /api/ already do by default)."""
-
-    @functools.wraps(view)
-    def wrapper(*args, **kwargs):
-        refused = check_request()
-        return refused if refused is not None else view(*args, **kwargs)
-
-    return wrapper
-
-
 def install(app: Flask, socketio) -> None:
     """Default-deny on /api/ and the Socket.IO connect check."""
 
@@ -130,7 +118,7 @@ def install(app: Flask, socketio) -> None:
             return None
         return check_request()
 
-    # '*': every namespace. A namespace that registers its own connect handler (issue 6) must call
+    # '*': every namespace. A namespace that registers its own connect handler must call
     # socket_authorized(auth) itself: python-socketio prefers the specific handler over this one.
     # flask_socketio's, not the builtin ConnectionRefusedError: only its message reaches the client
     from flask_socketio import ConnectionRefusedError as SocketRefused

@@ -523,14 +523,3 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m daemon.cli.demo` until run_trainer.py's `demo` entry points here."""
-    parser = argparse.ArgumentParser(prog="run_trainer.py demo", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

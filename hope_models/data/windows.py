@@ -5,7 +5,7 @@ the latest step at or before it (zero-order hold: causal, never a value from aft
 or after the anchor). Grid points before the episode's first step are masked and zero-filled.
 All of it is vectorised over a batch of anchors (no per-anchor Python in "mmap" mode).
 
-Scales (issue 2): fast 50-100 ms (default 100 ms, K=5: a 20 ms grid, the control period), mid
+Scales: fast 50-100 ms (default 100 ms, K=5: a 20 ms grid, the control period), mid
 1-10 s (default 2 s, K=20), strategic 60-600 s (default 60 s, K=60). Optional future targets for
 the latent dynamics of mid_loop: the held values at anchor time + each horizon (and the held
 frames, when frames are asked for).

@@ -186,10 +186,4 @@ class ReflexPolicy:
         return f"ReflexPolicy({self.version}, obs {self.obs_dim} -> act {self.act_dim})"
 
 
-def load_reflex_policy(path: str | Path) -> ReflexPolicy:
-    """The sim reflex policy of a checkpoint (run dir or checkpoint dir); ReflexPolicyError if unusable."""
-    return ReflexPolicy.from_checkpoint(path)
-
-
-__all__ = ["ReflexPolicy", "ReflexPolicyError", "check_spec", "load_reflex_policy", "SIM_OBSERVATION",
-           "SIM_ACTION", "SIM_BOUNDS"]
+__all__ = ["ReflexPolicy", "ReflexPolicyError", "check_spec", "SIM_OBSERVATION", "SIM_ACTION", "SIM_BOUNDS"]

@@ -9,6 +9,9 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 COMPONENTS = ("vqvae", "fast_loop", "mid_loop")
+# Components that cannot train without a frozen VQ-VAE (they predict its codes); fast_loop uses
+# one when there is one but does not need it.
+NEEDS_VQVAE = frozenset({"mid_loop"})
 
 # Outcomes of a training job (TrainResult.outcome), and the CLI exit code for each.
 OUTCOME_EXIT_CODES = {

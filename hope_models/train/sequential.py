@@ -27,11 +27,10 @@ import psutil
 
 from hope_models.cli.json_result import last_json_object
 from hope_models.train import checkpoint as ckpt
-from hope_models.train.contract import COMPONENTS
+from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 POLL_S = 0.2
-NEEDS_VQVAE = {"mid_loop"}  # fast_loop uses one when there is one
 # CLI options passed through to every child: (attribute, flag)
 PASS_THROUGH = (("data", "--data"), ("steps", "--steps"), ("seed", "--seed"), ("batch_size", "--batch-size"),
                 ("lr", "--lr"), ("warmup", "--warmup"), ("threads", "--threads"),
