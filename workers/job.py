@@ -20,7 +20,6 @@ Torch is imported only by the trainer, inside train(): importing this module sta
 """
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import os
@@ -35,6 +34,7 @@ from typing import Any, Callable
 
 from hope_models.train.contract import ControlCommand
 from hope_models.train.loop import TrainConfig, TrainSetupError, train
+from hope_models.train.run_dir_lock import wait_until_free
 from workers.report import ChannelError, RunSnapshot, StaleDelivery, open_channel
 
 log = logging.getLogger(__name__)
@@ -326,27 +326,6 @@ class Heartbeat:
 
 # -- the job --------------------------------------------------------------------------------------
 
-def _wait_run_dir_free(run_dir: Path, timeout_s: float, give_up: threading.Event) -> None:
-    """Wait while another process holds the run dir's training lock: a child the daemon gave up
-    on stops at its next control poll (RunControl sees the run is no longer its own) and leaves a
-    checkpoint this job resumes from. The trainer takes the lock itself right after."""
-    lock = run_dir / ".lock"
-    deadline = time.monotonic() + timeout_s
-    while lock.exists() and not give_up.is_set():
-        fd = os.open(lock, os.O_RDWR)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            return
-        except BlockingIOError:
-            pass
-        finally:
-            os.close(fd)
-        if time.monotonic() >= deadline:
-            return  # the trainer reports the busy run dir
-        time.sleep(0.2)
-
-
 def _install_sigterm(flag: threading.Event):
     def on_sigterm(signum, frame):  # only set a flag: the loop's next control poll acts on it
         flag.set()
@@ -370,7 +349,10 @@ class _Job:
         run = self.run
         try:
             cfg = build_train_config(self.settings, run, vqvae_dir_of(run))
-            _wait_run_dir_free(Path(cfg.run_dir), RUN_DIR_WAIT_S, self.shutdown)
+            # A child the daemon gave up on stops at its next control poll (RunControl sees the run
+            # is no longer its own) and leaves a checkpoint this job resumes from: wait for it to
+            # leave the run dir. The trainer takes the lock itself right after (and reports it busy).
+            wait_until_free(Path(cfg.run_dir), RUN_DIR_WAIT_S, self.shutdown)
             # Asked to stop before training began (SIGTERM or a request during setup): do not start.
             first = self.control.poll(run.step)
             if first.desired != "run":

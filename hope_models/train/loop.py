@@ -34,6 +34,7 @@ from typing import Any, Callable
 from hope_models.durable import atomic_write
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import COMPONENTS, OUTCOME_EXIT_CODES, Control, ControlCommand, NoControl
+from hope_models.train.run_dir_lock import RunDirBusy, RunDirLock
 
 Emit = Callable[[str, dict], None]
 LOADER_CHUNK = 8  # window batches built per vectorised call (the pre-flight estimate counts them)
@@ -477,7 +478,11 @@ class _Trainer:
         if self.estimate is not None:
             self._preflight(self.estimate)  # before torch is imported, and before the run dir exists
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        with _RunDirLock(self.run_dir):
+        try:
+            lock = RunDirLock(self.run_dir).acquire()
+        except RunDirBusy as exc:
+            raise TrainSetupError(str(exc)) from None
+        with lock:
             return self._train(cache)
 
     def _train(self, cache) -> TrainResult:
@@ -662,36 +667,6 @@ class _Trainer:
             return validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
         except NoValidationSplit:
             return {}
-
-
-class _RunDirLock:
-    """One job per run dir: an exclusive flock on <run_dir>/.lock for the job's lifetime (the
-    kernel drops it when the process dies, even by SIGKILL, so a stale lock never blocks a resume)."""
-
-    def __init__(self, run_dir: Path):
-        self.path = run_dir / ".lock"
-        self.fd: int | None = None
-
-    def __enter__(self) -> "_RunDirLock":
-        import fcntl
-
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-            os.close(fd)
-            raise TrainSetupError(f"{self.path.parent} is in use by another training job"
-                                  f"{f' (pid {holder})' if holder else ''}; wait for it or stop it first") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
-        self.fd = fd
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.fd is not None:
-            os.close(self.fd)  # closing releases the flock
-            self.fd = None
 
 
 def _write_json_atomic(path: Path, obj: Any) -> None:
