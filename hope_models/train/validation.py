@@ -21,6 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from hope_models.train.model_config import short
+
 
 class NoValidationSplit(ValueError):
     """The dataset has no anchors in the validation split (too few episodes for val_fraction)."""
@@ -44,9 +46,9 @@ class ValidationSetup:
         for name, (kind, default, lo, hi) in VALIDATION_LIMITS.items():
             v = get(name, default)
             if isinstance(v, bool) or not isinstance(v, (int, float) if kind is float else int):
-                raise ValueError(f"{where}: {name}={_short(v)} is not {'a number' if kind is float else 'an integer'}")
+                raise ValueError(f"{where}: {name}={short(v)} is not {'a number' if kind is float else 'an integer'}")
             if not (lo <= v <= hi):  # also refuses NaN
-                raise ValueError(f"{where}: {name}={_short(v)} is outside {lo}..{hi}")
+                raise ValueError(f"{where}: {name}={short(v)} is outside {lo}..{hi}")
             values[name] = kind(v)
         return cls(batch_size=values["batch_size"], seed=values["seed"], imagined_ratio=values["imagined_ratio"],
                    val_fraction=values["val_fraction"], batches=values["val_batches"])
@@ -62,11 +64,6 @@ VALIDATION_LIMITS: dict[str, tuple[type, Any, Any, Any]] = {
     "val_fraction": (float, 0.1, 0.0, 0.99),
     "val_batches": (int, 4, 1, 1000),
 }
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, imagined_ratio: float,
