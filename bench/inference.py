@@ -14,9 +14,9 @@
    after the first answer from the new version are "during a swap", the rest "normal".
    Target (the test's): p99 during swaps <= 3x the normal p99, no failed request.
 3. The loop-closure time, in-process: a fresh $HOPE_HOME with the registry; a queued run is
-   created as `enqueue` does (daemon.run_request.submit), marked running, trained in this process
+   created as `enqueue` does (registry.run_request.submit), marked running, trained in this process
    through hope_models.train.loop.train (the worker's code path, minus the broker), and finished
-   with daemon.runs.finish (finished_at). Then `run_trainer.py promote RUN --auto --json` runs as
+   with registry.runs.finish (finished_at). Then `run_trainer.py promote RUN --auto --json` runs as
    a child process, exactly what the daemon's auto-promotion spawns (the gate: torch import,
    validation loss of the candidate, and of the promoted model on the same split for the second
    run); BrainService (poll 0.2 s) follows the pointer, and a "robot" thread asks for an action
@@ -248,10 +248,11 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
 # -- 3. the loop-closure time ---------------------------------------------------------------------------
 
 def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
-    from daemon import promotion, runs
-    from daemon.db import Registry
-    from daemon.models import Run
-    from daemon.run_request import build_request, submit
+    from daemon import promotion
+from registry import runs
+    from registry.db import Registry
+    from registry.models import Run
+    from registry.run_request import build_request, submit
     from hope_models.runtime.brain_service import BrainError, BrainService
     from hope_models.settings import load_settings
     from hope_models.train.loop import TrainConfig, train

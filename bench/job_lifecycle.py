@@ -159,7 +159,7 @@ def _t(value: Any) -> datetime:
 
 def job_times(registry, run_id: str) -> dict[str, Any]:
     """created, dispatched (state starting), claimed (started_at), first step (first progress), finished."""
-    from daemon import runs
+    from registry import runs
 
     with registry.session(readonly=True) as s:
         run = runs.get_run(s, run_id)
@@ -172,8 +172,8 @@ def job_times(registry, run_id: str) -> dict[str, Any]:
 
 
 def run_mode(mode: str, dataset: Path, args: argparse.Namespace, work: Path) -> dict[str, Any]:
-    from daemon.db import Registry
-    from daemon.run_request import build_request, submit
+    from registry.db import Registry
+    from registry.run_request import build_request, submit
     from hope_models.settings import load_settings
 
     home = work / mode
@@ -213,7 +213,7 @@ def run_mode(mode: str, dataset: Path, args: argparse.Namespace, work: Path) -> 
                 return submit(s, settings, req).id
 
         def state(run_id: str) -> str:
-            from daemon import runs
+            from registry import runs
 
             with registry.session(readonly=True) as s:
                 return runs.get_run(s, run_id).state

@@ -32,8 +32,8 @@ from typing import Any, Callable
 
 from sqlalchemy import exists, func, select
 
-from daemon import runs
-from daemon.models import Model, Run, utcnow
+from registry import runs
+from registry.models import Model, Run, utcnow
 from hope_models.cli.json_result import last_json_object
 from hope_models.settings import GATE_ENV
 

@@ -36,8 +36,8 @@ def gate_outcome(session: Any, run_id: str) -> dict[str, Any] | None:
     "reasons"} | {"state": "error", "message"} (the promote child could not gate, or skipped it)."""
     from sqlalchemy import select
 
-    from daemon import runs
-    from daemon.models import Model
+    from registry import runs
+    from registry.models import Model
 
     model = session.scalars(select(Model).where(Model.run_id == run_id).order_by(Model.id.desc())).first()
     if model is not None:

@@ -164,7 +164,7 @@ class EventTailer:
     def _newest_id(self) -> int:
         from sqlalchemy import func, select
 
-        from daemon.models import RunEvent
+        from registry.models import RunEvent
 
         with self.registry.session(readonly=True) as s:
             return int(s.scalar(select(func.max(RunEvent.id))) or 0)
@@ -185,7 +185,7 @@ class EventTailer:
 
     def poll(self) -> int:
         """Push every new row (in batches); returns how many were pushed."""
-        from daemon import runs
+        from registry import runs
 
         count = 0
         while True:

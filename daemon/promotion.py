@@ -1,7 +1,7 @@
 """Promotion records: candidates, the promoted model per component, rollback, the loop closure.
 
 All functions take an open Session first (Registry.session(): one transaction) and leave
-committing to it, like daemon/runs.py. Torch-free: the gate that decides (hope_models/promote/
+committing to it, like registry/runs.py. Torch-free: the gate that decides (hope_models/promote/
 gate.py) runs in its own process (`run_trainer.py promote`); this module only records.
 
     m = record_candidate(s, component="fast_loop", checkpoint_path=..., version=..., run_id=...,
@@ -23,7 +23,7 @@ from typing import Any
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
-from daemon.models import Model, Run, iso, utcnow
+from registry.models import Model, Run, iso, utcnow
 from hope_models.json_finite import finite
 from hope_models.promote.pointers import PointerError, checkpoint_version, read_pointer, write_pointer
 
@@ -190,7 +190,7 @@ def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
 
     Returns the run of the matching model (newest matching row), or None when no model matches
     or the model has no run (a checkpoint promoted by path from outside any run)."""
-    from daemon import runs
+    from registry import runs
 
     at = _aware(when)
     key = str(checkpoint_path_or_version)

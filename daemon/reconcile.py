@@ -31,8 +31,8 @@ from typing import Any, Callable
 import psutil
 from sqlalchemy import select
 
-from daemon import runs
-from daemon.models import Run, utcnow
+from registry import runs
+from registry.models import Run, utcnow
 
 log = logging.getLogger(__name__)
 

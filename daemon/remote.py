@@ -27,8 +27,8 @@ from typing import Any, Iterable
 
 from sqlalchemy import select
 
-from daemon import runs
-from daemon.models import Run
+from registry import runs
+from registry.models import Run
 from workers.report import (ANSWER_TTL_S, CONTROL_TTL_S, REPORT_TYPES, REPORTS_KEY, REQUESTS, ChannelError,
                             ControlRow, RegistryChannel, StaleDelivery, claim_key, control_key, dumps)
 

@@ -34,11 +34,11 @@ from typing import Any, Iterable
 
 from sqlalchemy import select
 
-from daemon import runs
+from registry import runs
 from daemon.autopromote import AutoPromoter
 from daemon.dispatch import Dispatcher
 from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, NullSink
-from daemon.models import Run
+from registry.models import Run
 from daemon.monitor import SystemMonitor, ThrottleChange, ThrottlePolicy
 from daemon.reconcile import Reconciler
 from daemon.remote import RemoteReports
@@ -91,7 +91,7 @@ class Daemon:
 
     def start(self) -> None:
         if self.registry is None:
-            from daemon.db import Registry
+            from registry.db import Registry
 
             self.registry = Registry.open(self.settings, migrate=True)  # the daemon migrates once, here
         self.dispatcher = Dispatcher(self.registry, self.settings, celery_app=self._celery_app,

@@ -4,7 +4,7 @@ checkpoint's config.json) and is then read or written by a service.
     roots = data_roots(settings)                  # $HOPE_HOME + settings.data_roots
     path = confine_path("train.spec_path", value, allowed_roots=roots)
 
-`POST /api/runs` and `/api/brain/promote` (through daemon/run_request.py) and the promotion gate
+`POST /api/runs` and `/api/brain/promote` (through registry/run_request.py) and the promotion gate
 (hope_models/promote/gate.py, for the paths a candidate's config.json names) all check here, so
 that a path refused at one door is refused at every door. The path is resolved (symlinks
 followed) before it is compared, so a link inside a root that points outside is outside; callers

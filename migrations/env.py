@@ -1,6 +1,6 @@
-"""Alembic environment for the registry, run programmatically by daemon.db.migrate.
+"""Alembic environment for the registry, run programmatically by registry.db.migrate.
 
-There is no alembic.ini: daemon.db builds the Config and passes an open connection (inside one
+There is no alembic.ini: registry.db builds the Config and passes an open connection (inside one
 transaction, under the migrate lock) as config.attributes["connection"]. For autogenerating a new
 revision by hand, see migrations/README.md.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Connection
 
-from daemon.models import Base
+from registry.models import Base
 
 target_metadata = Base.metadata
 
@@ -33,8 +33,8 @@ def run_migrations_online() -> None:
         return
     url = context.config.get_main_option("sqlalchemy.url")
     if not url:
-        raise RuntimeError("migrations/env.py: pass a connection (daemon.db.migrate) or set sqlalchemy.url")
-    from daemon.db import make_engine
+        raise RuntimeError("migrations/env.py: pass a connection (registry.db.migrate) or set sqlalchemy.url")
+    from registry.db import make_engine
 
     engine = make_engine(url.removeprefix("sqlite:///"))
     try:

@@ -72,7 +72,7 @@ class Home:
     @property
     def registry(self):
         if self._registry is None:
-            from daemon.db import Registry
+            from registry.db import Registry
 
             self._registry = Registry.open(self.settings, migrate=True)
         return self._registry
@@ -86,8 +86,8 @@ class Home:
 
     def enqueue(self, data: Path, *, component: str = "fast_loop", steps: int = 60, queue: str = "pi",
                 priority: int = 0, max_attempts: int = 3, **overrides: Any) -> str:
-        """A queued run through the same door as `enqueue` (daemon.run_request)."""
-        from daemon.run_request import build_request, submit
+        """A queued run through the same door as `enqueue` (registry.run_request)."""
+        from registry.run_request import build_request, submit
 
         cfg = {"seed": 0, "batch_size": 8, "threads": 1, "warmup": 5, "log_every": 5,
                "checkpoint_every_steps": 20}
@@ -98,19 +98,19 @@ class Home:
             return submit(s, self.settings, req).id
 
     def run(self, run_id: str) -> dict[str, Any]:
-        from daemon import runs
+        from registry import runs
 
         with self.registry.session(readonly=True) as s:
             return _as_dict(runs.get_run(s, run_id))
 
     def runs(self) -> list[dict[str, Any]]:
-        from daemon import runs
+        from registry import runs
 
         with self.registry.session(readonly=True) as s:
             return [_as_dict(r) for r in runs.list_runs(s)]
 
     def events(self, run_id: str, kinds: list[str] | None = None) -> list[dict[str, Any]]:
-        from daemon import runs
+        from registry import runs
 
         with self.registry.session(readonly=True) as s:
             return [e.to_json_obj() for e in runs.run_events(s, run_id, kinds=kinds)]

@@ -83,7 +83,7 @@ def poison_with_nan(ckpt: Path) -> str:
 def completed_run(registry, run_dir: Path, component: str = "fast_loop", data: str | Path = "x") -> str:
     """A run row for run_dir, taken through running to completed (finished_at = now). `data` is the
     run's dataset as the registry holds it, which `promote RUN` gates on."""
-    from daemon import runs
+    from registry import runs
 
     with registry.session() as s:
         run = runs.create_run(s, component=component, config={"data": str(data)}, total_steps=10,

@@ -44,8 +44,8 @@ def settings(tmp_path):
 def add_completed_run(registry, settings, source_run_dir: Path, *, finished_ago_s: float = 5.0) -> tuple[str, Path]:
     """A completed fast_loop run in the registry whose run dir is a copy of `source_run_dir`
     (the same weights, under $HOPE_HOME/runs/<id> like a run the worker trained)."""
-    from daemon import runs
-    from daemon.models import new_run_id, utcnow
+    from registry import runs
+    from registry.models import new_run_id, utcnow
 
     run_id = new_run_id()
     run_dir = Path(settings.runs_dir) / run_id
@@ -68,7 +68,7 @@ class App:
     """create_app with a started BrainService (fast poll) on a tmp $HOPE_HOME."""
 
     def __init__(self, settings, *, brain: bool = True):
-        from daemon.db import Registry
+        from registry.db import Registry
         from hope_models.runtime.brain_service import BrainService
         from webapp import create_app
         from webapp.auth import load_or_create_token
@@ -254,7 +254,7 @@ class HttpTransport:
 
 
 def _check_table(api, settings, send):
-    from daemon import runs
+    from registry import runs
 
     (settings.datasets_dir / "ds").mkdir(parents=True, exist_ok=True)
     with api.registry.session() as s:
@@ -471,7 +471,7 @@ def test_promote_infer_rollback_over_http_and_the_loop_closure(api, settings, tm
     # promoting it again changes nothing; a run that has not completed is a usage error (400)
     r = api.post("/api/brain/promote", {"run_id": run_id})
     assert r.status_code == 200 and r.get_json()["already"] is True and r.get_json()["serving"] == first["version"]
-    from daemon import runs
+    from registry import runs
 
     with api.registry.session() as s:
         queued = runs.create_run(s, component="fast_loop", config={"data": "ds"}, total_steps=5,
@@ -545,7 +545,7 @@ def test_run_metrics_paging(api, settings, tmp_path_factory):
     with_events = api.get(f"/api/runs/{run_id}/metrics?events=1").get_json()["records"]
     assert {r["type"] for r in with_events} == {"metric", "event"}
     # a run that has not written metrics yet: an empty page, not an error
-    from daemon import runs
+    from registry import runs
 
     with api.registry.session() as s:
         fresh = runs.create_run(s, component="fast_loop", config={}, total_steps=5,
@@ -555,7 +555,7 @@ def test_run_metrics_paging(api, settings, tmp_path_factory):
 
 
 def test_system_standalone_and_with_the_daemon(api, settings):
-    from daemon import runs
+    from registry import runs
     from daemon.events import ListSink
     from daemon.service import Daemon
 
@@ -587,7 +587,7 @@ def test_system_standalone_and_with_the_daemon(api, settings):
 def test_a_run_no_worker_takes_is_starting_over_http_and_cancel_ends_it_at_once(api, settings):
     """GET /api/runs and /api/runs/<id> show a sent, unclaimed run as starting with why; POST
     cancel ends it at once (no worker could ever answer a request), and the queue moves on."""
-    from daemon import runs
+    from registry import runs
     from daemon.dispatch import Dispatcher
 
     with api.registry.session() as s:
@@ -763,7 +763,7 @@ def test_webapp_serving_inference_never_imports_torch(tmp_path, tmp_path_factory
 import sys, json
 from hope_models.settings import load_settings
 from hope_models.runtime.brain_service import BrainService
-from daemon.db import Registry
+from registry.db import Registry
 from webapp import create_app
 from webapp.auth import load_or_create_token
 import webapp.api.brain, webapp.api.sim, webapp.api.system, webapp.api.training, webapp.api.runs, webapp.commands
@@ -792,7 +792,7 @@ print(json.dumps({{"torch": "torch" in sys.modules, "version": r.get_json()["mod
 def test_first_inference_time_is_recorded_once_through_the_callback(api, settings, tmp_path_factory):
     """wire_brain: BrainService's on_first_inference -> daemon.promotion.record_first_inference."""
     from daemon import promotion
-    from daemon.models import Run
+    from registry.models import Run
 
     run_id, last = add_completed_run(api.registry, settings, brain_runs(tmp_path_factory)["alpha30"].parent.parent,
                                      finished_ago_s=3.0)

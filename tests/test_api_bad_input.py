@@ -204,7 +204,7 @@ QUERY_CASES = [  # (path template, query, needle)
 
 @pytest.fixture
 def api(settings):  # noqa: F811 - test_api's settings fixture
-    from daemon import runs
+    from registry import runs
     from hope_models.data.synthetic import generate_dataset
 
     home = Path(settings.home)
@@ -228,7 +228,7 @@ def written(api) -> tuple:
     ($HOPE_HOME and `outside`), but the registry's own database files."""
     from sqlalchemy import func, select
 
-    from daemon.models import Model, Run, RunEvent
+    from registry.models import Model, Run, RunEvent
 
     with api.registry.session(readonly=True) as s:
         rows = tuple(s.scalar(select(func.count()).select_from(t)) for t in (Run, RunEvent, Model))
@@ -384,7 +384,7 @@ def test_the_cli_refuses_what_the_api_refuses_before_a_run_exists(api, settings,
 NO_TORCH = """
 import json, sys
 from pathlib import Path
-from daemon.db import Registry
+from registry.db import Registry
 from hope_models.data.synthetic import generate_dataset
 from hope_models.settings import load_settings
 from webapp import create_app

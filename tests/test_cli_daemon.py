@@ -157,8 +157,8 @@ def test_no_worker_on_the_queue_waits_visibly_cancel_ends_it_a_late_worker_refus
     import sqlite3
     import stat
 
-    from daemon import runs
-    from daemon.db import Registry
+    from registry import runs
+    from registry.db import Registry
     from hope_models.settings import load_settings
 
     state_dir = tmp_path / "home"  # created by the product, not by the test
@@ -274,7 +274,7 @@ def test_run_request_fields_are_trainconfig_fields():
     from dataclasses import fields
 
     from daemon.cli.enqueue import OVERRIDE_ARGS
-    from daemon.run_request import CONFIG_FIELDS
+    from registry.run_request import CONFIG_FIELDS
     from hope_models.train.loop import TrainConfig
 
     from workers.job import RUN_CONFIG_KEYS

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon import runs
-from daemon.dispatch import create_sequence
+from registry import runs
+from registry.sequences import create_sequence
 from daemon_fixtures import (JOB_TIMEOUT, all_states, assert_never_overlapping, home, procs,  # noqa: F401
                              start_daemon, start_worker, tiny_dataset, wait_until)
 
@@ -158,7 +158,7 @@ def test_daemon_process_notifies_systemd_and_stops_cleanly_on_sigterm(home, tmp_
         assert listener.recv(512) == b"WATCHDOG=1"  # every half WatchdogSec
         assert listener.recv(512) == b"WATCHDOG=1"
         assert "libtorch" not in Path(f"/proc/{daemon.pid}/maps").read_text()
-        from daemon.db import Registry
+        from registry.db import Registry
         Registry.open(home.settings, migrate=False).close()  # the daemon migrated the registry it found missing
         daemon.signal(signal.SIGTERM)
         assert daemon.popen.wait(10) == 0

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon import runs
+from registry import runs
 from daemon_fixtures import (JOB_TIMEOUT, Home, all_states, assert_never_overlapping, procs,  # noqa: F401
                              redis_server, start_daemon, start_worker, tiny_dataset, wait_until)
 

@@ -19,7 +19,7 @@ from datetime import datetime, timedelta, timezone
 import fakeredis
 import pytest
 
-from daemon import runs
+from registry import runs
 from daemon.remote import BadReport, RemoteReports, parse_report
 from daemon_fixtures import Home, tiny_dataset  # noqa: F401
 from workers.report import (REPORTS_KEY, ChannelError, ControlRow, RedisChannel, RegistryChannel, StaleDelivery,

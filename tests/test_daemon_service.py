@@ -14,10 +14,11 @@ from datetime import timedelta
 
 import pytest
 
-from daemon import runs
-from daemon.dispatch import Dispatcher, create_sequence
+from registry import runs
+from daemon.dispatch import Dispatcher
+from registry.sequences import create_sequence
 from daemon.events import EventTailer, ListSink
-from daemon.models import utcnow
+from registry.models import utcnow
 from daemon.monitor import SystemMonitor, ThrottlePolicy
 from daemon.reconcile import Reconciler, child_alive
 from daemon.service import Daemon

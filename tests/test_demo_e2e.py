@@ -78,8 +78,8 @@ def test_demo_short_runs_the_whole_loop_through_the_services(tmp_path):
     assert "completed: " + fast["run_id"] + " fast_loop at step 150/150" in out
 
     # the registry: one chain, whose fast_loop read the codes of the chain's own VQ-VAE
-    from daemon.db import Registry
-    from daemon.models import Run
+    from registry.db import Registry
+    from registry.models import Run
     from hope_models.settings import load_settings
 
     registry = Registry.open(load_settings(env=_env(home)))

@@ -16,8 +16,8 @@ from promote_fixtures import build_models, completed_run, copy_run, poison_with_
 
 import run_trainer
 from daemon import promotion
-from daemon.db import Registry
-from daemon.models import Model
+from registry.db import Registry
+from registry.models import Model
 from hope_models.promote.gate import GateError, gate_candidate, sim_task
 from hope_models.promote.pointers import checkpoint_version, read_pointer
 from hope_models.settings import load_settings
@@ -310,7 +310,7 @@ def test_promote_cli_by_run_id_and_usage_errors(models, home, capsys):
     st = load_settings(home, env={})
     with Registry.open(st) as reg:
         run_id = completed_run(reg, models["good"].parent.parent, data=models["demos"])
-        from daemon import runs
+        from registry import runs
         with reg.session() as s:
             queued = runs.create_run(s, component="fast_loop", config={}, total_steps=5, run_dir="/nowhere").id
     code, out = cli(capsys, "promote", run_id, "--component", "fast_loop", "--json")

@@ -16,9 +16,9 @@ from alembic.script import ScriptDirectory
 from sqlalchemy import Column, Integer, MetaData, inspect
 
 import migrations
-from daemon import runs
-from daemon.db import Registry, _alembic_config, current_revision, downgrade, make_engine, migrate
-from daemon.models import Base
+from registry import runs
+from registry.db import Registry, _alembic_config, current_revision, downgrade, make_engine, migrate
+from registry.models import Base
 from hope_models.settings import load_settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -116,7 +116,7 @@ MIGRATOR = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from daemon.db import migrate
+    from registry.db import migrate
     db, go = Path(sys.argv[1]), Path(sys.argv[2])
     while not go.exists():
         time.sleep(0.002)

@@ -13,7 +13,7 @@ STATIC = REPO / "webapp" / "static"
 
 @pytest.fixture
 def client(tmp_path):
-    from daemon.db import Registry
+    from registry.db import Registry
     from hope_models.settings import load_settings
     from webapp import create_app
     from webapp.auth import load_or_create_token

@@ -15,10 +15,11 @@ from sqlalchemy import select
 from promote_fixtures import completed_run, train_fast_loop
 
 import run_trainer
-from daemon import promotion, runs
+from daemon import promotion
+from registry import runs
 from daemon.autopromote import LOG_FILE, AutoPromoter, describe
-from daemon.db import Registry
-from daemon.models import Model, Run, utcnow
+from registry.db import Registry
+from registry.models import Model, Run, utcnow
 from hope_models.promote.pointers import (
     PointerError, checkpoint_version, pointer_path, read_pointer, remove_pointer, write_pointer,
 )

@@ -12,10 +12,10 @@ from datetime import datetime, timedelta, timezone
 import pytest
 from sqlalchemy.exc import IntegrityError, StatementError
 
-from daemon import runs
-from daemon.db import Registry, RegistryError, db_path
-from daemon.models import Model, Run, new_run_id, utcnow
-from daemon.runs import RunError
+from registry import runs
+from registry.db import Registry, RegistryError, db_path
+from registry.models import Model, Run, new_run_id, utcnow
+from registry.runs import RunError
 from hope_models.settings import load_settings
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
@@ -713,8 +713,8 @@ WRITER = textwrap.dedent(
     import sys, time
     from pathlib import Path
     from hope_models.settings import load_settings
-    from daemon.db import Registry
-    from daemon import runs
+    from registry.db import Registry
+    from registry import runs
     home, rid, n, tag = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
     reg = Registry.open(load_settings(home, env={}), migrate=False)
     go = Path(home) / "go"
@@ -754,7 +754,7 @@ def test_concurrent_writers_from_two_processes(settings, reg):
 
 
 def test_registry_modules_do_not_import_torch():
-    code = "import sys; import daemon.db, daemon.models, daemon.runs; print('torch' in sys.modules)"
+    code = "import sys; import registry.db, registry.models, registry.runs; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

@@ -24,7 +24,7 @@ def settings(tmp_path):
 
 @pytest.fixture
 def webapp(settings):
-    from daemon.db import Registry
+    from registry.db import Registry
     from webapp import create_app
     from webapp.auth import load_or_create_token
 
@@ -191,7 +191,7 @@ def test_socketio_connect_needs_the_token(webapp):
 
 
 def test_create_app_refuses_a_weak_token(settings):
-    from daemon.db import Registry
+    from registry.db import Registry
     from webapp import create_app
 
     with Registry.open(settings) as registry, pytest.raises(ValueError, match="token"):

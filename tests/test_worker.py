@@ -25,8 +25,8 @@ BASE_CONFIG = {"seed": 0, "batch_size": 8, "threads": 1, "warmup": 5, "log_every
 # -- helpers ----------------------------------------------------------------------------------------
 
 def create(home: Home, data: Path, *, steps: int, component: str = "fast_loop", **overrides) -> str:
-    from daemon import runs
-    from daemon.models import new_run_id
+    from registry import runs
+    from registry.models import new_run_id
 
     rid = new_run_id()
     config = {"data": str(data), **BASE_CONFIG, **overrides}
@@ -40,7 +40,7 @@ def dispatch(home: Home, app, run_id: str, *, task_id: str | None = None, attemp
              send_id: str | None = None, **send_kw) -> str:
     """What the daemon does: mark the run dispatched under a task id, then send the task.
     send_id/attempt override what is sent (to make a stale delivery)."""
-    from daemon import runs
+    from registry import runs
 
     task_id = task_id or str(uuid.uuid4())
     with home.registry.session() as s:
@@ -194,7 +194,7 @@ def reg_home(tmp_path):
 
 
 def _claimed_run(home: Home, data: Path, pid: int = 4242) -> str:
-    from daemon import runs
+    from registry import runs
 
     rid = create(home, data, steps=100)
     with home.registry.session() as s:
@@ -205,7 +205,7 @@ def _claimed_run(home: Home, data: Path, pid: int = 4242) -> str:
 
 
 def _set(home: Home, rid: str, **values) -> None:
-    from daemon.models import Run
+    from registry.models import Run
 
     with home.registry.session() as s:
         run = s.get(Run, rid)
@@ -257,7 +257,7 @@ def test_run_control_maps_the_row_to_commands(reg_home, tmp_path):
 
 
 def test_thermal_pause_is_recorded_as_thermal_even_if_the_host_cooled_before_finish(reg_home, tmp_path):
-    from daemon import runs
+    from registry import runs
     from workers.job import RunControl
 
     rid = _claimed_run(reg_home, tmp_path / "no-data")
@@ -272,7 +272,7 @@ def test_thermal_pause_is_recorded_as_thermal_even_if_the_host_cooled_before_fin
 
 
 def test_emitter_rate_limits_progress_and_keeps_the_last(reg_home, tmp_path):
-    from daemon.models import Run
+    from registry.models import Run
     from workers.job import LOG_MAX_CHARS, Emitter
 
     rid = _claimed_run(reg_home, tmp_path / "no-data")
@@ -308,7 +308,7 @@ def test_emitter_rate_limits_progress_and_keeps_the_last(reg_home, tmp_path):
 
 
 def test_build_train_config(reg_home, tmp_path):
-    from daemon.models import Run
+    from registry.models import Run
     from workers.job import JobConfigError, build_train_config
 
     settings = reg_home.settings
@@ -339,7 +339,7 @@ def test_build_train_config(reg_home, tmp_path):
 
 
 def test_vqvae_run_resolves_to_a_completed_vqvae_runs_dir(reg_home, tmp_path):
-    from daemon import runs
+    from registry import runs
     from workers.job import JobConfigError, vqvae_dir_of
     from workers.report import snapshot_of
 
@@ -386,7 +386,7 @@ def world(tmp_path_factory):
 def cleanup(world):
     """Runs a test leaves starting or running are cancelled, so the next test's jobs are not stuck
     behind them."""
-    from daemon import runs
+    from registry import runs
 
     home = world[0]
     yield
@@ -449,7 +449,7 @@ def test_stale_delivery_does_not_train(world, cleanup):
 
 
 def test_pickle_message_is_refused(world, cleanup):
-    from daemon import runs
+    from registry import runs
 
     home, app, worker, data = world
     rid = create(home, data, steps=40)
@@ -463,7 +463,7 @@ def test_pickle_message_is_refused(world, cleanup):
 
 
 def test_pause_resume_cancel_through_the_registry(world, cleanup):
-    from daemon import runs
+    from registry import runs
 
     home, app, worker, data = world
     # checkpoints only when asked to stop (every 10^6 steps otherwise)
@@ -508,7 +508,7 @@ def test_bad_config_and_bad_data_fail_with_a_message(world, cleanup):
     home, app, worker, data = world
     bad_key = create(home, data, steps=40, bogus_key=1)
     no_data = create(home, data, steps=40)
-    from daemon.models import Run
+    from registry.models import Run
 
     with home.registry.session() as s:
         s.get(Run, no_data).config = {**BASE_CONFIG, "data": str(data.parent / "missing-ds")}
@@ -558,7 +558,7 @@ def test_a_run_may_not_take_more_memory_than_the_worker_was_given(reg_home, tmp_
     """memory_budget_mb in a run's config may lower the worker's budget, never raise it: a row
     that asks for more (written past the door's check, run_request.preflight) is refused before
     the job builds anything."""
-    from daemon.models import Run
+    from registry.models import Run
     from workers.job import JobConfigError, build_train_config
 
     settings = reg_home.settings

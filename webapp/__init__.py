@@ -76,7 +76,7 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     if not isinstance(token, str) or len(token) < auth.MIN_TOKEN_CHARS:
         raise ValueError(f"create_app: the token must be a string of at least {auth.MIN_TOKEN_CHARS} characters")
     if registry is None:
-        from daemon.db import Registry
+        from registry.db import Registry
 
         registry = Registry.open(settings)
     app = Flask("webapp")
@@ -123,7 +123,7 @@ def _chain(previous: Any, fn):
 def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
     """BrainService callbacks -> Socket.IO and the registry. They run on BrainService's threads;
     a failure is logged, never raised into a request or the watcher."""
-    from daemon.models import iso
+    from registry.models import iso
 
     def on_swap(component, version, checkpoint=None, *_rest):
         try:

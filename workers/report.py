@@ -39,8 +39,8 @@ from typing import Any, Callable, Iterator
 from sqlalchemy import select
 from sqlalchemy.exc import OperationalError, SQLAlchemyError
 
-from daemon import runs
-from daemon.models import Run
+from registry import runs
+from registry.models import Run
 from hope_models.json_finite import finite
 
 log = logging.getLogger(__name__)
@@ -422,7 +422,7 @@ def open_channel(settings, report: str, run_id: str, task_id: str, attempt: int,
     """The channel a task asked for: "db" opens the registry under settings.home (this host holds
     it); "redis" needs settings.redis_url and opens no registry at all."""
     if report == "db":
-        from daemon.db import Registry
+        from registry.db import Registry
 
         registry = Registry.open(settings, migrate=False)
         return RegistryChannel(registry, run_id, task_id, attempt, pid, host, own_registry=True)

@@ -37,7 +37,7 @@ def make(action: str) -> tuple[Callable, Callable]:
         parser.add_argument("--json", action="store_true", help='print {"run": {...}} on stdout')
 
     def run(args: argparse.Namespace) -> int:
-        from daemon import runs
+        from registry import runs
         from daemon.cli.registry import open_registry, print_json, run_command
 
         def body() -> int:

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.db import RegistryError
+    from registry.db import RegistryError
     from hope_models.settings import SettingsError, load_settings
 
     logging.basicConfig(level=getattr(logging, args.log_level.upper()),

@@ -185,8 +185,8 @@ class Demo:
     # -- 3. the chain ---------------------------------------------------------------------------
 
     def queue_chain(self, data: Path) -> list[str]:
-        from daemon.dispatch import create_sequence
-        from daemon.run_request import build_request
+        from registry.sequences import create_sequence
+        from registry.run_request import build_request
 
         a = self.args
         req = build_request(component=COMPONENTS[0], data=str(data), steps=a.steps, queue=a.queue,
@@ -213,8 +213,8 @@ class Demo:
         chain behind it."""
         from sqlalchemy import select
 
-        from daemon import runs
-        from daemon.models import Run
+        from registry import runs
+        from registry.models import Run
 
         with self.serve.registry.session(readonly=True) as s:
             seqs = s.scalars(select(Run.sequence_id).where(Run.sequence_id.is_not(None),
@@ -237,7 +237,7 @@ class Demo:
         return promoter is not None and not promoter.busy and promoter.next_run() is None
 
     def _runs(self, ids: list[str]) -> list[dict[str, Any]]:
-        from daemon import runs
+        from registry import runs
 
         with self.serve.registry.session(readonly=True) as s:
             return [runs.get_run(s, i).to_json_obj() for i in ids]
@@ -359,7 +359,7 @@ class Demo:
         return {**answer, "observation": obs, "expert_action": expert}
 
     def loop_closure(self, fast_id: str) -> float | None:
-        from daemon import runs
+        from registry import runs
 
         deadline = time.monotonic() + CLOSURE_WAIT_S
         while True:
@@ -451,10 +451,10 @@ class Demo:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.db import RegistryError
+    from registry.db import RegistryError
     from daemon.demo_report import format_summary, verdict
-    from daemon.run_request import RunRequestError
-    from daemon.runs import RunError
+    from registry.run_request import RunRequestError
+    from registry.runs import RunError
     from daemon.cli.serve import listen_settings, setup_logging
     from hope_models.settings import SettingsError
     from webapp.auth import TokenError

@@ -4,7 +4,7 @@
 
 It only writes the registry, so it works whether the daemon is up or not: the run starts when the
 daemon sees it (exactly one run trains at a time per queue, by priority then age). The options
-mirror `train`'s; everything is checked here, as POST /api/runs checks it (daemon/run_request.py:
+mirror `train`'s; everything is checked here, as POST /api/runs checks it (registry/run_request.py:
 a path that holds no usable episodes, a model_config the component or the memory budget cannot
 take is refused now, not minutes later in the worker). `--json` prints {"id", "state", "run_dir"}.
 """
@@ -42,7 +42,7 @@ def _int(text: str) -> int:
 
 def add_job_options(parser: argparse.ArgumentParser) -> None:
     """Options shared by enqueue and sequential: what to train on and how; all optional except --data."""
-    from daemon.run_request import DEFAULT_STEPS
+    from registry.run_request import DEFAULT_STEPS
 
     parser.add_argument("--data", required=True, metavar="PATH",
                         help="RLDS dataset dir, episode dir or episode file (made absolute)")
@@ -87,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from daemon.cli.registry import open_registry, print_json, run_command
-    from daemon.run_request import build_request, queue_run
+    from registry.run_request import build_request, queue_run
 
     def body() -> int:
         req = build_request(component=args.component, data=args.data, steps=args.steps, queue=args.queue,

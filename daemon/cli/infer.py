@@ -127,7 +127,7 @@ def _record_first_inference(settings):
     """on_first_inference for --local: the loop-closure time goes into the registry as with serve."""
     def record(component: str, version: str, checkpoint: str, when) -> None:
         from daemon import promotion
-        from daemon.db import Registry
+        from registry.db import Registry
 
         with Registry.open(settings) as registry, registry.session() as s:
             promotion.record_first_inference(s, checkpoint, when)

@@ -94,7 +94,7 @@ def _usage(args: argparse.Namespace, message: str) -> int:
 
 
 def _run_data(run) -> str | None:
-    """The dataset a registry run was submitted with (checked at the door: daemon/run_request.py)."""
+    """The dataset a registry run was submitted with (checked at the door: registry/run_request.py)."""
     data = run.config.get("data") if isinstance(run.config, dict) else None
     return data if isinstance(data, str) and data else None
 
@@ -103,8 +103,8 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | Non
     """(checkpoint dir, run id or None, the run's dataset or None) of the request."""
     from sqlalchemy import select
 
-    from daemon import runs
-    from daemon.models import Run
+    from registry import runs
+    from registry.models import Run
     from hope_models.promote.gate import GateError, resolve_candidate
 
     if args.run:
@@ -130,8 +130,8 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
     from sqlalchemy import select
 
     from daemon import promotion
-    from daemon.models import Model
-    from daemon.runs import RunError
+    from registry.models import Model
+    from registry.runs import RunError
     from hope_models.promote.gate import GateError, gate_candidate
     from hope_models.promote.pointers import PointerError, checkpoint_version
     from hope_models.train.checkpoint import CheckpointError, read_json_object

@@ -21,7 +21,7 @@ class CommandError(Exception):
 @contextmanager
 def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
     """(settings, Registry) for the duration of a command."""
-    from daemon.db import Registry, RegistryError
+    from registry.db import Registry, RegistryError
     from hope_models.settings import SettingsError, load_settings
 
     try:
@@ -37,8 +37,8 @@ def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
 
 def run_command(body) -> int:
     """Call `body()` and turn the errors users cause into a message and exit code 2."""
-    from daemon.run_request import RunRequestError
-    from daemon.runs import RunError
+    from registry.run_request import RunRequestError
+    from registry.runs import RunError
 
     try:
         return int(body() or 0)

@@ -198,7 +198,7 @@ class Serve:
         self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
 
     def start(self) -> str:
-        from daemon.db import Registry
+        from registry.db import Registry
         from daemon.events import SocketIOSink
         from daemon.service import Daemon
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
@@ -240,8 +240,8 @@ class Serve:
     def _local_running(self) -> list[str]:
         from sqlalchemy import select
 
-        from daemon import runs
-        from daemon.models import Run
+        from registry import runs
+        from registry.models import Run
 
         with self.registry.session(readonly=True) as s:
             return list(s.scalars(select(Run.id).where(Run.state.in_(runs.ACTIVE), Run.queue == self.args.queue)))
@@ -249,8 +249,8 @@ class Serve:
     def _hand_back_runs(self) -> list[str]:
         """Ask our worker's running job to checkpoint and requeue itself; a run dispatched but not yet
         claimed by a child goes back to the queue at once (its task, if delivered later, is stale)."""
-        from daemon import runs
-        from daemon.models import Run
+        from registry import runs
+        from registry.models import Run
 
         waiting = []
         for run_id in self._local_running():
@@ -339,7 +339,7 @@ def setup_logging(home: Path, console_level: int = logging.INFO) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.db import RegistryError
+    from registry.db import RegistryError
     from hope_models.settings import SettingsError
     from webapp.auth import TokenError
     from webapp.server import ServerError

@@ -89,7 +89,7 @@ def format_table(runs: list[dict[str, Any]]) -> str:
 
 
 def collect(session, run_id: str | None, all_runs: bool) -> list[dict[str, Any]]:
-    from daemon import runs
+    from registry import runs
 
     if run_id:
         return runs.to_json(session, [runs.get_run(session, run_id)])

@@ -111,7 +111,7 @@ class Display:
 
 def watch(registry, run_id: str, interval: float, display: Display) -> dict[str, Any]:
     """Poll until the run is in a terminal state; returns its final JSON object."""
-    from daemon import runs
+    from registry import runs
 
     while True:
         with registry.session(readonly=True) as s:

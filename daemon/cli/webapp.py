@@ -60,7 +60,7 @@ def _tail_events(registry, socketio, stop: threading.Event) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.db import Registry, RegistryError
+    from registry.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError

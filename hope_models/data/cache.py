@@ -364,7 +364,7 @@ def probe_dataset_spec(data: str | Path, request: SpecRequest | None = None) -> 
     """The feature spec of the first few usable episodes of `data` (a dataset dir, an episode dir
     or an episode file), read as the cache build reads them, torch-free and in bounded time.
 
-    It lets a run request be refused at the door (daemon/run_request.py) when its path holds no
+    It lets a run request be refused at the door (registry/run_request.py) when its path holds no
     usable episode, and its memory be estimated from the dims the build will most likely infer (the
     build votes over up to INFER_MAX_SOURCES sources). FeatureSpecError names the path and why; None
     when every source it looked at is larger than PROBE_MAX_SOURCE_BYTES (not read here: the

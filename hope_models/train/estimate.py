@@ -39,7 +39,7 @@ soft limit's 10% margin of a 3 GiB budget.
 Two ways in, one formula: estimate_memory() reads the layers off a built torch module (any model,
 e.g. a test's stand-in), estimate_from_config() derives the same layers from a configuration
 (model_config.resolve) with no model and no torch. The training loop runs the latter before it
-builds anything, and the webapp and the daemon run it on a request (daemon/run_request.py): a model
+builds anything, and the webapp and the daemon run it on a request (registry/run_request.py): a model
 too big for the budget is refused before it can take the memory it would be refused for.
 """
 from __future__ import annotations

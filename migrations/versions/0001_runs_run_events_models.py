@@ -4,8 +4,8 @@ Revision ID: 0001
 Revises:
 Create Date: 2026-11-21 10:33:33.186139
 
-The first schema of the registry (see daemon/models.py). Times are naive UTC DateTime text;
-daemon.models.UTCDateTime adds and strips the UTC zone. It deliberately does not import the models:
+The first schema of the registry (see registry/models.py). Times are naive UTC DateTime text;
+registry.models.UTCDateTime adds and strips the UTC zone. It deliberately does not import the models:
 a migration is a frozen snapshot of the schema at its revision.
 """
 from __future__ import annotations

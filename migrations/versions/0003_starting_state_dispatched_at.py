@@ -5,7 +5,7 @@ Revises: 0002
 Create Date: 2026-11-23 16:20:00.000000
 
 A run whose task was sent but that no worker child has claimed is now `starting`, not `running`
-(daemon/runs.py): nothing trains it, and with no worker on its queue it would otherwise show
+(registry/runs.py): nothing trains it, and with no worker on its queue it would otherwise show
 `running` for ever. runs.dispatched_at says since when it waits (a re-send keeps it).
 
 Rows written before this revision that are in that situation (running, no worker pid) become

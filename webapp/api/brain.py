@@ -131,7 +131,7 @@ def infer():
 
 
 def _checkpoint_arg(value: str) -> str:
-    from daemon.run_request import RunRequestError, resolve_path
+    from registry.run_request import RunRequestError, resolve_path
     from hope_models.paths import data_roots
 
     settings = _state().settings
@@ -146,7 +146,7 @@ def _checkpoint_arg(value: str) -> str:
 
 @bp.post("/promote")
 def promote():
-    from daemon.models import Run
+    from registry.models import Run
 
     body = json_body(allowed=("run_id", "checkpoint", "component", "force"))
     run_id = get_str(body, "run_id", max_len=MAX_RUN_ID)
@@ -196,7 +196,7 @@ def promote():
 
 
 def _component_of(out: dict) -> str | None:
-    from daemon.models import Model
+    from registry.models import Model
 
     model_id = out.get("model_id")
     if not isinstance(model_id, int):

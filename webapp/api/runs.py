@@ -7,7 +7,7 @@
     GET  /api/runs/<id>/metrics[?after=STEP][&limit=N][&events=1]
          -> {"run_id", "records": [...], "next_after": STEP | null, "more": bool}
 
-POST /api/runs takes the fields of `run_trainer.py enqueue` (daemon/run_request.py: component,
+POST /api/runs takes the fields of `run_trainer.py enqueue` (registry/run_request.py: component,
 data, steps, queue, priority, max_attempts, vqvae_dir | vqvae_run and the TrainConfig overrides
 such as seed, batch_size, lr, threads, checkpoint_every_steps, model_config). `data` is a path
 inside $HOPE_HOME (relative paths are taken from $HOPE_HOME/datasets) or one of the configured
@@ -17,7 +17,7 @@ the deployment's HOPE_MEMORY_BUDGET_MB, never raise it): daemon/run_request.pref
 400 bad input (the message names the field), 404 unknown run, 409 a control request the run's
 state refuses.
 
-A run's `state` is one of daemon.runs.STATES; `starting` is a run sent to its queue that no worker
+A run's `state` is one of registry.runs.STATES; `starting` is a run sent to its queue that no worker
 has taken yet, and its `waiting` says since when it waits for a worker on which queue (a queued
 run held behind it says that in its own `waiting`; null otherwise). cancel and pause of a
 starting run are done at once, like a queued one.
@@ -49,7 +49,7 @@ def _state():
 
 
 def _get(s, run_id: str):
-    from daemon.models import Run
+    from registry.models import Run
 
     run = s.get(Run, run_id)
     if run is None:
@@ -59,7 +59,7 @@ def _get(s, run_id: str):
 
 @bp.get("")
 def list_runs():
-    from daemon import runs
+    from registry import runs
 
     query_args("state", "limit")
     states = None
@@ -76,7 +76,7 @@ def list_runs():
 
 @bp.post("")
 def create_run():
-    from daemon.run_request import RunRequestError, queue_run, request_from_json
+    from registry.run_request import RunRequestError, queue_run, request_from_json
     from hope_models.paths import data_roots
 
     state = _state()
@@ -95,7 +95,7 @@ def create_run():
 
 @bp.get("/<run_id>")
 def get_run(run_id: str):
-    from daemon import runs
+    from registry import runs
 
     query_args()
     with _state().registry.session(readonly=True) as s:
@@ -147,7 +147,7 @@ def _stepped(records: list[dict]):
 
 
 def _control(run_id: str, action: str):
-    from daemon import runs
+    from registry import runs
 
     no_body()
     state = _state()

@@ -31,7 +31,7 @@ def _summary(run) -> dict:
 
 
 def queue_summary(session) -> dict:
-    from daemon.models import Run
+    from registry.models import Run
 
     counts = dict(session.execute(select(Run.state, func.count()).group_by(Run.state)).all())
 
@@ -43,7 +43,7 @@ def queue_summary(session) -> dict:
             # sent, but no worker has taken them yet (e.g. none serves their queue)
             "starting": of("starting", (Run.dispatched_at,)),
             "running": of("running", (Run.started_at,)),
-            # the order the dispatcher takes them in (daemon.runs.next_dispatchable)
+            # the order the dispatcher takes them in (registry.runs.next_dispatchable)
             "queued": of("queued", (Run.priority.desc(), Run.created_at, Run.id)),
             "paused": of("paused", (Run.updated_at.desc(),))}
 
@@ -68,7 +68,7 @@ def system():
 
     import psutil
 
-    from daemon.models import Run
+    from registry.models import Run
 
     state = current_app.extensions["hope"]
     sample, level, source = _sample(state)

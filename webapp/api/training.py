@@ -6,7 +6,7 @@
 
 One run per component, in order, sharing a sequence id; each starts after the previous one
 completed (daemon.dispatch.create_sequence). The fields are checked by the same code as the CLI
-and POST /api/runs (daemon.run_request), with `data` / `vqvae_dir` confined to $HOPE_HOME and the
+and POST /api/runs (registry.run_request), with `data` / `vqvae_dir` confined to $HOPE_HOME and the
 configured data_roots (relative paths are taken from $HOPE_HOME/datasets); then, before any run
 exists, each member's model_config and memory estimate against the dataset (run_request.preflight:
 a chain shares one model_config, so it must suit every member).
@@ -39,8 +39,8 @@ def _components(value) -> str:
 
 @bp.post("/sequential")
 def sequential():
-    from daemon import runs
-    from daemon.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
+    from registry import runs
+    from registry.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
     from hope_models.paths import data_roots
     from hope_models.train.sequential import SequenceError, parse_sequence
 

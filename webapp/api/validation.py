@@ -18,7 +18,7 @@ from typing import Any, Iterable
 
 from flask import current_app, request
 
-from daemon.run_request import RunRequestError, check_int, listed
+from registry.run_request import RunRequestError, check_int, listed
 from webapp.errors import ApiError
 
 MAX_STR = 4096  # no text field of the API needs more
@@ -135,7 +135,7 @@ def _short(value: Any) -> str:
 
 def get_int(body: dict, name: str, *, default: int | None = None, minimum: int | None = None,
             maximum: int | None = None) -> int | None:
-    """An integer field, by the rule run requests follow (daemon.run_request.check_int: a JSON
+    """An integer field, by the rule run requests follow (registry.run_request.check_int: a JSON
     number without a fraction; booleans and strings are refused)."""
     value = body.get(name)
     if value is None:

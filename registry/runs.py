@@ -29,7 +29,7 @@ from typing import Any, Iterable
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from daemon.models import Run, RunEvent, new_run_id, utcnow
+from registry.models import Run, RunEvent, new_run_id, utcnow
 from hope_models.json_finite import finite
 from hope_models.train.contract import COMPONENTS
 

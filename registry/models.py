@@ -108,7 +108,7 @@ class Run(Base):
 
     def waiting_text(self) -> str | None:
         """Why a starting run (sent, not claimed by any worker child) does not train yet, and
-        since when; None in every other state (daemon/runs.py has the states)."""
+        since when; None in every other state (registry/runs.py has the states)."""
         if self.state != "starting":
             return None
         since = f" since {self.dispatched_at:%Y-%m-%d %H:%M:%S} UTC" if self.dispatched_at is not None else ""

@@ -28,7 +28,7 @@ from hope_models.train.model_config import short
 QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
 DEFAULT_STEPS = 2000
 MAX_STEPS = 100_000_000
-RUN_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # daemon.models.new_run_id: r-<time>-<hex>
+RUN_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # registry.models.new_run_id: r-<time>-<hex>
 
 
 class RunRequestError(ValueError):
@@ -198,7 +198,7 @@ def check_vqvae_run(session, run_id: str | None) -> str | None:
     """A vqvae_run must name a completed vqvae run of the registry: the worker reads its run dir
     when the job starts, and nothing orders two separate runs (a chain does: `sequential`).
     Returns that run dir."""
-    from daemon import runs
+    from registry import runs
 
     if run_id is None:
         return None
@@ -307,9 +307,9 @@ def queue_run(registry, settings, req: RunRequest, show=None):
 
 
 def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=None) -> tuple[str, list]:
-    """preflight() of every member, then daemon.dispatch.create_sequence: the chain's sequence id
+    """preflight() of every member, then registry.sequences.create_sequence: the chain's sequence id
     and show(session, run) of each member (default: Run.to_json_obj())."""
-    from daemon.dispatch import create_sequence
+    from registry.sequences import create_sequence
 
     with registry.session(readonly=True) as s:
         vqvae_run_dir = check_vqvae_run(s, req.vqvae_run)
@@ -324,8 +324,8 @@ def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=N
 def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None,
            sequence_index: int | None = None):
     """Write `req` as a queued run (its run dir is $HOPE_HOME/runs/<id>); returns the Run."""
-    from daemon import runs
-    from daemon.models import new_run_id
+    from registry import runs
+    from registry.models import new_run_id
 
     check_vqvae_run(session, req.vqvae_run)
     if sequence_id is None:  # refused here rather than failing in the worker minutes later
