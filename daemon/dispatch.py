@@ -26,7 +26,8 @@ through Redis and daemon/remote.py applies the reports ("redis"). That needs Red
 embedded broker (no redis_url) every worker necessarily runs on this host (the broker is a
 SQLite file here), so every queue reports "db". `serve` runs the worker itself: all "db".
 
-Sending builds no torch: the Celery app only needs the task's name (workers.celery).
+The daemon reaches the worker only through the broker, by the task's name: the Celery app it
+sends with is registry/broker.py's (no worker code, no torch).
 """
 from __future__ import annotations
 
@@ -70,9 +71,9 @@ class Dispatcher:
     @property
     def app(self) -> Any:
         if self._app is None:
-            from workers.celery import create_celery
+            from registry.broker import celery_app
 
-            self._app = create_celery(self.settings)
+            self._app = celery_app(self.settings)
         return self._app
 
     def report_mode(self, queue: str) -> str:
@@ -83,7 +84,7 @@ class Dispatcher:
         if self._send is not None:
             self._send(run_id, attempt, queue, task_id)
             return
-        from workers.celery import TASK_TRAIN_RUN
+        from registry.broker import TASK_TRAIN_RUN
 
         self.app.send_task(TASK_TRAIN_RUN, args=[run_id, attempt], kwargs={"report": self.report_mode(queue)},
                            queue=queue, task_id=task_id)

@@ -70,7 +70,8 @@ def checkpoint_step(path: str) -> int:
 
 def test_celery_config_json_only_one_job_at_a_time(tmp_path):
     from hope_models.settings import Settings
-    from workers.celery import VISIBILITY_TIMEOUT_S, create_celery
+    from registry.broker import VISIBILITY_TIMEOUT_S
+    from workers.celery import create_celery
 
     app = create_celery(Settings(home=tmp_path / "h"))
     c = app.conf
@@ -84,7 +85,7 @@ def test_celery_config_json_only_one_job_at_a_time(tmp_path):
     assert c.broker_connection_retry_on_startup is True and c.broker_connection_max_retries is None
     # embedded broker: our SQLite transport, absolute file under $HOPE_HOME, fast polling
     assert c.broker_url == f"sqlite:///{(tmp_path / 'h' / 'broker' / 'broker.sqlite').resolve()}"
-    assert c.broker_transport == "workers.transport:Transport"
+    assert c.broker_transport == "registry.broker_transport:Transport"
     assert c.broker_transport_options["polling_interval"] <= 0.1
     assert not (tmp_path / "h").exists(), "building the app must not touch the state dir"
 
@@ -100,7 +101,7 @@ def test_embedded_transport_polls_fast_on_a_wal_file(tmp_path):
     from kombu import Connection
 
     db = tmp_path / "b" / "broker" / "broker.sqlite"
-    with Connection(f"sqlite:///{db}", transport="workers.transport:Transport",
+    with Connection(f"sqlite:///{db}", transport="registry.broker_transport:Transport",
                     transport_options={"polling_interval": 0.05}) as conn:
         q = conn.SimpleQueue("pi")
         q.put({"hello": 1}, serializer="json")
@@ -115,12 +116,12 @@ def test_embedded_transport_polls_fast_on_a_wal_file(tmp_path):
 RACE_SCRIPT = r"""
 import multiprocessing as mp, os, sys
 from kombu import Connection
-import workers.transport
+import registry.broker_transport
 
 def opener(url, barrier, q):
     barrier.wait()
     try:
-        with Connection(url, transport="workers.transport:Transport") as c:
+        with Connection(url, transport="registry.broker_transport:Transport") as c:
             sq = c.SimpleQueue("pi"); sq.put({"a": 1}, serializer="json"); sq.close()
         q.put("ok")
     except Exception as e:
@@ -179,7 +180,7 @@ def test_worker_command_and_cli(monkeypatch, tmp_path):
 
 
 def test_worker_modules_import_without_torch():
-    code = ("import sys, workers.celery, workers.tasks, workers.job, workers.cli, workers.transport; "
+    code = ("import sys, workers.celery, workers.tasks, workers.job, workers.cli, registry.broker_transport; "
             "bad = [m for m in ('torch', 'numpy') if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True, timeout=60)
 

@@ -1,7 +1,9 @@
 """The Celery app: one worker, one job at a time, each job in a fresh child process.
 
     celery -A workers.celery:app worker ...     (see workers/cli.py for the full command)
-    app = create_celery(settings); app.send_task("hope.train_run", args=[run_id, attempt], queue="pi")
+
+The broker, the task name and the JSON-only rule are shared with the daemon, which sends the task
+by name without importing this package: registry/broker.py. What is here is how the worker runs it.
 
 Celery is only the delivery mechanism. The state of every run lives in the registry (SQLite):
 the task carries a run id and an attempt number, the child claims the run there (a stale or
@@ -23,48 +25,17 @@ from __future__ import annotations
 
 import os
 import signal
-from pathlib import Path
 
-from celery import Celery
 from celery.signals import worker_init, worker_shutting_down
 
 from hope_models.settings import Settings, load_settings, use_private_umask
-
-TASK_TRAIN_RUN = "hope.train_run"
-DEFAULT_QUEUE = "pi"
-EMBEDDED_TRANSPORT = "workers.transport:Transport"
-# Longer than the longest job: Redis redelivers an unacked message after this long. A real
-# redelivery (Redis restarted, worker lost) is handled by the daemon from the registry instead.
-VISIBILITY_TIMEOUT_S = 7 * 24 * 3600
+from registry.broker import celery_app
 
 
-def broker_path(settings: Settings) -> Path:
-    return Path(settings.home) / "broker" / "broker.sqlite"
-
-
-def broker_url(settings: Settings) -> str:
-    """settings.redis_url, or the embedded SQLite broker file under $HOPE_HOME (an absolute
-    path: 'sqlite:////abs/...')."""
-    if settings.redis_url:
-        return settings.redis_url
-    return f"sqlite:///{broker_path(settings).resolve()}"
-
-
-def celery_config(settings: Settings) -> dict:
-    """The app's configuration as a plain dict (tests check it; nothing here connects)."""
-    embedded = not settings.redis_url
+def worker_config(settings: Settings) -> dict:
+    """How this worker runs tasks, on top of the broker rules it shares with the daemon
+    (registry/broker.py)."""
     conf = dict(
-        broker_url=broker_url(settings),
-        # JSON in and out, everywhere; a pickled message is refused, not run.
-        task_serializer="json",
-        result_serializer="json",
-        event_serializer="json",
-        accept_content=["json"],
-        result_accept_content=["json"],
-        # State lives in the registry; Celery results are never read.
-        result_backend=None,
-        task_ignore_result=True,
-        task_store_errors_even_if_ignored=False,
         # Ack when the task returns; a dead child's message is acked, not requeued (see above).
         task_acks_late=True,
         task_reject_on_worker_lost=False,
@@ -76,45 +47,25 @@ def celery_config(settings: Settings) -> dict:
         # ignored) before the next message is taken: the default 10 s only delays recovery.
         worker_lost_wait=1.0,
         worker_pool="prefork",
-        # A Redis restart must not kill the training child: the worker reconnects (forever) and
-        # the child keeps going; claim() in the registry stops any duplicate delivery.
-        broker_connection_retry=True,
-        broker_connection_retry_on_startup=True,
-        broker_connection_max_retries=None,
-        broker_channel_error_retry=True,
+        # A lost broker connection must not kill the training child: the worker reconnects and
+        # the child keeps going.
         worker_cancel_long_running_tasks_on_connection_loss=False,
-        task_default_queue=DEFAULT_QUEUE,
-        task_create_missing_queues=True,
         worker_hijack_root_logger=False,
-        # Task/worker events would be broker traffic nobody consumes: run events go to the registry.
+        # Worker events would be broker traffic nobody consumes: run events go to the registry.
         worker_send_task_events=False,
-        task_send_sent_event=False,
-        enable_utc=True,
-        timezone="UTC",
         include=["workers.tasks"],
     )
-    if embedded:
-        conf.update(
-            broker_transport=EMBEDDED_TRANSPORT,
-            broker_transport_options={"polling_interval": 0.1},
-            # Remote control (celery inspect/control) needs fanout, which the SQL transport only
-            # emulates inside one process: it would be one more queue polled for nothing.
-            worker_enable_remote_control=False,
-        )
-    else:
-        conf.update(broker_transport_options={"visibility_timeout": VISIBILITY_TIMEOUT_S})
+    if not settings.redis_url:
+        # Remote control (celery inspect/control) needs fanout, which the SQL transport only
+        # emulates inside one process: it would be one more queue polled for nothing.
+        conf.update(worker_enable_remote_control=False)
     return conf
 
 
-def create_celery(settings: Settings) -> Celery:
-    """The Celery app for `settings` (the daemon builds one to send tasks; sending never
-    imports torch). `app.hope_settings` is what the task body uses in the worker child."""
-    conf = celery_config(settings)
-    include = conf.pop("include")
-    app = Celery("hope", include=include, set_as_current=False)
-    app.conf.update(conf)
-    app.hope_settings = settings
-    return app
+def create_celery(settings: Settings):
+    """The worker's Celery app for `settings`. `app.hope_settings` is what the task body uses in
+    the worker child."""
+    return celery_app(settings, **worker_config(settings))
 
 
 @worker_init.connect

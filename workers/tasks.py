@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from celery import shared_task
 
-from workers.celery import TASK_TRAIN_RUN
+from registry.broker import TASK_TRAIN_RUN
 
 
 @shared_task(name=TASK_TRAIN_RUN, bind=True, acks_late=True, ignore_result=True)

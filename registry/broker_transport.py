@@ -23,8 +23,9 @@ created under an fcntl lock, a lost race for the queue row is retried, and deliv
 deleted when a message is taken. That is safe: kombu never reads an invisible row again (an
 unacked message is restored from the consumer's memory by re-publishing its payload).
 
-Celery selects it with broker_transport="workers.transport:Transport" and a plain
-"sqlite:////abs/path" broker URL (see workers/celery.py).
+Celery selects it with broker_transport="registry.broker_transport:Transport" and a plain
+"sqlite:////abs/path" broker URL (registry/broker.py), on the daemon's side (sending) and the
+worker's (consuming) alike.
 """
 from __future__ import annotations
 
