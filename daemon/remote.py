@@ -1,7 +1,7 @@
 """Remote workers: apply the reports their jobs push to Redis, and publish what they must obey.
 
 A worker on another machine cannot write the registry (SQLite WAL works on one host only), so its
-job child reports through Redis (workers/report.py, RedisChannel) and the daemon, every tick:
+job child reports through Redis (registry/report_protocol.py) and the daemon, every tick:
 - poll(): reads the waiting reports in order and applies each one with RegistryChannel, the
   code a local child uses to write the registry itself, so a report means the same whichever way
   it came: claim (answered at hope:claim:<run>:<task>), heartbeat, event (+ the row's live
@@ -20,7 +20,6 @@ report in place for the next tick. Nothing here crashes the daemon or imports to
 """
 from __future__ import annotations
 
-import json
 import logging
 from datetime import datetime, timezone
 from typing import Any, Iterable
@@ -29,58 +28,13 @@ from sqlalchemy import select
 
 from registry import runs
 from registry.models import Run
-from workers.report import (ANSWER_TTL_S, CONTROL_TTL_S, REPORT_TYPES, REPORTS_KEY, REQUESTS, ChannelError,
-                            ControlRow, RegistryChannel, StaleDelivery, claim_key, control_key, dumps)
+from registry.report_channel import RegistryChannel
+from registry.report_protocol import (ANSWER_TTL_S, CONTROL_TTL_S, REPORTS_KEY, BadReport, ChannelError, ControlRow,
+                                      StaleDelivery, claim_key, control_key, dumps, parse_report)
 
 log = logging.getLogger(__name__)
 
 BATCH = 500  # reports per tick: a busy remote job sends ~10 a second
-ROW_FIELDS = frozenset(runs.HEARTBEAT_FIELDS)
-
-
-class BadReport(ValueError):
-    """A report that does not follow the protocol; the message says which field."""
-
-
-def _need(msg: dict, key: str, kind: type | tuple[type, ...], *, optional: bool = False) -> Any:
-    value = msg.get(key)
-    if value is None and optional:
-        return None
-    if not isinstance(value, kind) or isinstance(value, bool):
-        name = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
-        raise BadReport(f"{key!r} must be {name}, got {value!r}")
-    return value
-
-
-def parse_report(raw: bytes | str) -> dict[str, Any]:
-    """The report as a dict, checked field by field (BadReport says what is wrong)."""
-    try:
-        msg = json.loads(raw)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise BadReport(f"not JSON ({exc})") from None
-    if not isinstance(msg, dict):
-        raise BadReport(f"not a JSON object but {type(msg).__name__}")
-    if msg.get("type") not in REPORT_TYPES:
-        raise BadReport(f"type {msg.get('type')!r} is not one of {', '.join(REPORT_TYPES)}")
-    for key, kind in (("run_id", str), ("task_id", str), ("host", str), ("attempt", int), ("pid", int),
-                      ("time", (int, float))):
-        _need(msg, key, kind)
-    if not msg["run_id"] or not msg["host"] or msg["attempt"] < 1 or msg["pid"] < 1:
-        raise BadReport("run_id and host must be non-empty, attempt and pid >= 1")
-    row = _need(msg, "row", dict, optional=True)
-    if row is not None and not set(row) <= ROW_FIELDS:
-        raise BadReport(f"row fields {sorted(set(row) - ROW_FIELDS)} are not among {', '.join(sorted(ROW_FIELDS))}")
-    if msg["type"] == "event":
-        _need(msg, "kind", str)
-        _need(msg, "payload", dict)
-    elif msg["type"] == "control_request" and msg.get("request") not in REQUESTS:
-        raise BadReport(f"request {msg.get('request')!r} is not one of {', '.join(REQUESTS)}")
-    elif msg["type"] == "finish":
-        _need(msg, "outcome", str)
-        _need(msg, "message", str)
-        _need(msg, "step", int, optional=True)
-        _need(msg, "last_checkpoint", str, optional=True)
-    return msg
 
 
 class RemoteReports:
@@ -214,4 +168,4 @@ class RemoteReports:
         return len(rows)
 
 
-__all__ = ["BadReport", "RemoteReports", "parse_report"]
+__all__ = ["RemoteReports"]

@@ -1,15 +1,12 @@
-"""The run state machine and every change to a run, in one place.
+"""Every change to a run, by who asks for it: create and read (CLI, API), control from outside
+(cancel / pause / resume), dispatch (the daemon), the worker child's claim / heartbeat / finish,
+and recovery of a run whose child died.
+
+The states and the one function that moves a run between them are registry/run_states.py; its
+names are re-exported here, so `runs` is the one module callers need.
 
 All functions take an open Session first (Registry.session(): one transaction, BEGIN IMMEDIATE)
-and leave committing to it. Invalid requests raise RunError naming the run and the field. Every
-state change writes a `state` RunEvent {"state", "from", "reason", "message"}, so the event log
-is a complete timeline of each run.
-
-    queued -> starting -> running -> completed | failed | cancelled
-    starting -> queued (the send failed, or shutdown) | cancelled | paused (user): at once, no child
-    running -> paused (user | thermal | memory) -> queued -> starting ...
-    running -> interrupted (its worker died) -> queued (attempt + 1) | failed (attempts used up)
-    running -> queued (shutdown; attempt unchanged)
+and leave committing to it. Invalid requests raise RunError naming the run and the field.
 
 `starting` is a run whose task was sent to its queue but that no worker child has claimed yet:
 nothing trains it, so it is not `running` (with no worker on the queue it would stay that way),
@@ -22,140 +19,24 @@ row; the worker child reads them between steps and reports back through finish()
 """
 from __future__ import annotations
 
-import json
 import re
 from typing import Any, Iterable
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from registry.models import Run, RunEvent, new_run_id, utcnow
 from hope_models.json_finite import finite
 from hope_models.train.contract import COMPONENTS
-
-STATES = ("queued", "starting", "running", "paused", "completed", "failed", "cancelled", "interrupted")
-TERMINAL = {"completed", "failed", "cancelled"}
-# What holds its queue: the daemon starts one run per queue at a time. A starting run holds it
-# too: with no worker on the queue nothing could train the next one either, and once a worker
-# comes it takes the messages in order. The run's `waiting` text says why the queue stands still.
-ACTIVE = {"starting", "running"}
-ALLOWED: dict[str, set[str]] = {
-    "queued": {"starting", "cancelled", "paused"},
-    "starting": {"running", "queued", "cancelled", "paused"},
-    "running": {"paused", "completed", "failed", "cancelled", "interrupted", "queued"},
-    "paused": {"queued", "cancelled"},
-    # + cancelled: request_control cancels an interrupted run at once (the brief's cancel rule).
-    "interrupted": {"queued", "failed", "cancelled"},
-    "completed": set(),
-    "failed": set(),
-    "cancelled": set(),
-}
-EVENT_KINDS = ("progress", "log", "state", "throttle", "checkpoint", "metric")
-PAUSE_REASONS = ("user", "thermal", "memory", "shutdown")
-DESIRED_STATES = ("run", "pause", "cancel")
-CONTROL_ACTIONS = ("cancel", "pause", "resume")
-# Trainer outcomes (hope_models.train.contract.OUTCOME_EXIT_CODES) that finish() accepts.
-OUTCOMES = ("completed", "failed", "cancelled", "paused_memory", "paused_user")
-HEARTBEAT_FIELDS = ("step", "loss", "steps_per_s", "last_checkpoint")
-SHUTDOWN_MESSAGE = "stopped by shutdown; resumes on next start"
+from registry.models import Run, new_run_id, utcnow
+from registry.run_states import (ACTIVE, ALLOWED, CONTROL_ACTIONS, DESIRED_STATES, EVENT_KINDS, HEARTBEAT_FIELDS,
+                                 OUTCOMES, PAUSE_REASONS, SHUTDOWN_MESSAGE, STATES, TERMINAL, RunError, add_event,
+                                 events_after, json_dict, log_event, not_found, run_events, transition)
 
 _QUEUE_RE = re.compile(r"[a-z0-9_-]+")
 
 
-class RunError(ValueError):
-    """A run request that cannot be done; the message names the run id and the field."""
-
-
-def _hint(run_id: str) -> str:
-    return f"no run {run_id} (see `run_trainer.py status`)"
-
-
-def _json_dict(value: Any, what: str) -> dict[str, Any]:
-    if not isinstance(value, dict):
-        raise RunError(f"{what} must be a JSON object, got {type(value).__name__}")
-    try:
-        json.dumps(value, allow_nan=False)
-    except (TypeError, ValueError) as exc:
-        raise RunError(f"{what} is not JSON-serialisable: {exc}") from None
-    return value
-
-
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-# --- events -------------------------------------------------------------------------------
-
-def add_event(s: Session, run_id: str, kind: str, payload: dict[str, Any]) -> RunEvent:
-    if kind not in EVENT_KINDS:
-        raise RunError(f"run {run_id}: event kind {kind!r} is not one of {', '.join(EVENT_KINDS)}")
-    payload = _json_dict(finite(payload), f"run {run_id}: {kind} event payload")
-    if s.get(Run, run_id) is None:
-        raise RunError(_hint(run_id))
-    event = RunEvent(run_id=run_id, kind=kind, payload=payload, time=utcnow())
-    s.add(event)
-    s.flush()  # assigns the id
-    return event
-
-
-def events_after(s: Session, last_id: int, limit: int = 500) -> list[RunEvent]:
-    """Events of every run with id > last_id, oldest first (the daemon's tail of the log)."""
-    return list(s.scalars(select(RunEvent).where(RunEvent.id > last_id).order_by(RunEvent.id).limit(limit)))
-
-
-def run_events(s: Session, run_id: str, kinds: Iterable[str] | None = None, after_id: int = 0) -> list[RunEvent]:
-    query = select(RunEvent).where(RunEvent.run_id == run_id, RunEvent.id > after_id)
-    if kinds is not None:
-        query = query.where(RunEvent.kind.in_(list(kinds)))
-    return list(s.scalars(query.order_by(RunEvent.id)))
-
-
-def _log(s: Session, run: Run, message: str, level: str = "info") -> None:
-    add_event(s, run.id, "log", {"level": level, "message": message})
-
-
-# --- the state machine --------------------------------------------------------------------
-
-def transition(s: Session, run: Run, new: str, *, reason: str | None = None, message: str | None = None) -> Run:
-    """Move `run` to state `new` (validated against ALLOWED) and record a state event.
-
-    Entering queued or leaving starting/running for any other state clears what belonged to the
-    last attempt's child (worker pid/host, desired state and its reason, throttle level): a
-    request has been served once the child has stopped, and a requeued run starts clean.
-    """
-    old = run.state
-    if new not in STATES:
-        raise RunError(f"run {run.id}: unknown state {new!r} (states: {', '.join(STATES)})")
-    if new not in ALLOWED.get(old, set()):
-        raise RunError(f"run {run.id}: cannot go from {old} to {new}")
-    if new == "paused" and reason not in PAUSE_REASONS:
-        raise RunError(f"run {run.id}: pause reason {reason!r} is not one of {', '.join(PAUSE_REASONS)}")
-    now = utcnow()
-    run.state = new
-    run.updated_at = now
-    if old in ACTIVE and new not in ACTIVE:
-        run.worker_pid = None
-        run.worker_host = None
-        run.desired_state = "run"
-        run.requested_reason = None
-        run.throttle_level = 0
-    if new == "paused":
-        run.pause_reason = reason
-    elif old == "paused":
-        run.pause_reason = None
-    if new == "queued":
-        # queued_at orders the line. A run the system knocked out (shutdown, lost worker, thermal
-        # or memory pause) keeps its place; a user's resume re-enters at the back.
-        if run.queued_at is None or (old == "paused" and reason == "user"):
-            run.queued_at = now
-        run.desired_state = "run"
-        run.requested_reason = None
-    if new in TERMINAL:
-        run.finished_at = now
-        if new in ("failed", "cancelled") and message:
-            run.error_message = message
-    add_event(s, run.id, "state", {"state": new, "from": old, "reason": reason, "message": message})
-    return run
 
 
 # --- create and read ----------------------------------------------------------------------
@@ -178,7 +59,7 @@ def create_run(
     rid = run_id or new_run_id()
     if component not in COMPONENTS:
         raise RunError(f"run {rid}: component {component!r} is not one of {', '.join(COMPONENTS)}")
-    _json_dict(config, f"run {rid}: config")
+    json_dict(config, f"run {rid}: config")
     if not _is_int(total_steps) or total_steps < 1:
         raise RunError(f"run {rid}: total_steps must be an integer >= 1, got {total_steps!r}")
     if not isinstance(queue, str) or not _QUEUE_RE.fullmatch(queue):
@@ -226,7 +107,7 @@ def create_run(
 def get_run(s: Session, run_id: str) -> Run:
     run = s.get(Run, run_id)
     if run is None:
-        raise RunError(_hint(run_id))
+        raise RunError(not_found(run_id))
     return run
 
 
@@ -286,44 +167,44 @@ def request_control(s: Session, run_id: str, action: str) -> Run:
             if run.desired_state != "cancel":
                 run.desired_state, run.requested_reason = "cancel", "user"
                 run.updated_at = utcnow()
-            _log(s, run, "cancel requested by user; the job stops at its next step")
+            log_event(s, run, "cancel requested by user; the job stops at its next step")
         else:  # queued, starting, paused, interrupted: no child trains it, so it ends now
             transition(s, run, "cancelled", reason="user", message="cancelled by user")
             if state == "starting":
-                _log(s, run, f"cancel requested by user; cancelled before a worker took it (task {run.celery_task_id} "
+                log_event(s, run, f"cancel requested by user; cancelled before a worker took it (task {run.celery_task_id} "
                              "is refused if a worker picks it up later)")
             else:
-                _log(s, run, "cancel requested by user; cancelled")
+                log_event(s, run, "cancel requested by user; cancelled")
             _cancel_followers(s, run)
     elif action == "pause":
         if state in ("queued", "starting"):
             transition(s, run, "paused", reason="user")
-            _log(s, run, "pause requested by user; paused before it started")
+            log_event(s, run, "pause requested by user; paused before it started")
         elif state == "running":
             if run.desired_state == "cancel":
                 raise RunError(f"run {run_id}: a cancel is already requested; it cannot be paused")
             run.desired_state, run.requested_reason = "pause", "user"
             run.updated_at = utcnow()
-            _log(s, run, "pause requested by user; the job checkpoints and stops at its next step")
+            log_event(s, run, "pause requested by user; the job checkpoints and stops at its next step")
         elif state == "paused":
-            _log(s, run, f"pause requested by user; already paused ({run.pause_reason})")
+            log_event(s, run, f"pause requested by user; already paused ({run.pause_reason})")
         else:  # interrupted: transient, the daemon requeues it in the same transaction
             raise RunError(f"run {run_id} is interrupted and about to be requeued; pause it once it is queued")
     else:  # resume
         if state == "paused":
             transition(s, run, "queued", reason="user", message=f"resumed by user (was paused: {run.pause_reason})")
-            _log(s, run, "resume requested by user; queued")
+            log_event(s, run, "resume requested by user; queued")
         elif state == "running":
             if run.desired_state == "cancel":
                 raise RunError(f"run {run_id}: a cancel is already requested; it cannot be resumed")
             if run.desired_state == "pause":
                 run.desired_state, run.requested_reason = "run", None
                 run.updated_at = utcnow()
-                _log(s, run, "resume requested by user; the pending pause is withdrawn")
+                log_event(s, run, "resume requested by user; the pending pause is withdrawn")
             else:
-                _log(s, run, "resume requested by user; already running")
+                log_event(s, run, "resume requested by user; already running")
         else:  # queued, starting, interrupted: it will run
-            _log(s, run, f"resume requested by user; already {state}")
+            log_event(s, run, f"resume requested by user; already {state}")
     return run
 
 
@@ -405,7 +286,7 @@ def request_shutdown(s: Session, run: Run) -> Run:
         raise RunError(f"run {run.id} is {run.state}; only a running run is stopped for shutdown")
     run.desired_state, run.requested_reason = "pause", "shutdown"
     run.updated_at = utcnow()
-    _log(s, run, "service stopping; the job checkpoints and is requeued")
+    log_event(s, run, "service stopping; the job checkpoints and is requeued")
     return run
 
 
@@ -418,7 +299,7 @@ def resend(s: Session, run: Run, task_id: str) -> Run:
     run.celery_task_id = task_id
     run.heartbeat_at = utcnow()
     run.updated_at = run.heartbeat_at
-    _log(s, run, f"task {old} was not picked up; re-sent as task {task_id} (attempt {run.attempt})", "warning")
+    log_event(s, run, f"task {old} was not picked up; re-sent as task {task_id} (attempt {run.attempt})", "warning")
     return run
 
 
@@ -447,7 +328,7 @@ def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: i
     waited = (now - run.dispatched_at).total_seconds() if run.dispatched_at is not None else None
     transition(s, run, "running", reason="claimed",
                message=f"pid {pid} on {host}" + (f" after {waited:.1f} s waiting" if waited is not None else ""))
-    _log(s, run, f"claimed by pid {pid} on {host} (task {task_id}, attempt {attempt})")
+    log_event(s, run, f"claimed by pid {pid} on {host} (task {task_id}, attempt {attempt})")
     return run
 
 
@@ -484,7 +365,7 @@ def finish(
         raise RunError(f"run {run_id}: outcome {outcome!r} is not one of {', '.join(OUTCOMES)}")
     run = s.scalars(select(Run).where(Run.id == run_id).execution_options(populate_existing=True)).first()
     if run is None:
-        raise RunError(_hint(run_id))
+        raise RunError(not_found(run_id))
     if run.state != "running" or run.worker_pid != pid:
         return None
     if step is not None:
@@ -517,3 +398,13 @@ def mark_interrupted(s: Session, run: Run, why: str) -> Run:
         transition(s, run, "queued", reason="retry", message=f"attempt {run.attempt} of {run.max_attempts} after: {why}")
     return run
 
+
+__all__ = [
+    # the state machine (registry/run_states.py)
+    "ACTIVE", "ALLOWED", "CONTROL_ACTIONS", "DESIRED_STATES", "EVENT_KINDS", "HEARTBEAT_FIELDS", "OUTCOMES",
+    "PAUSE_REASONS", "SHUTDOWN_MESSAGE", "STATES", "TERMINAL", "RunError", "add_event", "events_after", "run_events",
+    "transition",
+    # the changes
+    "claim", "create_run", "finish", "get_run", "heartbeat", "list_runs", "mark_dispatched", "mark_interrupted",
+    "next_dispatchable", "request_control", "request_shutdown", "resend", "sequence_runs", "to_json",
+]

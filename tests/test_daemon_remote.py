@@ -1,6 +1,6 @@
-"""Remote workers' reports through Redis (workers/report.py, daemon/remote.py), in process: a
-real registry, Redis replaced by fakeredis. The real processes (a worker with its own HOPE_HOME,
-a real redis-server) are in test_daemon_redis.py.
+"""Remote workers' reports through Redis (registry/report_protocol.py, workers/report.py,
+daemon/remote.py), in process: a real registry, Redis replaced by fakeredis. The real processes (a
+worker with its own HOPE_HOME, a real redis-server) are in test_daemon_redis.py.
 - RemoteReports applies each report type to the registry, in order, and answers claims;
 - malformed reports are dropped with a log, and never stop the ones after them;
 - a busy registry leaves the reports in Redis for the next tick;
@@ -20,10 +20,12 @@ import fakeredis
 import pytest
 
 from registry import runs
-from daemon.remote import BadReport, RemoteReports, parse_report
+from daemon.remote import RemoteReports
 from daemon_fixtures import Home, tiny_dataset  # noqa: F401
-from workers.report import (REPORTS_KEY, ChannelError, ControlRow, RedisChannel, RegistryChannel, StaleDelivery,
-                            claim_key, control_key)
+from registry.report_channel import RegistryChannel
+from registry.report_protocol import (REPORTS_KEY, BadReport, ChannelError, ControlRow, StaleDelivery, claim_key,
+                                      control_key, parse_report)
+from workers.report import RedisChannel
 
 HOST = "gpu-box"
 PID = 777

@@ -215,7 +215,7 @@ def _set(home: Home, rid: str, **values) -> None:
 
 
 def _channel(home: Home, rid: str, pid: int = 4242):
-    from workers.report import RegistryChannel
+    from registry.report_channel import RegistryChannel
 
     return RegistryChannel(home.registry, rid, "task-1", 1, pid, "host")
 
@@ -342,7 +342,7 @@ def test_build_train_config(reg_home, tmp_path):
 def test_vqvae_run_resolves_to_a_completed_vqvae_runs_dir(reg_home, tmp_path):
     from registry import runs
     from workers.job import JobConfigError, vqvae_dir_of
-    from workers.report import snapshot_of
+    from registry.report_channel import snapshot_of
 
     vq = create(reg_home, tmp_path / "d", steps=10, component="vqvae")
     fast = create(reg_home, tmp_path / "d", steps=10, vqvae_run=vq)

@@ -35,7 +35,8 @@ from typing import Any, Callable
 from hope_models.train.contract import ControlCommand
 from hope_models.train.loop import TrainConfig, TrainSetupError, train
 from hope_models.train.run_dir_lock import wait_until_free
-from workers.report import ChannelError, RunSnapshot, StaleDelivery, open_channel
+from registry.report_protocol import ChannelError, RunSnapshot, StaleDelivery
+from workers.report import open_channel
 
 log = logging.getLogger(__name__)
 
