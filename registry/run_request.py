@@ -243,7 +243,7 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
     again before it builds anything). It reads files: call it outside a write transaction."""
     from dataclasses import fields
 
-    from hope_models.data.cache import probe_dataset_spec
+    from hope_models.data.dataset_spec import probe_dataset_spec
     from hope_models.data.features import FeatureSpecError
     from hope_models.train import checkpoint as ckpt
     from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import hope_models.data.cache as cache_mod
+import hope_models.data.cache_build as cache_build
 from hope_models.data.cache import CacheError, load_or_build, open_cache
 from hope_models.data.sampler import AnchorSampler
 from hope_models.data.windows import make_windows, window_spec
@@ -71,7 +71,7 @@ def test_reused_while_unchanged_rebuilt_when_a_file_changes(dataset, tmp_path):
 
 def test_a_crash_mid_build_leaves_nothing_that_looks_like_a_cache(dataset, tmp_path, monkeypatch):
     root = tmp_path / "cache"
-    real = cache_mod._episode_rows
+    real = cache_build._episode_rows
     calls = {"n": 0}
 
     def dies_on_third(ep, spec):
@@ -80,11 +80,11 @@ def test_a_crash_mid_build_leaves_nothing_that_looks_like_a_cache(dataset, tmp_p
             raise KeyboardInterrupt("power cut")
         return real(ep, spec)
 
-    monkeypatch.setattr(cache_mod, "_episode_rows", dies_on_third)
+    monkeypatch.setattr(cache_build, "_episode_rows", dies_on_third)
     with pytest.raises(KeyboardInterrupt):
         load_or_build(dataset, root)
     assert list(root.iterdir()) == []  # no final dir, no temp dir left behind
-    monkeypatch.setattr(cache_mod, "_episode_rows", real)
+    monkeypatch.setattr(cache_build, "_episode_rows", real)
 
     # a temp dir left by a process that died without cleaning up is removed on the next build
     stale = root / ".building-abc-999999999-0000"

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hope_models.data.cache import CacheError, load_or_build
-from hope_models.data.features import FeatureSpec, FeatureSpecError, SpecRequest
+from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.spec_request import SpecRequest
 from hope_models.rlds.discover import read_path
 
 REPO = Path(__file__).resolve().parents[1]

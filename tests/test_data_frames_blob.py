@@ -12,7 +12,8 @@ import pytest
 
 from hope_models.data import synthetic as gen
 from hope_models.data.cache import CacheError, load_or_build
-from hope_models.data.features import FeatureSpec, FeatureSpecError, FrameFeature, SpecRequest
+from hope_models.data.features import FeatureSpec, FeatureSpecError, FrameFeature
+from hope_models.data.spec_request import SpecRequest
 from hope_models.data.frames import frame_blob_refs
 from hope_models.data.windows import make_windows, window_spec
 

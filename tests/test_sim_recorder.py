@@ -139,7 +139,7 @@ def test_sim_demos_cli_with_frames_json_shape(tmp_path):
     assert frames[0].std() > 5  # a rendered scene, not a blank image
     assert validate_paths([out], "train")["summary"]["ok"]
     # the data layer picks the blob frames up as the frame feature
-    from hope_models.data.features import episode_signature, infer_spec
+    from hope_models.data.spec_inference import episode_signature, infer_spec
     ep = _episodes(out)[0]
     spec = infer_spec([episode_signature(ep.episode_id, ep.steps, ep.blob_root)])
     assert spec.frame is not None and spec.frame.path == "observation.media.rgb" and spec.frame.source == "blob"

@@ -19,7 +19,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from hope_models.data.cache import DatasetCache
+from hope_models.data.dataset_cache import DatasetCache
 
 STATE_FORMAT = "hope.anchor_sampler/1"
 SPLITS = {"train": 0, "val": 1, "all": 2}

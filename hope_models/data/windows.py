@@ -18,8 +18,8 @@ from functools import cached_property
 
 import numpy as np
 
-from hope_models.data.cache import WINDOW_EPS_S as EPS_S
-from hope_models.data.cache import DatasetCache
+from hope_models.data.dataset_cache import WINDOW_EPS_S as EPS_S
+from hope_models.data.dataset_cache import DatasetCache
 
 # scale -> (min duration s, max duration s, default duration s, default K)
 SCALES: dict[str, tuple[float, float, float, int]] = {

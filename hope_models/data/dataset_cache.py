@@ -1,0 +1,202 @@
+"""A compiled dataset cache opened for reading: DatasetCache, and the layout it reads.
+
+Training reads windows from these arrays instead of JSON, so its memory does not grow with the
+dataset: the build streams one episode at a time into flat files, and readers map them (or, past
+a resident budget, read just the rows they need; see DatasetCache). The cache
+dir is named by sha256(dataset file paths + contents, the spec request, the cache format), so it is
+reused while the data is unchanged and rebuilt when any file changes. A build writes into a
+`.building-*` temp dir and renames it into place only when complete (manifest written last), so
+a crash never leaves a half cache under a valid name.
+
+Layout of <cache_root>/<key>/:
+    manifest.json   counts, dims, array shapes/dtypes, excluded episodes, fingerprints, build time
+    spec.json       the feature spec with normalisation statistics
+    episodes.json   one entry per included episode: id, source, steps, duration, rate, imagined
+    steps.bin float32 [N, D_obs + D_act]  observation then action columns of each step; `obs`
+                          and `act` are column views of it, so a window is one gather, not two
+    t.bin    float64 [N]  seconds since the episode's first step
+    frames.bin uint8 [N, H, W, 3]  only when the spec has a frame feature (inline floats or .npy
+                          frame blobs, loaded step by step during the build; see frames.py)
+    offsets.npy int64 [E+1]   imagined.npy bool [E]
+"""
+from __future__ import annotations
+
+import json
+import math
+import mmap
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.data.features import FeatureSpec, FeatureSpecError
+
+CACHE_FORMAT = "hope.dataset_cache/5"  # 5: frame blobs (inference may now choose a frame it did not before)
+DEFAULT_RESIDENT_BUDGET_MB = 64  # step arrays larger than this are read with pread, not mapped
+
+
+class CacheError(RuntimeError):
+    """The cache cannot be built or opened; the message says which dataset or file and why."""
+
+
+class DatasetCache:
+    """Read-only view of a built cache: the step arrays plus the small per-episode tables.
+
+    Access mode, chosen from `resident_budget_mb` (the share of the job's memory the data may
+    take): "mmap" when the step arrays fit in it (random rows read straight from the mapping; its
+    touched pages count in RSS but never exceed the arrays' size), "read" otherwise (rows fetched
+    with pread into small buffers, so RSS stays flat however large the dataset is; the kernel's
+    page cache still holds the hot data). Both give identical values.
+    """
+
+    def __init__(self, path: Path, resident_budget_mb: float = DEFAULT_RESIDENT_BUDGET_MB):
+        self.path = Path(path)
+        try:
+            self.manifest: dict[str, Any] = json.loads((self.path / "manifest.json").read_text(encoding="utf-8"))
+            self.spec = FeatureSpec.load(self.path / "spec.json")
+            self.episodes: list[dict[str, Any]] = json.loads((self.path / "episodes.json").read_text(encoding="utf-8"))
+            self.offsets = np.load(self.path / "offsets.npy", allow_pickle=False)
+            self.imagined = np.load(self.path / "imagined.npy", allow_pickle=False)
+        except (OSError, ValueError, KeyError, FeatureSpecError) as exc:
+            raise CacheError(f"{self.path}: not a readable dataset cache: {exc}") from None
+        if self.manifest.get("format") != CACHE_FORMAT:
+            raise CacheError(f"{self.path}: cache format {self.manifest.get('format')!r} is not {CACHE_FORMAT!r}")
+        self.n_steps = int(self.manifest["steps"])
+        self.n_episodes = int(self.manifest["episodes"])
+        if (self.offsets.shape != (self.n_episodes + 1,) or int(self.offsets[-1]) != self.n_steps
+                or self.imagined.shape != (self.n_episodes,) or len(self.episodes) != self.n_episodes):
+            raise CacheError(f"{self.path}: episode tables disagree with the manifest")
+        self._files: dict[str, Any] = {}
+        self.x = self._map("steps")
+        d = self.spec.obs_dim
+        if self.x.shape[1] != d + self.spec.act_dim:
+            raise CacheError(f"{self.path}: steps.bin has {self.x.shape[1]} columns, the spec needs "
+                             f"{d} + {self.spec.act_dim}")
+        self.obs = self.x[:, :d]  # [N, D_obs] view
+        self.act = self.x[:, d:]  # [N, D_act] view
+        self.t = self._map("t")
+        self.frames = self._map("frames") if "frames" in self.manifest["arrays"] else None
+        self.episode_ids = [e["episode_id"] for e in self.episodes]
+        self.durations = np.array([e["duration_s"] for e in self.episodes], dtype=np.float64)
+        obs_mean, obs_std, act_mean, act_std = self.spec.normalizer()
+        # normalised = x * inv_std - mean * inv_std: two in-place ops per batch
+        self.x_inv_std = (1.0 / np.concatenate([obs_std, act_std])).astype(np.float32)
+        self.x_shift = (np.concatenate([obs_mean, act_mean]) * self.x_inv_std).astype(np.float32)
+        self.starts = self.offsets[:-1]
+        self.ends = self.offsets[1:] - 1  # index of each episode's last step
+        budget = resident_budget_mb * (1 << 20)
+        step_bytes = self.x.nbytes + self.t.nbytes
+        self.mode = "mmap" if step_bytes <= budget else "read"
+        self.frames_mode = "mmap" if self.frames is not None and step_bytes + self.frames.nbytes <= budget else "read"
+        self._block_rows: dict[tuple[float, bool], int] = {}
+
+    def _map(self, name: str) -> np.ndarray:
+        desc = self.manifest["arrays"][name]
+        dtype = np.dtype(desc["dtype"])
+        shape = tuple(desc["shape"])
+        file = self.path / desc["file"]
+        expected = math.prod(shape) * dtype.itemsize
+        try:
+            size = file.stat().st_size
+        except OSError as exc:
+            raise CacheError(f"{file}: missing from the cache: {exc.strerror}") from None
+        if size != expected:
+            raise CacheError(f"{file}: {size} bytes, the manifest says {expected}; the cache is damaged")
+        f = open(file, "rb")
+        self._files[name] = f
+        if size == 0:
+            return np.zeros(shape, dtype=dtype)
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        return np.frombuffer(mm, dtype=dtype).reshape(shape)
+
+    @property
+    def fingerprint(self) -> str:
+        return self.manifest["fingerprint"]
+
+    def episode_of(self, idx: np.ndarray) -> np.ndarray:
+        return np.searchsorted(self.offsets, idx, side="right") - 1
+
+    # -- random access ----------------------------------------------------------------------
+    def t_block(self, first: np.ndarray, n: int, pad: float) -> np.ndarray:
+        """t of rows first[b] .. first[b]+n-1 for each b, as [B, n]; rows outside 0..N-1 read `pad`."""
+        if self.mode == "mmap":
+            idx = first[:, None] + np.arange(n)
+            out = self.t[np.clip(idx, 0, self.n_steps - 1)]
+            out[(idx < 0) | (idx >= self.n_steps)] = pad
+            return out
+        raw = _pread_blocks(self._files["t"].fileno(), 8, self.n_steps, first, n, np.float64(pad).tobytes())
+        return np.frombuffer(raw, dtype="<f8").reshape(len(first), n).copy()
+
+    def x_rows(self, j: np.ndarray, first: np.ndarray | None = None, n: int = 0) -> np.ndarray:
+        """Step rows (observation then action columns) at indices j [B, K] -> [B, K, D_obs + A], a copy.
+
+        `first`/`n`, when given, promise that row b's indices lie in first[b] .. first[b]+n-1, which
+        lets "read" mode fetch each anchor's rows with one pread.
+        """
+        if self.mode == "mmap":
+            return self.x[j]
+        fd = self._files["steps"].fileno()
+        if first is not None and n <= 256:
+            w = self.x.shape[1]
+            pad = bytes(self.x.strides[0])
+            block = np.frombuffer(_pread_blocks(fd, self.x.strides[0], self.n_steps, first, n, pad),
+                                  dtype=self.x.dtype).reshape(-1, w)
+            return block[j - first[:, None] + (np.arange(len(first)) * n)[:, None]]
+        return _pread_rows(fd, self.x, j)
+
+    def frame_rows(self, j: np.ndarray) -> np.ndarray:
+        if self.frames is None:
+            raise CacheError(f"{self.path}: the feature spec has no frame feature")
+        if self.frames_mode == "mmap":
+            return self.frames[j]
+        return _pread_rows(self._files["frames"].fileno(), self.frames, j)
+
+    def block_rows(self, span_s: float, forward: bool = False) -> int:
+        """Most rows any step needs to reach the latest step at or before t - span_s (backward) or
+        at or before t + span_s (forward), itself included; computed once per span from t."""
+        key = (float(span_s), forward)
+        if key not in self._block_rows:
+            worst = 1
+            fd = self._files["t"].fileno()
+            for s, e in zip(self.starts.tolist(), (self.ends + 1).tolist()):
+                # pread, not the mapping: this pass must not leave the whole of t resident
+                t = np.frombuffer(os.pread(fd, (e - s) * 8, s * 8), dtype="<f8")
+                i = np.arange(len(t))
+                if forward:
+                    j = np.searchsorted(t, t + span_s + WINDOW_EPS_S, side="right") - 1
+                    worst = max(worst, int((j - i).max(initial=0)) + 1)
+                else:
+                    j = np.searchsorted(t, t - span_s + WINDOW_EPS_S, side="right") - 1
+                    worst = max(worst, int((i - j + (j >= 0)).max(initial=1)))
+            self._block_rows[key] = worst
+        return self._block_rows[key]
+
+
+# A step stamped within a microsecond after a grid time counts as "at" it: grid times are computed
+# in float seconds and must not miss a step that lands on them exactly.
+WINDOW_EPS_S = 1e-6
+
+
+def _pread_blocks(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, pad_row: bytes) -> bytes:
+    parts = []
+    pread = os.pread
+    for f in first.tolist():
+        lo, hi = max(f, 0), min(f + n, n_rows)
+        data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
+        if lo > f or f + n > hi:
+            data = pad_row * (min(lo, f + n) - f) + data + pad_row * (f + n - max(hi, f))
+        parts.append(data)
+    return b"".join(parts)
+
+
+def _pread_rows(fd: int, arr: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """arr[j] for the file behind arr, one pread per row."""
+    row_bytes = arr.strides[0]
+    pread = os.pread
+    raw = b"".join([pread(fd, row_bytes, r * row_bytes) for r in j.ravel().tolist()])
+    return np.frombuffer(raw, dtype=arr.dtype).reshape(j.shape + arr.shape[1:]).copy()
+
+
+def open_cache(path: str | Path, resident_budget_mb: float = DEFAULT_RESIDENT_BUDGET_MB) -> DatasetCache:
+    return DatasetCache(Path(path), resident_budget_mb)

@@ -1,0 +1,212 @@
+"""Inferring a feature spec from the data: which numeric fields (nearly) every episode has.
+
+Inference flattens the numeric leaves of `observation` and `action` (numbers, bools as 0/1, flat
+lists of numbers) into dotted paths and keeps a field only when (nearly) every episode has it with
+the same length; clocks, ids and media are never fields. It prefers an inline `image_rgb` frame;
+without one it picks a .npy frame reference that (nearly) every episode has and whose first file
+loads as a [64, 64, 3] frame. What it leaves out, and why, goes into the spec's notes.
+"""
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+from hope_models.data.features import (
+    DEFAULT_COVERAGE, FRAME_FIELD, FRAME_SHAPE, MAX_VECTOR, FeatureField, FeatureGroup, FeatureSpec,
+    FeatureSpecError, FrameFeature, is_number,
+)
+from hope_models.data.frames import BlobFrameError, frame_blob_refs, load_frame_blob, resolve_blob_uri
+from hope_models.data.spec_request import PartialGroup, SpecRequest
+
+_CAMEL = re.compile(r"([a-z0-9])([A-Z])")
+
+
+def _is_clock_or_id(key: str) -> bool:
+    """Clocks and ids are numbers but carry no signal a policy should see (and grow without bound)."""
+    k = _CAMEL.sub(r"\1_\2", key).lower()
+    return (k.startswith("timestamp") or k.endswith("_timestamp") or k.startswith("wall_time")
+            or k.endswith(("_nanos", "_micros", "_millis", "_id", "_ids")) or k in {"step_index", "id", "seq"})
+
+
+def numeric_leaves(obj: Any, prefix: str, out: dict[str, int] | None = None) -> dict[str, int]:
+    """Dotted path -> length of every numeric leaf (scalars have length 1, empty lists length 0).
+
+    Skips clocks and ids, blob references (objects with a `uri`) and the media block; the frame
+    field is reported like any list so the caller can pick it out as a frame feature.
+    """
+    out = {} if out is None else out
+    if not isinstance(obj, dict):
+        return out
+    if "uri" in obj:  # a blob reference: width/height/sample rate describe a file, not the robot
+        return out
+    for key, value in obj.items():
+        if not isinstance(key, str) or _is_clock_or_id(key) or key == "media":
+            continue
+        path = f"{prefix}.{key}"
+        if isinstance(value, dict):
+            numeric_leaves(value, path, out)
+        elif is_number(value):
+            out[path] = 1
+        elif isinstance(value, list) and all(is_number(v) for v in value):
+            out[path] = len(value)
+    return out
+
+
+def step_signature(observation: dict, action: dict) -> dict[str, int]:
+    sig = numeric_leaves(observation, "observation")
+    numeric_leaves(action, "action", sig)
+    return sig
+
+
+@dataclass
+class EpisodeSignature:
+    """Numeric leaves an episode has with the same length at its first and last step."""
+
+    episode_id: str
+    leaves: dict[str, int]
+    # .npy frame references present at the first and last step -> "ok" when the first step's file
+    # loads as a FRAME_SHAPE frame, else why not
+    frame_blobs: dict[str, str] = field(default_factory=dict)
+
+
+def episode_signature(episode_id: str, steps: list, blob_root: str | None = None,
+                      check_frame_blobs: bool = True) -> EpisodeSignature:
+    # First and last step only: the cache build then checks every step of the selected fields
+    # and excludes (with the step named) an episode where one goes missing or changes length.
+    first = step_signature(steps[0].observation, steps[0].action)
+    last = step_signature(steps[-1].observation, steps[-1].action)
+    sig = EpisodeSignature(episode_id, {p: n for p, n in first.items() if last.get(p) == n})
+    if check_frame_blobs:
+        refs = frame_blob_refs(steps[0].observation, shape=FRAME_SHAPE)
+        later = frame_blob_refs(steps[-1].observation, shape=FRAME_SHAPE)
+        for path, uri in refs.items():
+            if path not in later:
+                continue
+            try:
+                load_frame_blob(resolve_blob_uri(uri, blob_root), FRAME_SHAPE, uri)
+                sig.frame_blobs[path] = "ok"
+            except BlobFrameError as exc:
+                sig.frame_blobs[path] = str(exc)
+    return sig
+
+
+def _select(counts: dict[str, Counter], n_episodes: int, paths: list[str], coverage: float,
+            notes: list[str]) -> list[FeatureField]:
+    need = max(1, math.ceil(coverage * n_episodes))
+    chosen = []
+    for path in paths:
+        size, n = counts[path].most_common(1)[0]
+        if n < need:
+            notes.append(f"{path}: left out, present with one length in {n} of {n_episodes} episodes "
+                         f"({_sizes(counts[path])})")
+        elif size == 0:
+            notes.append(f"{path}: left out, always empty")
+        elif size > MAX_VECTOR:
+            notes.append(f"{path}: left out, {size} values is media, not state")
+        else:
+            chosen.append(FeatureField(path, size))
+    return chosen
+
+
+def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None = None,
+               coverage: float = DEFAULT_COVERAGE) -> FeatureSpec:
+    """Choose fields and sizes from episode signatures; keep what the request fixes."""
+    request = request or SpecRequest()
+    n = len(signatures)
+    if n == 0:
+        raise FeatureSpecError("no usable episodes to infer a feature spec from")
+    counts: dict[str, Counter] = {}
+    for sig in signatures:
+        for path, size in sig.leaves.items():
+            counts.setdefault(path, Counter())[size] += 1
+    notes: list[str] = []
+    frame_paths = [p for p in counts if p.split(".")[-1] == FRAME_FIELD and p.startswith("observation.")]
+    obs_paths = sorted(p for p in counts if p.startswith("observation.") and p not in frame_paths)
+
+    def resolve(partial: PartialGroup | None, root: str, candidates: list[str]) -> FeatureGroup:
+        if partial is None:
+            fields = _select(counts, n, candidates, coverage, notes)
+            if not fields:
+                best = sorted(candidates, key=lambda p: -counts[p].most_common(1)[0][1])[:5]
+                shown = "; ".join(f"{p} ({_sizes(counts[p])})" for p in best) or "none"
+                raise FeatureSpecError(
+                    f"no numeric {root} field is present with one length in at least {coverage:.0%} of the "
+                    f"{n} episodes (give the fields in a spec file with --spec); best candidates: {shown}")
+            return FeatureGroup(fields)
+        fields = []
+        for f in partial.fields:
+            size = f.size
+            if size is None:
+                if f.path not in counts:
+                    raise FeatureSpecError(
+                        f"{f.path}: named in the spec override but no episode has it as a numeric field")
+                size = counts[f.path].most_common(1)[0][0]
+            fields.append(FeatureField(f.path, size))
+        return FeatureGroup(fields, partial.mean, partial.std)
+
+    observation = resolve(request.observation, "observation", obs_paths)
+    if request.action is None:
+        # The documented action is the command vector; named scalars and Kotlin's tagged objects
+        # (linear_mps.x, ...) are the fallback when a dataset has no usable command.
+        command = [p for p in counts if p == "action.command"]
+        chosen = _select(counts, n, command, coverage, notes) if command else []
+        if chosen:
+            action = FeatureGroup(chosen)
+        else:
+            others = sorted(p for p in counts if p.startswith("action.") and p != "action.command")
+            action = resolve(None, "action", others)
+    else:
+        action = resolve(request.action, "action", [])
+
+    if request.frame_given:
+        frame = request.frame
+    else:
+        frame = None
+        need = max(1, math.ceil(coverage * n))
+        for p in frame_paths:
+            size, c = counts[p].most_common(1)[0]
+            if size == math.prod(FRAME_SHAPE) and c >= need:
+                frame = FrameFeature(p, FRAME_SHAPE)
+            else:
+                notes.append(f"{p}: no frame feature ({size} values in {c} of {n} episodes; needs "
+                             f"{math.prod(FRAME_SHAPE)} in {need})")
+        blob = _infer_blob_frame(signatures, need, notes, inline=frame)
+        frame = frame or blob
+    return FeatureSpec(observation, action, frame, request.std_floor, notes)
+
+
+def _infer_blob_frame(signatures: list[EpisodeSignature], need: int, notes: list[str],
+                      inline: FrameFeature | None) -> FrameFeature | None:
+    """The .npy frame reference usable in at least `need` episodes (an rgb-named one first)."""
+    n = len(signatures)
+    seen: Counter = Counter()
+    ok: Counter = Counter()
+    why: dict[str, str] = {}
+    for sig in signatures:
+        for path, status in sig.frame_blobs.items():
+            seen[path] += 1
+            if status == "ok":
+                ok[path] += 1
+            else:
+                why.setdefault(path, f"{sig.episode_id}: {status}")
+    usable = sorted((p for p in seen if ok[p] >= need),
+                    key=lambda p: ("rgb" not in p.rsplit(".", 1)[-1].lower(), -ok[p], p))
+    chosen = None if inline is not None or not usable else usable[0]
+    for path in sorted(seen):
+        if path == chosen:
+            continue
+        if path in usable:
+            other = inline.path if inline is not None else chosen
+            notes.append(f"{path}: frame blobs not used, {other} is the frame feature")
+        else:
+            example = f"; e.g. {why[path]}" if path in why else ""
+            notes.append(f"{path}: no frame feature (a loadable {list(FRAME_SHAPE)} .npy frame in {ok[path]} of "
+                         f"{n} episodes; needs {need}{example})")
+    return None if chosen is None else FrameFeature(chosen, FRAME_SHAPE, "blob")
+
+
+def _sizes(counter: Counter) -> str:
+    return ", ".join(f"{size} values in {c} episodes" for size, c in counter.most_common())
