@@ -34,13 +34,12 @@ from sqlalchemy import exists, func, select
 
 from registry import runs
 from registry.models import Model, Run, utcnow
+from hope_models.child_command import trainer_argv
 from hope_models.cli.json_result import last_json_object
 from hope_models.settings import GATE_ENV
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "run_trainer.py"
 LOG_FILE = "promote.log"
 STOP_TIMEOUT_S = 10.0
 
@@ -123,7 +122,7 @@ class AutoPromoter:
         self._attempted.add(run_id)
         self.logs_dir.mkdir(parents=True, exist_ok=True)
         out_path = self.logs_dir / f".promote-{run_id}.json"
-        cmd = [self.python, str(SCRIPT), "promote", run_id, "--auto", "--json", *self.extra_args]
+        cmd = trainer_argv("promote", run_id, "--auto", "--json", *self.extra_args, python=self.python)
         # The child loads its settings from HOPE_HOME like any command; the gate's own settings are
         # passed explicitly so it gates with exactly what this daemon was configured with.
         env = {**os.environ, "HOPE_HOME": str(self.settings.home),
@@ -131,7 +130,7 @@ class AutoPromoter:
         self._log_line(f"run {run_id}: gating ({' '.join(cmd[1:])})")
         with open(out_path, "wb") as out, open(self.logs_dir / LOG_FILE, "ab") as err:
             # A session of its own: Ctrl-C on `serve` reaches the daemon, which stops the child in close().
-            self._proc = subprocess.Popen(cmd, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=str(REPO),
+            self._proc = subprocess.Popen(cmd, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
                                           env=env, start_new_session=True)
         self._run_id, self._out_path = run_id, out_path
         self._event(run_id, "info", "auto-promote: gating this run's checkpoint against the promoted model "

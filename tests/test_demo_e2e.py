@@ -1,4 +1,4 @@
-"""The end-to-end demo (daemon/cli/demo.py), short: a real subprocess on its own HOPE_HOME records a
+"""The end-to-end demo (hope_trainer/commands/demo.py), short: a real subprocess on its own HOPE_HOME records a
 few sim demos, runs the chain vqvae,fast_loop,mid_loop through the daemon and the worker, gates and
 promotes, serves through BrainService, infers over HTTP, evaluates the reflex and exits (--exit).
 
@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _demo_argv() -> list[str]:
-    """`run_trainer.py demo`, the daemon's demo (daemon/cli/demo.py)."""
+    """`run_trainer.py demo` (hope_trainer/commands/demo.py)."""
     return [sys.executable, str(REPO / "run_trainer.py"), "demo"]
 
 
@@ -128,7 +128,7 @@ def _summary(mean_return=950.0, **kw):
 
 
 def test_verdict_passes_a_good_summary_and_names_each_shortfall():
-    from daemon.demo_report import format_summary, verdict
+    from hope_trainer.demo.report import format_summary, verdict
 
     assert verdict(_summary(), 900) == []
     assert verdict(_summary(mean_return=899.9), 900) == [

@@ -1,8 +1,8 @@
-"""`run_trainer.py` commands the webapp runs as child processes, because they need torch.
+"""`hope-trainer` commands the webapp runs as child processes, because they need torch.
 
 The webapp never imports torch (it shares a process with the daemon under `serve`, and the idle
 budget is 400 MB; torch alone is ~250 MB). The promotion gate (`promote`, validation loss) and the
-sim reflex (`eval-reflex`) therefore run as `python run_trainer.py ... --json` children: the
+sim reflex (`eval-reflex`) therefore run as `python -m hope_trainer ... --json` children: the
 same code path as the shell, their memory goes back to the OS when they exit, and their last
 stdout line that is a JSON object is their answer.
 
@@ -16,24 +16,17 @@ import logging
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable
 
+from hope_models.child_command import trainer_argv
 from hope_models.cli.json_result import last_json_object
 
 log = logging.getLogger(__name__)
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RUN_TRAINER = REPO_ROOT / "run_trainer.py"
 STDERR_TAIL = 2000  # characters of a failed child's stderr kept for the error message
-
-
-def trainer_argv(*args: str) -> list[str]:
-    return [sys.executable, str(RUN_TRAINER), *args]
 
 
 def child_env(settings: Any) -> dict[str, str]:
@@ -78,7 +71,7 @@ class ChildProcesses:
 
     def run(self, args: list[str], *, timeout_s: float,
             on_line: Callable[[str], bool] | None = None) -> ChildResult:
-        """Run `run_trainer.py <args>` to the end (blocking the calling thread). With `on_line`,
+        """Run `hope-trainer <args>` to the end (blocking the calling thread). With `on_line`,
         stdout is read line by line while the child runs and each line is passed to it; a line it
         returns True for is consumed (not kept for `output`), e.g. eval-reflex's frame lines."""
         return self._run_streaming(args, timeout_s, on_line or (lambda _line: False))
@@ -90,8 +83,7 @@ class ChildProcesses:
             if self._closed:
                 return ChildResult(argv, None, None, "the webapp is shutting down", 0.0)
             proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True, bufsize=1, env=child_env(self.settings), cwd=str(REPO_ROOT),
-                                    start_new_session=True)
+                                    text=True, bufsize=1, env=child_env(self.settings), start_new_session=True)
             self._live.add(proc)
         log.info("started %s (pid %d)", " ".join(args), proc.pid)
         kept: list[str] = []
@@ -163,4 +155,4 @@ class ChildProcesses:
                 self._kill(proc)
 
 
-__all__ = ["ChildProcesses", "ChildResult", "REPO_ROOT", "child_env", "last_json_object", "trainer_argv"]
+__all__ = ["ChildProcesses", "ChildResult", "child_env", "last_json_object", "trainer_argv"]

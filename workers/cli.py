@@ -21,6 +21,8 @@ import re
 import sys
 from collections.abc import Mapping
 
+from hope_models.child_command import module_argv
+
 QUEUE_RE = re.compile(r"[a-z0-9_-]+")
 LOGLEVELS = ("debug", "info", "warning", "error", "critical")
 
@@ -33,11 +35,11 @@ def worker_command(settings=None, queue: str = "pi", *, hostname: str | None = N
         raise ValueError(f"queue {queue!r} must match [a-z0-9_-]+ (e.g. pi, gpu)")
     if loglevel.lower() not in LOGLEVELS:
         raise ValueError(f"loglevel {loglevel!r} is not one of {', '.join(LOGLEVELS)}")
-    return [python or sys.executable, "-m", "celery", "-A", "workers.celery:app", "worker",
-            "--pool=prefork", "--concurrency=1", "--max-tasks-per-child=1", "--prefetch-multiplier=1",
-            "-Q", queue, "-n", hostname or f"{queue}@%h",
-            "--without-gossip", "--without-mingle", "--without-heartbeat",
-            f"--loglevel={loglevel.lower()}"]
+    return module_argv("celery", "-A", "workers.celery:app", "worker",
+                       "--pool=prefork", "--concurrency=1", "--max-tasks-per-child=1", "--prefetch-multiplier=1",
+                       "-Q", queue, "-n", hostname or f"{queue}@%h",
+                       "--without-gossip", "--without-mingle", "--without-heartbeat",
+                       f"--loglevel={loglevel.lower()}", python=python)
 
 
 def worker_env(settings, base: Mapping[str, str] | None = None) -> dict[str, str]:

@@ -2,7 +2,7 @@
 
     run_trainer.py train --sequential vqvae,fast_loop,mid_loop --data DS --run-dir R --steps N
 
-Each component runs as `run_trainer.py train --component X ... --run-dir R/X --json` in a child
+Each component runs as `python -m hope_trainer train --component X ... --run-dir R/X --json` in a child
 process, so its memory goes back to the OS when it exits and the parent stays small (it never
 imports torch: see tests/test_train_sequential.py). fast_loop and mid_loop get `--vqvae` = the
 newest complete checkpoint of R/vqvae (trained earlier in the sequence, or before), unless
@@ -25,11 +25,11 @@ from typing import Any
 
 import psutil
 
+from hope_models.child_command import trainer_argv
 from hope_models.cli.json_result import last_json_object
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 POLL_S = 0.2
 # CLI options passed through to every child: (attribute, flag)
 PASS_THROUGH = (("data", "--data"), ("steps", "--steps"), ("seed", "--seed"), ("batch_size", "--batch-size"),
@@ -64,8 +64,7 @@ def parse_sequence(text: str) -> list[str]:
 
 
 def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae: Path | None) -> list[str]:
-    cmd = [sys.executable, str(REPO_ROOT / "run_trainer.py"), "train", "--component", component,
-           "--run-dir", str(run_dir), "--json"]
+    cmd = trainer_argv("train", "--component", component, "--run-dir", str(run_dir), "--json")
     for attr, flag in PASS_THROUGH:
         value = getattr(args, attr, None)
         if value is not None:
@@ -94,7 +93,7 @@ def run_child(cmd: list[str]) -> dict[str, Any]:
     and exits paused, so the parent ignores SIGINT meanwhile (forwarding it would be a second
     Ctrl-C, which aborts); a SIGTERM to the parent (a service stop) is forwarded to the child."""
     started = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
 
     def forward_term(signum, frame):
         if proc.poll() is None:

@@ -1,6 +1,6 @@
-"""`run_trainer.py serve`: the all-in-one mode (first run, a laptop, a bench Pi). No Redis needed.
+"""`hope-trainer serve`: the all-in-one mode (first run, a laptop, a bench Pi). No Redis needed.
 
-    run_trainer.py serve [--host 127.0.0.1] [--port 8765] [--no-worker] [--queue pi]
+    hope-trainer serve [--host 127.0.0.1] [--port 8765] [--no-worker] [--queue pi]
 
 One process runs the webapp (REST + Socket.IO) and the daemon (a background thread pushing events
 straight into this process's Socket.IO), and supervises the Celery worker as a child process
@@ -15,7 +15,7 @@ The next `serve` finds the runs as they were left and resumes the queued one fro
 A second Ctrl-C skips the waiting. Exit 0 after a clean stop, 2 when it cannot start (port taken,
 unreadable token), 1 when the daemon loop died.
 BrainService (the promoted models, hot-reloaded from $HOPE_HOME/promoted/) runs in this process
-behind POST /api/brain/infer; promoting and the sim reflex run as `run_trainer.py` children.
+behind POST /api/brain/infer; promoting and the sim reflex run as `hope-trainer` children.
 Nothing in this process imports torch: only the worker's job child and those children do.
 """
 from __future__ import annotations
@@ -33,7 +33,6 @@ from typing import Any
 
 log = logging.getLogger("hope.serve")
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 SHUTDOWN_WAIT_S = 30.0  # for the running job to checkpoint and requeue itself
 WORKER_STOP_S = 20.0  # for the worker to exit after SIGTERM, before SIGKILL
 BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0, 60.0)  # worker restarts; reset after it stayed up STABLE_S
@@ -115,7 +114,7 @@ class WorkerSupervisor:
             argv = [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *self.cmd]
             # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order
             return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                                    env=self.env, cwd=str(REPO_ROOT), start_new_session=True)
+                                    env=self.env, start_new_session=True)
 
     def _loop(self) -> None:
         failures = 0

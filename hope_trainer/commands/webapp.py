@@ -1,6 +1,6 @@
-"""`run_trainer.py webapp`: the Robot Editor API and Socket.IO server on its own (hope-webapp.service).
+"""`hope-trainer webapp`: the Robot Editor API and Socket.IO server on its own (hope-webapp.service).
 
-    run_trainer.py webapp [--host 127.0.0.1] [--port 8765]
+    hope-trainer webapp [--host 127.0.0.1] [--port 8765]
 
 Production runs the daemon and the worker as their own services; this process serves HTTP and
 relays events. With HOPE_REDIS_URL set (production), Socket.IO uses Redis as its message queue,
@@ -22,7 +22,7 @@ import signal
 import sys
 import threading
 
-from daemon.cli.serve import add_listen_arguments, brain_summary, listen_settings
+from hope_trainer.commands.serve import add_listen_arguments, brain_summary, listen_settings
 
 log = logging.getLogger("hope.webapp")
 

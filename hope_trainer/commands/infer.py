@@ -1,9 +1,9 @@
-"""`run_trainer.py infer`: one tick of the promoted model, from the shell.
+"""`hope-trainer infer`: one tick of the promoted model, from the shell.
 
-    run_trainer.py infer --observation '[0.1, -0.2, 0.3, 0.05, -0.4, 0.2]' [--component fast_loop]
+    hope-trainer infer --observation '[0.1, -0.2, 0.3, 0.05, -0.4, 0.2]' [--component fast_loop]
                          [--session S] [--reset] [--json] [--local] [--timeout 5]
 
-By default it asks the running service (`run_trainer.py serve` or `webapp`): POST /api/brain/infer
+By default it asks the running service (`hope-trainer serve` or `webapp`): POST /api/brain/infer
 on the configured host/port with the token from $HOPE_HOME/token, so the answer comes from the
 BrainService the robot uses (and a --session there keeps its recurrent state between calls).
 When nothing answers it says so and suggests `serve`, or --local, which loads BrainService in this

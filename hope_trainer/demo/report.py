@@ -1,4 +1,4 @@
-"""The end-to-end demo's figures and its summary table (`run_trainer.py demo`, daemon/cli/demo.py).
+"""The end-to-end demo's figures and its summary table (`hope-trainer demo`, hope_trainer/demo/session.py).
 
 Everything here reads what the services already recorded, so the demo prints what a user could
 check by hand: the registry (runs, their events, the models table) and each run's

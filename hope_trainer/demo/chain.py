@@ -1,0 +1,104 @@
+"""Step 3 of the demo: queue the chain vqvae, fast_loop, mid_loop (or pick up the one an interrupted
+demo left) and follow it in the terminal until every member ended.
+
+`ChainSteps` is a part of `Demo` (hope_trainer/demo/session.py): it reads the session's `serve`,
+`args`, `settings`, `timings` and `inference`, and waits with its `sleep` (which Ctrl-C ends).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
+
+
+class ChainSteps:
+    def queue_chain(self, data: Path) -> list[str]:
+        from registry.sequences import create_sequence
+        from registry.run_request import build_request
+
+        a = self.args
+        req = build_request(component=COMPONENTS[0], data=str(data), steps=a.steps, queue=a.queue,
+                            overrides={"seed": a.seed})
+        left = self._unfinished_chain(req.config())
+        if left:
+            self.serve.daemon.wake()
+            say("3. training: resuming the chain an interrupted demo left (its runs resume from their "
+                "checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left)))
+            return left
+        with self.serve.registry.session() as s:
+            members = create_sequence(s, COMPONENTS, req.config(), total_steps=req.steps,
+                                      runs_dir=self.settings.runs_dir, queue=req.queue)
+            ids = [r.id for r in members]
+            seq = members[0].sequence_id
+        self.serve.daemon.wake()
+        say(f"3. training: queued the chain {','.join(COMPONENTS)} ({seq}), {a.steps} steps each: "
+            + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, ids)))
+        return ids
+
+    def _unfinished_chain(self, config: dict[str, Any]) -> list[str] | None:
+        """The run ids of a demo chain with this same config that an interrupted demo left queued
+        (Ctrl-C hands the running job back to the queue): finishing it beats queueing a second
+        chain behind it."""
+        from sqlalchemy import select
+
+        from registry import runs
+        from registry.models import Run
+
+        with self.serve.registry.session(readonly=True) as s:
+            seqs = s.scalars(select(Run.sequence_id).where(Run.sequence_id.is_not(None),
+                                                           Run.state.in_(("queued", "starting", "running", "interrupted")),
+                                                           Run.queue == self.args.queue).distinct()).all()
+            for seq in seqs:
+                members = runs.sequence_runs(s, seq)
+                if [m.component for m in members] != list(COMPONENTS):
+                    continue
+                if any(m.state in ("failed", "cancelled", "paused") for m in members):
+                    continue
+                base = {k: v for k, v in members[0].config.items()}
+                if base == config and all(m.total_steps == self.args.steps for m in members):
+                    return [m.id for m in members]
+        return None
+
+    def _runs(self, ids: list[str]) -> list[dict[str, Any]]:
+        from registry import runs
+
+        with self.serve.registry.session(readonly=True) as s:
+            return [runs.get_run(s, i).to_json_obj() for i in ids]
+
+    def follow_chain(self, ids: list[str]) -> list[dict[str, Any]]:
+        """Progress until every member ended, closing the loop on the fast_loop on the way: as soon
+        as it is promoted and served, one inference goes through the API (that is the moment a
+        robot would get the new reflex; later, the mid_loop's training would count as closure)."""
+        from daemon.cli.watch import Display, end_line, progress_line
+
+        tty = sys.stdout.isatty()
+        display = Display()
+        ended: set[str] = set()
+        last_plain = 0.0
+        fast_id = ids[COMPONENTS.index("fast_loop")]
+        t0 = time.monotonic()
+        while True:
+            objs = self._runs(ids)
+            for obj in objs:
+                if obj["state"] in ("completed", "failed", "cancelled") and obj["id"] not in ended:
+                    ended.add(obj["id"])
+                    display.close()
+                    say("   " + end_line(obj).replace("\n", "\n   "))
+            active = [o for o in objs if o["id"] not in ended]
+            if not active:
+                display.close()
+                break
+            current = next((o for o in active if o["state"] == "running"), active[0])
+            if tty:
+                display.show(current)
+            elif time.monotonic() - last_plain >= PLAIN_EVERY_S:
+                last_plain = time.monotonic()
+                say("   " + progress_line(current))
+            if self.inference is None and fast_id in ended:
+                self._try_close_loop(fast_id, display)
+            self.sleep(0.5)
+        self.timings["training"] = time.monotonic() - t0
+        return objs

@@ -1,0 +1,129 @@
+"""Step 4 of the demo: the loop closure. Auto-promotion gates each completed run; as soon as
+BrainService serves the new fast_loop, one inference goes through the HTTP API with the token
+(that first answer closes the loop, and its run's loop-closure time is recorded).
+
+`ClosureSteps` is a part of `Demo` (hope_trainer/demo/session.py): it reads the session's `serve`,
+`settings`, `url`, `token`, `first_observation` and sets `inference`, and waits with its `sleep`.
+"""
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+from hope_trainer.demo.shared import CLOSURE_WAIT_S, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
+
+
+class ClosureSteps:
+    def _gating_idle(self) -> bool:
+        """Auto-promotion has nothing running and nothing left to gate: waiting longer is useless."""
+        promoter = getattr(self.serve.daemon, "autopromoter", None)
+        return promoter is not None and not promoter.busy and promoter.next_run() is None
+
+    def _gate(self, run_id: str) -> dict[str, Any] | None:
+        from hope_trainer.demo.report import gate_outcome
+
+        with self.serve.registry.session(readonly=True) as s:
+            return gate_outcome(s, run_id)
+
+    def _try_close_loop(self, fast_id: str, display: Any = None) -> bool:
+        """One look: if the fast_loop run was promoted and BrainService serves it, infer once."""
+        gate = self._gate(fast_id)
+        if gate is None or gate["state"] != "promoted":
+            return False
+        status = (self.serve.brain.status().get("fast_loop") or {})
+        if status.get("version") != gate["version"]:
+            return False
+        if display is not None:
+            display.close()
+        say(f"4. promoted and served: fast_loop {gate['version']}")
+        self.inference = self.infer_over_http()
+        inf = self.inference
+        if inf.get("error"):
+            say(f"   inference failed: {inf['error']}")
+        else:
+            say(f"   POST /api/brain/infer -> action [{', '.join(f'{v:+.3f}' for v in inf['action'])}] "
+                f"(expert [{', '.join(f'{v:+.3f}' for v in inf['expert_action'])}]), {inf['model_version']}, "
+                f"{inf['latency_ms']:.2f} ms")
+        return True
+
+    def close_loop(self, fast_id: str) -> dict[str, Any] | None:
+        """After the chain: wait for the fast_loop's gate and BrainService (when not done already)."""
+        deadline = time.monotonic() + GATE_WAIT_S
+        promoted_at: float | None = None
+        while self.inference is None:
+            gate = self._gate(fast_id)
+            if gate is not None and gate["state"] != "promoted":
+                return gate  # refused or failed: the summary says why
+            now = time.monotonic()
+            if gate is None and (now > deadline or self._gating_idle()):
+                self.sleep(1.0)  # the daemon's next tick may just not have spawned the child yet
+                if self._gate(fast_id) is None and self._gating_idle():
+                    return None  # nothing will gate it (the summary says "not gated")
+            if gate is None and now > deadline:
+                raise DemoError(f"the fast_loop run {fast_id} was not gated within {GATE_WAIT_S:.0f} s "
+                                f"(see {Path(self.settings.home) / 'logs' / 'promote.log'})")
+            if gate is not None:
+                promoted_at = promoted_at or now
+                if now - promoted_at > SERVE_WAIT_S:
+                    status = self.serve.brain.status().get("fast_loop") or {}
+                    raise DemoError(f"BrainService does not serve {gate['version']} {SERVE_WAIT_S:.0f} s after its "
+                                    f"promotion (serving {status.get('version')}; last error: "
+                                    f"{status.get('last_error')})")
+            self._try_close_loop(fast_id)
+            self.sleep(0.3)
+        return self._gate(fast_id)
+
+    def _observation(self, data: Path) -> tuple[list[float], list[float]]:
+        """The first step of the first demonstration: the observation vector in the spec's order
+        (joint positions, joint velocities, target offset) and the expert's command there."""
+        episode = sorted(p for p in data.iterdir() if p.is_dir())[0]
+        with open(episode / "steps" / "000000.jsonl", encoding="utf-8") as f:
+            step = json.loads(f.readline())
+        o = step["observation"]
+        obs = [*o["robot_state"]["joint_positions"], *o["robot_state"]["joint_velocities"], *o["target_offset"]]
+        return [float(v) for v in obs], [float(v) for v in step["action"]["command"]]
+
+    def infer_over_http(self) -> dict[str, Any]:
+        obs, expert = self.first_observation
+        body = json.dumps({"component": "fast_loop", "observation": obs, "session": "demo", "reset": True}).encode()
+        req = urllib.request.Request(self.url.rstrip("/") + "/api/brain/infer", data=body, method="POST",
+                                     headers={"Content-Type": "application/json",
+                                              "Authorization": f"Bearer {self.token}"})
+        try:
+            with urllib.request.urlopen(req, timeout=10) as resp:
+                answer = json.loads(resp.read())
+        except urllib.error.HTTPError as exc:
+            return {"error": f"HTTP {exc.code}: {exc.read().decode('utf-8', 'replace')[:300]}"}
+        except (urllib.error.URLError, OSError, ValueError) as exc:
+            return {"error": str(exc)}
+        return {**answer, "observation": obs, "expert_action": expert}
+
+    def loop_closure(self, fast_id: str) -> float | None:
+        from registry import runs
+
+        deadline = time.monotonic() + CLOSURE_WAIT_S
+        while True:
+            with self.serve.registry.session(readonly=True) as s:
+                value = runs.get_run(s, fast_id).loop_closure_s
+            if value is not None or time.monotonic() > deadline:
+                return value
+            self.sleep(0.2)
+
+    def wait_gates(self, ids: list[str]) -> dict[str, dict[str, Any] | None]:
+        """Every completed member's gate outcome (the mid_loop's gate runs after the chain ends)."""
+        objs = {o["id"]: o for o in self._runs(ids)}
+        deadline = time.monotonic() + GATE_WAIT_S
+        while True:
+            gates = {i: self._gate(i) for i in ids}
+            pending = [i for i in ids if objs[i]["state"] == "completed" and gates[i] is None]
+            if not pending or time.monotonic() > deadline:
+                return gates
+            if self._gating_idle():
+                self.sleep(1.0)  # one more tick: a run that just completed is picked up then
+                if self._gating_idle():
+                    return {i: self._gate(i) for i in ids}
+            self.sleep(0.5)
