@@ -55,5 +55,14 @@ demo: setup
 bench: setup
 	$(PY) bench/data_pipeline.py
 
+# The wheel, into dist/: the `hope-trainer` console script, the Robot Editor's static files (with the
+# npm-built vendor/ JS, hence $(ASSETS)), its templates and the Alembic migrations. Install it with
+# `pip install dist/hope_seed_trainer-*.whl`. build/ goes first: setuptools would otherwise carry a
+# module that moved or was deleted over from an earlier build.
+.PHONY: dist
+dist: $(STAMP) $(ASSETS)
+	rm -rf build
+	$(PY) -m pip wheel --quiet --no-deps --no-build-isolation -w dist .
+
 clean:
 	rm -rf $(VENV) *.egg-info .pytest_cache node_modules webapp/static/vendor test-artifacts
