@@ -10,7 +10,7 @@ import pytest
 
 from hope_models.rlds.ingest import MANIFEST, IngestError, ingest_paths
 from hope_models.rlds.read_episode_dir import read_episode_dir
-from hope_models.rlds.validate import validate_paths
+from hope_models.rlds.validation_report import validate_paths
 from hope_models.rlds.write_episode_dir import prepare_episode, safe_episode_id, write_episode_dir
 
 from test_rlds_validate import clean_episode

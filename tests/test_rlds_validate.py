@@ -11,8 +11,8 @@ from typing import Any, Callable
 import pytest
 
 from hope_models.rlds.episode import ERROR, WARNING, Episode, Problem, SourceReport, Step
-from hope_models.rlds.validate import (derive_action_source, episode_report, report_entries,
-                                       summarize, validate_episode)
+from hope_models.rlds.validate import derive_action_source, validate_episode
+from hope_models.rlds.validation_report import episode_report, report_entries, summarize
 
 PERIOD_NS = 100_000_000  # 10 Hz
 DELETE = object()  # a mutation value meaning "remove this key"

@@ -15,8 +15,8 @@ import pytest
 os.environ.setdefault("MUJOCO_GL", "disabled")
 
 from hope_models.rlds.discover import read_path  # noqa: E402
-from hope_models.rlds.validate import episode_report  # noqa: E402
-from hope_models.sim import imagine  # noqa: E402
+from hope_models.rlds.validation_report import episode_report  # noqa: E402
+from hope_models.sim import imagine, seed_ranges  # noqa: E402
 from hope_models.sim.expert import ExpertController  # noqa: E402
 from hope_models.sim.reacher import make_env, observation_vector  # noqa: E402
 from hope_models.sim.recorder import DEFAULT_SEED_BASE as DEMO_BASE  # noqa: E402
@@ -83,7 +83,7 @@ def test_demos_and_imagined_share_one_feature_spec(tmp_path, imagined):
 
 
 def test_seed_ranges_are_disjoint():
-    from hope_models.sim.imagine import DEFAULT_SEED_BASE, DEMO_SEED_RANGE, EVAL_SEED_RANGE
+    from hope_models.sim.seed_ranges import DEFAULT_SEED_BASE, DEMO_SEED_RANGE, EVAL_SEED_RANGE
 
     # the documented convention: eval [0, 100000), demos [100000, 200000), imagined [200000, ...)
     assert EVAL_SEED_RANGE[1] <= DEMO_SEED_RANGE[0] and DEMO_SEED_RANGE[1] <= DEFAULT_SEED_BASE
@@ -102,9 +102,9 @@ def test_seed_ranges_are_disjoint():
         evals = set(range(eval_seed, eval_seed + min(n, 1000)))
         imag = set(range(DEFAULT_SEED_BASE, DEFAULT_SEED_BASE + n))
         assert not (imag & demos) and not (imag & evals) and not (demos & evals)
-    assert imagine.reserved_overlaps(DEFAULT_SEED_BASE, 10_000) == []
-    assert len(imagine.reserved_overlaps(0, 1)) == 1
-    assert len(imagine.reserved_overlaps(DEMO_BASE - 1, 2)) == 2  # straddles both
+    assert seed_ranges.reserved_overlaps(DEFAULT_SEED_BASE, 10_000) == []
+    assert len(seed_ranges.reserved_overlaps(0, 1)) == 1
+    assert len(seed_ranges.reserved_overlaps(DEMO_BASE - 1, 2)) == 2  # straddles both
 
 
 def test_overlapping_seeds_are_refused(tmp_path):

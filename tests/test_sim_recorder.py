@@ -12,7 +12,7 @@ import pytest
 
 from hope_models.data.features import FRAME_SHAPE
 from hope_models.rlds.discover import read_path
-from hope_models.rlds.validate import validate_paths
+from hope_models.rlds.validation_report import validate_paths
 from hope_models.sim.expert import ExpertController
 from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, observation_vector
 from hope_models.sim.recorder import DEFAULT_SEED_BASE, record_dataset, record_episodes

@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.data.synthetic import generate_dataset
     from hope_models.data.windows import make_windows, window_spec
     from hope_models.rlds.ingest import ingest_paths
-    from hope_models.rlds.validate import validate_paths
+    from hope_models.rlds.validation_report import validate_paths
     from hope_models.settings import SettingsError, load_settings
 
     try:

@@ -11,7 +11,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hope_models.rlds.validate import PROFILES, STATUSES, validate_paths
+from hope_models.rlds.validate import PROFILES
+from hope_models.rlds.validation_report import STATUSES, validate_paths
 from hope_models.settings import SettingsError, load_settings
 
 

@@ -22,8 +22,8 @@ from typing import Any, Iterable
 
 from ..durable import atomic_open
 from .episode import Episode
-from .validate import (derive_action_source, exception_entry, read_reports, report_entries, robot_type,
-                       unique_paths)
+from .validate import derive_action_source, robot_type
+from .validation_report import exception_entry, read_reports, report_entries, unique_paths
 from .write_episode_dir import prepare_episode, safe_episode_id
 
 PACKAGE_VERSION = "1.0.0"

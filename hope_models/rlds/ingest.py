@@ -17,7 +17,7 @@ from typing import Any, Iterable
 
 from ..durable import atomic_write
 from .episode import Episode
-from .validate import exception_entry, read_reports, report_entries, unique_paths
+from .validation_report import exception_entry, read_reports, report_entries, unique_paths
 from .write_episode_dir import (PreparedEpisode, prepare_episode, remove_stale_tmp_dirs,
                                 safe_episode_id, write_prepared)
 

@@ -33,16 +33,8 @@ earlier world-frame observation only 2.0 reached ~980. The expert still scores ~
 with noise 2.0, so the rollouts mostly reach the target. The noise is large against the [-1, 1]
 command range because the arm low-passes white noise at 50 Hz (0.5 costs the expert ~2 points).
 
-Start states. Episode i uses the task seed `seed + i`; a task seed fixes the start state (joint
-angles, target position, on track the circle). The seed space is split by convention:
-
-    [0, 100 000)          evaluation (eval-reflex --seed S uses S .. S+N-1; default 0 .. 19)
-    [100 000, 200 000)    expert demonstrations (sim-demos, recorder.DEFAULT_SEED_BASE)
-    [200 000, ...)        imagined rollouts (DEFAULT_SEED_BASE here)
-
-imagine_dataset refuses a seed range that overlaps the evaluation or demo ranges unless
-allow_overlap=True, and with `demos=DIR...` it also refuses seeds that any recorded episode under
-those dirs used (read from metadata.provenance.sim.seed / task), wherever they came from.
+Start states. Episode i uses the task seed `seed + i` (from DEFAULT_SEED_BASE); imagine_dataset
+refuses seeds that evaluation or the demos use (seed_ranges.py says which, and how).
 
 Each episode is a canonical RLDS v1.1 dir with the recorder's layout (observation block, action
 {command, source, executed_command}, reward, 20 ms timestamps; optional 64x64 frames as .npy
@@ -53,36 +45,27 @@ gives the same episode, byte for byte.
 """
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from hope_models.rlds.episode import Episode
-from hope_models.rlds.validate import episode_report
+from hope_models.rlds.validation_report import episode_report
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
 from hope_models.sim.reacher import (
     ACT_DIM, ACTION_HIGH, ACTION_LOW, CONTROL_PERIOD_S, EPISODE_STEPS, LINK_LENGTHS_M, TASKS, make_env,
 )
-from hope_models.sim.recorder import DEFAULT_SEED_BASE as DEMO_SEED_BASE
 from hope_models.sim.recorder import rollout, sim_metadata, software_versions
+from hope_models.sim.seed_ranges import DEFAULT_SEED_BASE, check_seeds
 
 METHODS = ("dart", "cem")
 IMAGINED_TAG = "continuon.imagined"
-DEFAULT_SEED_BASE = 200_000
 DART_NOISE_STD = 2.0  # std of the Gaussian injected into executed commands (see the module doc)
 DEFAULT_NOISE = {"dart": DART_NOISE_STD, "cem": DART_NOISE_STD}
-EVAL_SEED_RANGE = (0, DEMO_SEED_BASE)
-DEMO_SEED_RANGE = (DEMO_SEED_BASE, DEFAULT_SEED_BASE)
-# name -> [first, end): the ranges imagined rollouts stay out of by default
-RESERVED_SEED_RANGES: dict[str, tuple[int, int]] = {
-    "evaluation (eval-reflex held-out seeds)": EVAL_SEED_RANGE,
-    "expert demonstrations (sim-demos)": DEMO_SEED_RANGE,
-}
 
 
 def origin_for(method: str) -> str:
@@ -310,50 +293,6 @@ def imagine_episode(task: str, seed: int, method: str = "dart", *, noise: float 
     return ep, total
 
 
-# -- start states: the seed ranges ---------------------------------------------------------------
-
-def reserved_overlaps(seed: int, episodes: int) -> list[str]:
-    """Names of the reserved seed ranges that [seed, seed + episodes) overlaps."""
-    return [name for name, (lo, hi) in RESERVED_SEED_RANGES.items() if seed < hi and lo < seed + episodes]
-
-
-def demo_seeds(dirs: Iterable[str | Path]) -> dict[tuple[str, int], str]:
-    """(task, seed) -> episode dir of every recorded sim episode under `dirs` (metadata.json files
-    carrying provenance.sim.seed); other episodes are ignored."""
-    found: dict[tuple[str, int], str] = {}
-    for d in dirs:
-        root = Path(d)
-        if not root.exists():
-            raise FileNotFoundError(f"{root}: demos dir not found")
-        for meta_path in sorted(root.rglob("metadata.json")):
-            try:
-                meta = json.loads(meta_path.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                continue
-            sim = (meta.get("provenance") or {}).get("sim") if isinstance(meta, dict) else None
-            if isinstance(sim, dict) and isinstance(sim.get("seed"), int) and isinstance(sim.get("task"), str):
-                found[(sim["task"], sim["seed"])] = str(meta_path.parent)
-    return found
-
-
-def check_seeds(seed: int, episodes: int, task: str, demos: Sequence[str | Path] = (),
-                allow_overlap: bool = False) -> None:
-    """Raise ValueError (naming the range or the demo) when the imagined start states are not new."""
-    if not allow_overlap:
-        hit = reserved_overlaps(seed, episodes)
-        if hit:
-            lo, hi = RESERVED_SEED_RANGES[hit[0]]
-            raise ValueError(f"seed={seed}: seeds {seed}..{seed + episodes - 1} overlap the {hit[0]} range "
-                             f"[{lo}, {hi}); imagined rollouts start at {DEFAULT_SEED_BASE} by default "
-                             "(or pass allow_overlap / --allow-overlap)")
-    if demos:
-        used = demo_seeds(demos)
-        clash = [s for s in range(seed, seed + episodes) if (task, s) in used]
-        if clash:
-            raise ValueError(f"seed={seed}: {len(clash)} imagined start state(s) are demo start states, e.g. "
-                             f"{task} seed {clash[0]} recorded in {used[(task, clash[0])]}; pick another --seed")
-
-
 # -- a dataset -----------------------------------------------------------------------------------
 
 @dataclass
@@ -447,6 +386,5 @@ def imagine_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED
 
 
 __all__ = ["imagine_dataset", "imagine_episode", "ImagineResult", "ImaginedEpisode", "CEMConfig", "CEMPlanner",
-           "DartSearch", "make_search", "check_seeds", "demo_seeds", "reserved_overlaps", "fingertip_xy",
-           "METHODS", "IMAGINED_TAG", "DEFAULT_SEED_BASE", "DART_NOISE_STD", "RESERVED_SEED_RANGES",
-           "EVAL_SEED_RANGE", "DEMO_SEED_RANGE", "origin_for", "episode_id_for"]
+           "DartSearch", "make_search", "fingertip_xy", "METHODS", "IMAGINED_TAG", "DART_NOISE_STD",
+           "origin_for", "episode_id_for"]
