@@ -125,6 +125,26 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | Non
     return ckpt, (found.id if found is not None else None), (_run_data(found) if found is not None else None)
 
 
+def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
+    """The checkpoint's component (from its config.json; `expected` if given) and its version."""
+    from hope_models.promote.pointers import PointerError, checkpoint_version
+    from hope_models.train.checkpoint import CheckpointError, read_json_object
+
+    try:
+        component = read_json_object(ckpt / "config.json").get("component")
+    except (OSError, CheckpointError) as exc:
+        raise UsageError(f"{ckpt / 'config.json'}: not readable: {exc}") from None
+    if component not in COMPONENTS:
+        raise UsageError(f"{ckpt / 'config.json'}: component {component!r} is not one of {', '.join(COMPONENTS)}")
+    if expected and expected != component:
+        raise UsageError(f"{ckpt} holds a {component} checkpoint, not a {expected}")
+    try:
+        version, _sha = checkpoint_version(ckpt)
+    except PointerError as exc:
+        raise UsageError(str(exc)) from None
+    return component, version
+
+
 def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
     """The whole command minus printing: (exit code, output object). UsageError for exit 2."""
     from sqlalchemy import select
@@ -133,8 +153,6 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
     from registry.models import Model
     from registry.runs import RunError
     from hope_models.promote.gate import GateError, gate_candidate
-    from hope_models.promote.pointers import PointerError, checkpoint_version
-    from hope_models.train.checkpoint import CheckpointError, read_json_object
 
     with registry.session(readonly=True) as s:
         try:
@@ -148,18 +166,7 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
                                        "component": row.component, "checkpoint": row.checkpoint_path,
                                        "run_id": run_id, "forced": False, "reasons": [], "metrics": {},
                                        "skipped": f"run {run_id} already has a candidate record (model {row.id})"}
-        try:
-            component = read_json_object(ckpt / "config.json").get("component")
-        except (OSError, CheckpointError) as exc:
-            raise UsageError(f"{ckpt / 'config.json'}: not readable: {exc}") from None
-        if component not in COMPONENTS:
-            raise UsageError(f"{ckpt / 'config.json'}: component {component!r} is not one of {', '.join(COMPONENTS)}")
-        if args.component and args.component != component:
-            raise UsageError(f"{ckpt} holds a {component} checkpoint, not a {args.component}")
-        try:
-            version, _sha = checkpoint_version(ckpt)
-        except PointerError as exc:
-            raise UsageError(str(exc)) from None
+        component, version = _component_and_version(ckpt, args.component)
         current = promotion.promoted(s, component)
         current_id = current.id if current is not None else None
         current_ckpt = current.checkpoint_path if current is not None else None

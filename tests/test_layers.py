@@ -1,0 +1,252 @@
+"""Imports go one way: the layer order drawn at the top of docs/architecture.md, checked here.
+
+Every module of the project's packages is parsed (ast, not imported), and every import in it is
+checked: at module level or inside a function, `import a.b`, `from a.b import c`, `from . import c`
+and `from ..a import b` alike.
+
+    hope_models < registry < daemon, workers (neither imports the other) < webapp < hope_trainer < run_trainer.py
+
+Inside hope_models, HOPE_MODELS_TIERS from the bottom up; a sub-package may import its own tier
+and the tiers below it, never one above, and no two sub-packages may import each other. The
+single-file modules directly in hope_models/ (settings, paths, durable, json_finite, ...) are
+the foundation under every tier: they import nothing of hope_models but each other.
+
+bench/ and tests/ stand outside the rule: they may reach into any layer.
+"""
+from __future__ import annotations
+
+import ast
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+# What each top-level layer may import besides itself. migrations/ is the registry's Alembic
+# scripts (registry/db.py runs them, migrations/env.py reads the registry's tables): one layer.
+LAYERS: dict[str, frozenset[str]] = {
+    "hope_models": frozenset(),
+    "registry": frozenset({"hope_models", "migrations"}),
+    "migrations": frozenset({"hope_models", "registry"}),
+    "daemon": frozenset({"hope_models", "registry", "migrations"}),
+    "workers": frozenset({"hope_models", "registry", "migrations"}),
+    "webapp": frozenset({"hope_models", "registry", "migrations", "daemon", "workers"}),
+    "hope_trainer": frozenset({"hope_models", "registry", "migrations", "daemon", "workers", "webapp"}),
+    "run_trainer": frozenset({"hope_models", "registry", "migrations", "daemon", "workers", "webapp",
+                              "hope_trainer"}),
+}
+ORDER_TEXT = ("hope_models < registry (+ migrations) < daemon, workers (neither imports the other) < webapp "
+              "< hope_trainer < run_trainer.py")
+
+# hope_models' sub-packages, bottom tier first; a tier's members are peers (one may import the
+# other, never both ways).
+HOPE_MODELS_TIERS: tuple[tuple[str, ...], ...] = (
+    ("rlds",),
+    ("data", "sim"),
+    ("models",),
+    ("train",),
+    ("promote", "runtime"),
+    ("cli",),
+)
+
+# Imports inside hope_models that break the order today, as (importing file, imported
+# sub-package). Being removed: this list only shrinks, and an entry whose import is gone fails
+# the test, so it cannot outlive its violation.
+KNOWN_HOPE_MODELS_VIOLATIONS: frozenset[tuple[str, str]] = frozenset({
+    ("hope_models/promote/gate.py", "runtime"),  # while runtime imports promote.pointers: a cycle
+    ("hope_models/train/sequential.py", "cli"),  # train below cli
+})
+
+
+@dataclass(frozen=True)
+class Import:
+    file: str  # relative to the repo
+    line: int
+    module: str  # the absolute dotted name imported
+
+    def where(self) -> str:
+        return f"{self.file}:{self.line}"
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _resolve(path: Path, node: ast.ImportFrom, root: Path) -> str:
+    """The absolute module a relative `from` import names (level 1 is the module's package)."""
+    package = _module_name(path, root).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    if node.level > len(package):
+        raise AssertionError(f"{path.relative_to(root)}:{node.lineno}: relative import beyond the top package")
+    base = package[:len(package) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports_of(path: Path, root: Path = REPO) -> list[Import]:
+    """Every import in the file, anywhere in it. `from a import b` yields a.b when a.b is a
+    module of the project (so `from hope_models import cli` names the sub-package), else a."""
+    rel = str(path.relative_to(root))
+    found: list[Import] = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=rel)):
+        if isinstance(node, ast.Import):
+            found += [Import(rel, node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = _resolve(path, node, root) if node.level else (node.module or "")
+            for alias in node.names:
+                sub = f"{base}.{alias.name}" if base else alias.name
+                found.append(Import(rel, node.lineno, sub if _is_project_module(sub, root) else base))
+    return list(dict.fromkeys(found))  # `from a import b, c` of two names: one import of a
+
+
+def _is_project_module(dotted: str, root: Path) -> bool:
+    path = root.joinpath(*dotted.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def project_files() -> list[Path]:
+    files = [REPO / "run_trainer.py"]
+    for top in LAYERS:
+        if (REPO / top).is_dir():
+            files += sorted(p for p in (REPO / top).rglob("*.py") if "node_modules" not in p.parts)
+    return files
+
+
+def layer_of(module: str) -> str | None:
+    top = module.split(".")[0]
+    return top if top in LAYERS else None
+
+
+def _sub_of(module: str) -> str:
+    """hope_models' sub-package (or foundation module) a hope_models module belongs to."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _tier(sub: str, root: Path = REPO) -> int | None:
+    """-1 for a foundation module (a single file in hope_models/), the tier of a sub-package, or
+    None for a sub-package HOPE_MODELS_TIERS does not place."""
+    if sub == "__init__" or (root / "hope_models" / f"{sub}.py").is_file():
+        return -1
+    for i, tier in enumerate(HOPE_MODELS_TIERS):
+        if sub in tier:
+            return i
+    return None
+
+
+def all_imports() -> list[Import]:
+    return [imp for path in project_files() for imp in imports_of(path)]
+
+
+def layer_violations(imports: list[Import], root: Path = REPO) -> list[str]:
+    bad = []
+    for imp in imports:
+        src, dst = layer_of(_module_name(root / imp.file, root)), layer_of(imp.module)
+        if dst is None or dst == src:
+            continue
+        if dst not in LAYERS[src]:
+            bad.append(f"{imp.where()}: {src} imports {imp.module} ({dst}); the layers are {ORDER_TEXT}")
+    return bad
+
+
+def hope_models_edges(imports: list[Import], root: Path = REPO) -> list[tuple[Import, str, str]]:
+    """(import, from sub-package, to sub-package) for imports between hope_models' parts."""
+    edges = []
+    for imp in imports:
+        if not imp.file.startswith("hope_models/") or layer_of(imp.module) != "hope_models":
+            continue
+        src, dst = _sub_of(_module_name(root / imp.file, root)), _sub_of(imp.module)
+        if src != dst:
+            edges.append((imp, src, dst))
+    return edges
+
+
+def hope_models_violations(edges: list[tuple[Import, str, str]], root: Path = REPO) -> list[str]:
+    bad = []
+    tiers_text = " < ".join("/".join(t) for t in HOPE_MODELS_TIERS)
+    allowed = [e for e in edges if (e[0].file, e[2]) not in KNOWN_HOPE_MODELS_VIOLATIONS]
+    pairs = {(a, b) for _, a, b in allowed}
+    for imp, src, dst in allowed:
+        t_src, t_dst = _tier(src, root), _tier(dst, root)
+        if t_src is None or t_dst is None:
+            continue
+        if t_src == -1 and t_dst != -1:
+            bad.append(f"{imp.where()}: the foundation module hope_models/{src}.py imports {imp.module}; "
+                       "foundation modules import nothing of hope_models but each other")
+        elif t_dst > t_src:
+            bad.append(f"{imp.where()}: hope_models.{src} imports {imp.module}, a higher tier; "
+                       f"inside hope_models: foundation < {tiers_text}")
+        elif (dst, src) in pairs:
+            bad.append(f"{imp.where()}: hope_models.{src} imports {imp.module} while hope_models.{dst} imports "
+                       f"hope_models.{src}: two parts of hope_models must not import each other")
+    return bad
+
+
+def test_layers_import_downwards_only():
+    bad = layer_violations(all_imports())
+    assert not bad, "imports against the layer order:\n" + "\n".join(bad)
+
+
+def test_hope_models_parts_import_downwards_only():
+    bad = hope_models_violations(hope_models_edges(all_imports()))
+    assert not bad, "imports against hope_models' order:\n" + "\n".join(bad)
+
+
+def test_known_violations_still_exist():
+    """An allowlisted import that is gone must leave the allowlist (it only shrinks)."""
+    present = {(imp.file, dst) for imp, _src, dst in hope_models_edges(all_imports())}
+    stale = sorted(KNOWN_HOPE_MODELS_VIOLATIONS - present)
+    assert not stale, ("KNOWN_HOPE_MODELS_VIOLATIONS lists imports that no longer exist; remove them: "
+                       + ", ".join(f"{f} -> hope_models.{d}" for f, d in stale))
+
+
+def test_every_hope_models_part_is_placed():
+    subs = {p.name for p in (REPO / "hope_models").iterdir() if (p / "__init__.py").is_file()}
+    unplaced = sorted(sub for sub in subs if _tier(sub) is None)
+    assert not unplaced, (f"hope_models sub-packages in no tier: {unplaced}; place them in HOPE_MODELS_TIERS "
+                          "(tests/test_layers.py) and in the drawing in docs/architecture.md")
+
+
+# -- the checker itself, on made-up files ---------------------------------------------------------
+
+def _fake(tmp_path: Path, rel: str, text: str) -> Path:
+    path = tmp_path / rel
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def test_the_checker_sees_every_import_form(tmp_path):
+    for rel in ("hope_models/__init__.py", "hope_models/settings.py", "hope_models/data/__init__.py",
+                "hope_models/data/cache.py", "hope_models/train/__init__.py", "hope_models/train/loop.py",
+                "hope_models/cli/__init__.py", "workers/__init__.py", "daemon/__init__.py"):
+        _fake(tmp_path, rel, "")
+    path = _fake(tmp_path, "hope_models/data/x.py", (
+        "import json\n"
+        "from . import cache\n"
+        "from ..train import loop\n"
+        "from .. import settings\n"
+        "def f():\n"
+        "    import hope_models.cli\n"
+        "    from hope_models import cli\n"
+        "    import daemon\n"))
+    imports = imports_of(path, tmp_path)
+    assert [(i.line, i.module) for i in imports] == [
+        (1, "json"), (2, "hope_models.data.cache"), (3, "hope_models.train.loop"), (4, "hope_models.settings"),
+        (6, "hope_models.cli"), (7, "hope_models.cli"), (8, "daemon")]
+    assert [b.split(":")[1] for b in layer_violations(imports, tmp_path)] == ["8"]
+    bad = hope_models_violations(hope_models_edges(imports, tmp_path), tmp_path)
+    assert [b.split(":")[1] for b in bad] == ["3", "6", "7"] and all("higher tier" in b for b in bad)
+
+    sideways = _fake(tmp_path, "workers/y.py", "from daemon import z\n")
+    assert "workers imports daemon" in layer_violations(imports_of(sideways, tmp_path), tmp_path)[0]
+    found = _fake(tmp_path, "hope_models/settings.py", "from hope_models.data import cache\n")
+    assert "foundation module" in hope_models_violations(hope_models_edges(imports_of(found, tmp_path), tmp_path),
+                                                         tmp_path)[0]
+    _fake(tmp_path, "hope_models/sim/__init__.py", "from hope_models.data import cache\n")
+    mutual = imports_of(tmp_path / "hope_models/sim/__init__.py", tmp_path) + imports_of(
+        _fake(tmp_path, "hope_models/data/z.py", "import hope_models.sim\n"), tmp_path)
+    bad = hope_models_violations(hope_models_edges(mutual, tmp_path), tmp_path)
+    assert len(bad) == 2 and all("must not import each other" in b for b in bad)
