@@ -85,6 +85,36 @@ def _drop_nulls(obj: Any) -> Any:
 
 def normalize_metadata(raw: Any, *, layout: str, fallback_id: str, warn: Warn) -> dict[str, Any]:
     """Canonical v1.1 metadata from any producer's metadata object (or None)."""
+    md = _unwrapped(raw, warn)
+    _lift_dotted_continuon(md, warn)
+    _lift_nested_continuon(md, warn)
+    software = md.get("software")
+    if isinstance(software, dict):
+        software = dict(software)
+        for old, new in SOFTWARE_ALIASES.items():
+            if old in software and new not in software:
+                software[new] = software.pop(old)
+        md["software"] = software
+
+    original_version = md.get("schema_version")
+    if original_version != SCHEMA_VERSION:
+        md.setdefault("source_schema_version", "1.0" if original_version is None else str(original_version))
+
+    episode_id = md.get("episode_id")
+    if episode_id is None or episode_id == "":
+        episode_id = fallback_id
+    elif not isinstance(episode_id, str):
+        episode_id = str(episode_id)
+    provenance = _provenance(md.get("provenance"), layout, warn)
+
+    md.pop("schema_version", None)
+    md.pop("episode_id", None)
+    md.pop("provenance", None)
+    return {"schema_version": SCHEMA_VERSION, "episode_id": episode_id, **md, "provenance": provenance}
+
+
+def _unwrapped(raw: Any, warn: Warn) -> dict[str, Any]:
+    """The metadata as a snake_case dict without nulls, out of a legacy `episode_metadata` wrapper."""
     if raw is None:
         md: dict[str, Any] = {}
     elif isinstance(raw, dict):
@@ -105,8 +135,11 @@ def normalize_metadata(raw: Any, *, layout: str, fallback_id: str, warn: Warn) -
     md = snake_keys(_drop_nulls(md))
     if not isinstance(md, dict):  # pragma: no cover - _drop_nulls keeps dicts dicts
         md = {}
+    return md
 
-    # literal dotted keys written by the Kotlin app
+
+def _lift_dotted_continuon(md: dict[str, Any], warn: Warn) -> None:
+    """Literal dotted keys written by the Kotlin app (`continuon.xr_mode`) to their plain names."""
     for key in [k for k in md if isinstance(k, str) and k.startswith("continuon.")]:
         name = key[len("continuon."):]
         if name not in md:
@@ -116,64 +149,46 @@ def normalize_metadata(raw: Any, *, layout: str, fallback_id: str, warn: Warn) -
         else:
             warn(f"{key}={md[key]!r} disagrees with {name}={md[name]!r}; kept both, {name} is used", key)
 
+
+def _lift_nested_continuon(md: dict[str, Any], warn: Warn) -> None:
+    """Legacy files nest xr_mode, control_role and tags under `continuon`: lift them to the top."""
     nested = md.get("continuon")
-    if isinstance(nested, dict):
-        nested = dict(nested)
-        for name in CONTINUON_LIFTED:
-            if name not in nested:
-                continue
-            if name not in md:
-                md[name] = nested.pop(name)
-            elif md[name] == nested[name]:
-                nested.pop(name)
-            else:
-                warn(f"continuon.{name}={nested[name]!r} disagrees with {name}={md[name]!r}; "
-                     f"kept both, {name} is used", f"continuon.{name}")
-        if isinstance(nested.get("tags"), list):
-            tags = md.get("tags")
-            if tags is None:
-                md["tags"] = nested.pop("tags")
-            elif isinstance(tags, list):
-                md["tags"] = tags + [t for t in nested.pop("tags") if t not in tags]
-        if nested:
-            md["continuon"] = nested
+    if not isinstance(nested, dict):
+        return
+    nested = dict(nested)
+    for name in CONTINUON_LIFTED:
+        if name not in nested:
+            continue
+        if name not in md:
+            md[name] = nested.pop(name)
+        elif md[name] == nested[name]:
+            nested.pop(name)
         else:
-            del md["continuon"]
+            warn(f"continuon.{name}={nested[name]!r} disagrees with {name}={md[name]!r}; "
+                 f"kept both, {name} is used", f"continuon.{name}")
+    if isinstance(nested.get("tags"), list):
+        tags = md.get("tags")
+        if tags is None:
+            md["tags"] = nested.pop("tags")
+        elif isinstance(tags, list):
+            md["tags"] = tags + [t for t in nested.pop("tags") if t not in tags]
+    if nested:
+        md["continuon"] = nested
+    else:
+        del md["continuon"]
 
-    software = md.get("software")
-    if isinstance(software, dict):
-        software = dict(software)
-        for old, new in SOFTWARE_ALIASES.items():
-            if old in software and new not in software:
-                software[new] = software.pop(old)
-        md["software"] = software
 
-    original_version = md.get("schema_version")
-    if original_version != SCHEMA_VERSION:
-        md.setdefault("source_schema_version", "1.0" if original_version is None else str(original_version))
-
-    episode_id = md.get("episode_id")
-    if episode_id is None or episode_id == "":
-        episode_id = fallback_id
-    elif not isinstance(episode_id, str):
-        episode_id = str(episode_id)
-
-    provenance = md.get("provenance")
+def _provenance(provenance: Any, layout: str, warn: Warn) -> dict[str, Any]:
+    """The provenance object with an origin (`import:<layout>` when the producer gave none)."""
     if isinstance(provenance, dict):
         if not provenance.get("origin"):
             provenance = {**provenance, "origin": f"import:{layout}"}
-    else:
-        if provenance is not None:
-            warn(f"provenance is a {type(provenance).__name__}, not an object; kept as provenance.notes",
-                 "provenance")
-            provenance = {"origin": f"import:{layout}", "notes": provenance}
-        else:
-            provenance = {"origin": f"import:{layout}"}
-
-    md.pop("schema_version", None)
-    md.pop("episode_id", None)
-    md.pop("provenance", None)
-    return {"schema_version": SCHEMA_VERSION, "episode_id": episode_id, **md, "provenance": provenance}
+        return provenance
+    if provenance is not None:
+        warn(f"provenance is a {type(provenance).__name__}, not an object; kept as provenance.notes",
+             "provenance")
+        return {"origin": f"import:{layout}", "notes": provenance}
+    return {"origin": f"import:{layout}"}
 
 
 # -- steps ----------------------------------------------------------------------------------
@@ -212,66 +227,12 @@ def step_from_obj(raw: dict[str, Any], index: int, ep: Episode, *, source: str |
     for alias, name in STEP_ALIASES.items():
         if alias in obj and name not in obj:
             obj[name] = obj.pop(alias)
-
-    observation = obj.pop("observation", None)
-    if observation is None:
-        ep.warn("step has no observation", step=index, field="observation", source=source)
-        observation = {}
-    elif not isinstance(observation, dict):
-        ep.error(f"observation is a JSON {type(observation).__name__}, not an object", step=index,
-                 field="observation", source=source)
-        observation = {}
-    elif not trusted:
-        for alias, name in OBSERVATION_ALIASES.items():
-            if alias in observation and name not in observation:
-                observation = {(name if k == alias else k): v for k, v in observation.items()}
-
-    action = obj.pop("action", None)
-    if action is None:
-        ep.warn("step has no action", step=index, field="action", source=source)
-        action = {}
-    elif isinstance(action, list):
-        ep.warn("action is a bare list; read as action.command", step=index, field="action", source=source)
-        action = {"command": action}
-    elif not isinstance(action, dict):
-        ep.error(f"action is a JSON {type(action).__name__}, not an object", step=index, field="action",
-                 source=source)
-        action = {}
-
-    reward_raw = obj.pop("reward", None)
-    if reward_raw is None:
-        reward = 0.0
-    elif isinstance(reward_raw, (int, float)) and not isinstance(reward_raw, bool):
-        reward = float(reward_raw)
-    else:
-        try:
-            reward = float(reward_raw)  # numeric strings
-        except (TypeError, ValueError):
-            ep.error(f"reward {reward_raw!r} is not a number", step=index, field="reward", source=source)
-            reward = 0.0
-
-    terminal_raw = obj.pop("is_terminal", None)
-    if terminal_raw is None:
-        is_terminal = False
-    else:
-        parsed = _as_bool(terminal_raw)
-        if parsed is None:
-            ep.error(f"is_terminal {terminal_raw!r} is not a boolean", step=index, field="is_terminal",
-                     source=source)
-            parsed = False
-        is_terminal = parsed
-
-    meta = obj.pop("step_metadata", None)
-    if meta is None:
-        step_metadata: dict[str, Any] = {}
-    elif isinstance(meta, dict):
-        step_metadata = meta
-    elif isinstance(meta, str):
-        step_metadata = {"text": meta} if meta else {}
-    else:
-        ep.warn(f"step_metadata is a JSON {type(meta).__name__}; kept as step_metadata.value", step=index,
-                field="step_metadata", source=source)
-        step_metadata = {"value": meta}
+    where = {"step": index, "source": source}  # what every problem of this step names
+    observation = _observation(obj.pop("observation", None), ep, where, trusted)
+    action = _action(obj.pop("action", None), ep, where)
+    reward = _reward(obj.pop("reward", None), ep, where)
+    is_terminal = _is_terminal(obj.pop("is_terminal", None), ep, where)
+    step_metadata = _step_metadata(obj.pop("step_metadata", None), ep, where)
 
     obj.pop("episode_id", None)  # grouping key of steps-only files; the episode carries it
     source_index = obj.pop("step_index", None)
@@ -280,6 +241,68 @@ def step_from_obj(raw: dict[str, Any], index: int, ep: Episode, *, source: str |
 
     return Step(observation=observation, action=action, reward=reward, is_terminal=is_terminal,
                 step_metadata=step_metadata, extras=obj)
+
+
+def _observation(observation: Any, ep: Episode, where: dict[str, Any], trusted: bool) -> dict[str, Any]:
+    if observation is None:
+        ep.warn("step has no observation", field="observation", **where)
+        return {}
+    if not isinstance(observation, dict):
+        ep.error(f"observation is a JSON {type(observation).__name__}, not an object", field="observation",
+                 **where)
+        return {}
+    if not trusted:
+        for alias, name in OBSERVATION_ALIASES.items():
+            if alias in observation and name not in observation:
+                observation = {(name if k == alias else k): v for k, v in observation.items()}
+    return observation
+
+
+def _action(action: Any, ep: Episode, where: dict[str, Any]) -> dict[str, Any]:
+    if action is None:
+        ep.warn("step has no action", field="action", **where)
+        return {}
+    if isinstance(action, list):
+        ep.warn("action is a bare list; read as action.command", field="action", **where)
+        return {"command": action}
+    if not isinstance(action, dict):
+        ep.error(f"action is a JSON {type(action).__name__}, not an object", field="action", **where)
+        return {}
+    return action
+
+
+def _reward(reward: Any, ep: Episode, where: dict[str, Any]) -> float:
+    if reward is None:
+        return 0.0
+    if isinstance(reward, (int, float)) and not isinstance(reward, bool):
+        return float(reward)
+    try:
+        return float(reward)  # numeric strings
+    except (TypeError, ValueError):
+        ep.error(f"reward {reward!r} is not a number", field="reward", **where)
+        return 0.0
+
+
+def _is_terminal(terminal: Any, ep: Episode, where: dict[str, Any]) -> bool:
+    if terminal is None:
+        return False
+    parsed = _as_bool(terminal)
+    if parsed is None:
+        ep.error(f"is_terminal {terminal!r} is not a boolean", field="is_terminal", **where)
+        return False
+    return parsed
+
+
+def _step_metadata(meta: Any, ep: Episode, where: dict[str, Any]) -> dict[str, Any]:
+    if meta is None:
+        return {}
+    if isinstance(meta, dict):
+        return meta
+    if isinstance(meta, str):
+        return {"text": meta} if meta else {}
+    ep.warn(f"step_metadata is a JSON {type(meta).__name__}; kept as step_metadata.value",
+            field="step_metadata", **where)
+    return {"value": meta}
 
 
 def _has_upper(d: dict) -> bool:

@@ -9,9 +9,10 @@ from __future__ import annotations
 import io
 import json
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
@@ -33,77 +34,100 @@ def read_mcap(path: str | os.PathLike, limits: ReadLimits | None = None) -> Sour
     except TextReadError as exc:
         report.problems.append(Problem(ERROR, source, str(exc)))
         return report
+    found = _read_messages(data, source, limits)
+    if found.unreadable is not None:
+        report.problems.append(found.unreadable)
+        return report
+    if STEPS_TOPIC not in found.topics.values():
+        report.problems.extend(found.notes)
+        report.problems.append(Problem(ERROR, source, f"not an episode MCAP: no {STEPS_TOPIC} channel"))
+        return report
+    report.episodes.append(_episode(file, found))
+    return report
 
-    topics: dict[int, str] = {}
-    encodings: dict[int, str] = {}
-    header: dict | None = None
-    steps: list[tuple[int, dict]] = []  # (sequence in file, step object)
-    notes: list[Problem] = []
-    bad_messages = 0
+
+@dataclass
+class _Messages:
+    """What one sequential pass over the file found on our two topics, and what went wrong."""
+
+    source: str
+    topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic
+    encodings: dict[int, str] = field(default_factory=dict)  # channel id -> message encoding
+    header: dict | None = None  # the METADATA_TOPIC message
+    steps: list[tuple[int, dict]] = field(default_factory=list)  # (sequence in file, step object)
+    notes: list[Problem] = field(default_factory=list)
+    bad_messages: int = 0
+    unreadable: Problem | None = None  # set when not even one channel could be read
+
+    def take(self, record: Message) -> None:
+        topic = self.topics.get(record.channel_id)
+        if topic not in (METADATA_TOPIC, STEPS_TOPIC):
+            return
+        if self.encodings.get(record.channel_id) != "json":
+            self.notes.append(Problem(ERROR, self.source, f"{topic} uses message encoding "
+                                      f"{self.encodings.get(record.channel_id)!r}, expected json"))
+            return
+        try:
+            obj = json.loads(record.data)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            self.bad(f"{topic} message {record.sequence} is not valid JSON ({exc})")
+            return
+        if not isinstance(obj, dict):
+            self.bad(f"{topic} message {record.sequence} is not a JSON object")
+            return
+        if topic == METADATA_TOPIC:
+            self.header = obj
+        else:
+            self.steps.append((len(self.steps), obj))
+
+    def bad(self, message: str) -> None:
+        self.bad_messages += 1
+        self.notes.append(Problem(ERROR, self.source, message))
+
+
+def _read_messages(data: bytes, source: str, limits: ReadLimits) -> _Messages:
+    found = _Messages(source)
     reader = StreamReader(io.BytesIO(data), validate_crcs=True, record_size_limit=limits.max_file_bytes)
     try:
         for record in reader.records:
-            if isinstance(record, Schema):
-                continue
             if isinstance(record, Channel):
-                topics[record.id] = record.topic
-                encodings[record.id] = record.message_encoding
+                found.topics[record.id] = record.topic
+                found.encodings[record.id] = record.message_encoding
             elif isinstance(record, Message):
-                topic = topics.get(record.channel_id)
-                if topic not in (METADATA_TOPIC, STEPS_TOPIC):
-                    continue
-                if encodings.get(record.channel_id) != "json":
-                    notes.append(Problem(ERROR, source, f"{topic} uses message encoding "
-                                         f"{encodings.get(record.channel_id)!r}, expected json"))
-                    continue
-                try:
-                    obj = json.loads(record.data)
-                except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                    bad_messages += 1
-                    notes.append(Problem(ERROR, source, f"{topic} message {record.sequence} is not valid JSON ({exc})"))
-                    continue
-                if not isinstance(obj, dict):
-                    bad_messages += 1
-                    notes.append(Problem(ERROR, source, f"{topic} message {record.sequence} is not a JSON object"))
-                    continue
-                if topic == METADATA_TOPIC:
-                    header = obj
-                else:
-                    steps.append((len(steps), obj))
+                found.take(record)
     except Exception as exc:  # the mcap library raises several types for damaged input
-        if not topics:
-            report.problems.append(Problem(ERROR, source, f"not a readable MCAP file ({type(exc).__name__}: {exc})"))
-            return report
-        notes.append(Problem(WARNING, source, f"MCAP file ends early or is damaged after {len(steps)} steps "
-                             f"({type(exc).__name__}: {exc}); the steps before are read"))
+        if not found.topics:
+            found.unreadable = Problem(ERROR, source, f"not a readable MCAP file ({type(exc).__name__}: {exc})")
+        else:
+            found.notes.append(Problem(WARNING, source, f"MCAP file ends early or is damaged after "
+                                       f"{len(found.steps)} steps ({type(exc).__name__}: {exc}); "
+                                       "the steps before are read"))
+    return found
 
-    if STEPS_TOPIC not in topics.values():
-        report.problems.extend(notes)
-        report.problems.append(Problem(ERROR, source, f"not an episode MCAP: no {STEPS_TOPIC} channel"))
-        return report
 
-    fallback_id = id_from_name(file.name)
-    metadata = header.get("metadata") if header else None
+def _episode(file: Path, found: _Messages) -> Episode:
+    source = found.source
+    header = found.header or {}
+    metadata = header.get("metadata") if found.header else None
     if not isinstance(metadata, dict):
-        notes.append(Problem(WARNING, source, f"no usable {METADATA_TOPIC} message; metadata is empty"))
+        found.notes.append(Problem(WARNING, source, f"no usable {METADATA_TOPIC} message; metadata is empty"))
         metadata = {}
-    episode_id = str((header or {}).get("episode_id") or metadata.get("episode_id") or fallback_id)
+    episode_id = str(header.get("episode_id") or metadata.get("episode_id") or id_from_name(file.name))
     metadata = dict(metadata)
     metadata.setdefault("episode_id", episode_id)
-    blob_root = (header or {}).get("blob_root")
+    blob_root = header.get("blob_root")
     ep = Episode(episode_id=episode_id, metadata=metadata, steps=[], source=source, layout=LAYOUT,
                  blob_root=blob_root if isinstance(blob_root, str) else None)
-    lost = (header or {}).get("steps_lost", 0)
-    ep.steps_lost = (lost if isinstance(lost, int) else 0) + bad_messages
-    ep.problems.extend(notes)
+    lost = header.get("steps_lost", 0)
+    ep.steps_lost = (lost if isinstance(lost, int) else 0) + found.bad_messages
+    ep.problems.extend(found.notes)
 
     # The step's own step_index orders it; file order breaks ties and covers its absence.
-    steps.sort(key=lambda item: (item[1].get("step_index") if type(item[1].get("step_index")) is int
-                                 else item[0], item[0]))
+    steps = sorted(found.steps, key=lambda item: (item[1].get("step_index") if type(item[1].get("step_index")) is int
+                                                  else item[0], item[0]))
     for _, obj in steps:
         ep.steps.append(step_from_obj(obj, len(ep.steps), ep, trusted=True))
     if not ep.steps:
         ep.warn("episode MCAP holds no steps")
     assign_timestamps(ep, canonical=True)
-    report.episodes.append(ep)
-    return report
+    return ep

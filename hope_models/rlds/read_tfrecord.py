@@ -292,39 +292,10 @@ def read_tfrecord(path: str | os.PathLike, limits: ReadLimits | None = None) -> 
         report.problems.append(Problem(ERROR, source, str(exc)))
         return report
 
-    container = unwrap_gzip(data, source, limits)
-    file_notes = list(container.notes)
-    records: list[tuple[str, bytes]] = []  # (where, payload)
-    corrupt: list[tuple[str, int]] = []  # (where, length)
-    for offset, part in container.parts:
-        scan = scan_records(part, max(offset, 0))
-        where = "decompressed data" if offset < 0 else "file"
-        at = "decompressed byte" if offset < 0 else "byte"
-        records.extend((f"{at} {o}", payload) for o, payload in scan.records)
-        corrupt.extend((f"{at} {o}", n) for o, n in scan.corrupt)
-        if scan.truncated_tail:
-            file_notes.append(Problem(WARNING, source, f"last record of the {where} is truncated "
-                                      f"({scan.truncated_tail} bytes); dropped"))
-
-    decoded: list[_Record] = []
-    bad_payloads = 0
-    for offset, payload in records:
-        try:
-            features = decode_example(payload)
-        except ExampleDecodeError as exc:
-            bad_payloads += 1
-            file_notes.append(Problem(WARNING, source, f"record at {offset} has valid CRCs but is not a "
-                                      f"tf.train.Example ({exc}); skipped"))
-            continue
-        decoded.append(_record_to_step(offset, features))
-
-    if corrupt:
-        total = sum(n for _, n in corrupt)
-        spots = ", ".join(f"{n} bytes at {o}" for o, n in corrupt[:5]) + (", ..." if len(corrupt) > 5 else "")
-        corrupt_text = f"{len(corrupt)} corrupt region(s) ({total} bytes) skipped [{spots}]"
-    else:
-        corrupt_text = ""
-
+    file_notes: list[Problem] = []  # findings about the file, repeated on each of its episodes
+    records, corrupt = _framed_records(data, source, limits, file_notes)
+    decoded, bad_payloads = _decode_records(records, source, file_notes)
+    corrupt_text = _describe_corrupt(corrupt)
     if not decoded:
         report.problems.extend(file_notes)
         if corrupt or bad_payloads or file_notes:
@@ -341,43 +312,14 @@ def read_tfrecord(path: str | os.PathLike, limits: ReadLimits | None = None) -> 
     for rec in decoded:
         groups.setdefault(rec.episode_id or file_id, []).append(rec)
     several = len(groups) > 1
-
-    attributed = False
+    attributed = False  # whether a step_index gap accounts for the corrupt regions
     for eid, recs in groups.items():
         ep = Episode(episode_id=eid, metadata={}, steps=[], source=f"{source}#{eid}" if several else source,
                      layout=LAYOUT, blob_root=str(file.parent))
         ep.metadata = normalize_metadata(None, layout=LAYOUT, fallback_id=eid,
                                          warn=lambda msg, fld, ep=ep: ep.warn(msg, field=fld))
         ep.problems.extend(file_notes)
-        indexed = all(r.step_index is not None for r in recs)
-        if indexed:
-            recs = sorted(recs, key=lambda r: r.step_index)  # stable: duplicates stay in file order
-            seen: set[int] = set()
-            for r in recs:
-                if r.step_index in seen:
-                    ep.warn(f"step_index {r.step_index} appears more than once (record at {r.offset})")
-                seen.add(r.step_index)
-        elif any(r.step_index is not None for r in recs):
-            ep.warn("step_index missing on some records; records kept in file order")
-        for r in recs:
-            index = len(ep.steps)
-            for fld, msg in r.notes:
-                ep.error(f"{msg} (record at {r.offset})", step=index, field=fld)
-            for fld, msg in r.command_notes:
-                ep.warn(msg, step=index, field=fld)
-            ep.steps.append(step_from_obj(r.raw_step, index, ep))
-
-        if indexed:
-            missing, which = _gaps([r.step_index for r in recs])
-            if missing:
-                have = len({r.step_index for r in recs})
-                detail = f"steps {which} missing (recovered {have} of {have + missing} by step_index)"
-                if corrupt:
-                    ep.warn(f"{corrupt_text}; {detail}")
-                    ep.steps_lost += missing
-                    attributed = True
-                else:
-                    ep.warn(f"step_index gap: {detail}")
+        attributed |= _fill_episode(ep, recs, corrupt_text if corrupt else "")
         assign_timestamps(ep)
         report.episodes.append(ep)
 
@@ -389,3 +331,83 @@ def read_tfrecord(path: str | os.PathLike, limits: ReadLimits | None = None) -> 
         else:
             report.problems.append(Problem(WARNING, source, msg))
     return report
+
+
+def _framed_records(data: bytes, source: str, limits: ReadLimits,
+                    file_notes: list[Problem]) -> tuple[list[tuple[str, bytes]], list[tuple[str, int]]]:
+    """([(where, payload)], [(where, length)] of the corrupt regions) from every gzip member and
+    uncompressed stretch of the file."""
+    container = unwrap_gzip(data, source, limits)
+    file_notes.extend(container.notes)
+    records: list[tuple[str, bytes]] = []
+    corrupt: list[tuple[str, int]] = []
+    for offset, part in container.parts:
+        scan = scan_records(part, max(offset, 0))
+        where = "decompressed data" if offset < 0 else "file"
+        at = "decompressed byte" if offset < 0 else "byte"
+        records.extend((f"{at} {o}", payload) for o, payload in scan.records)
+        corrupt.extend((f"{at} {o}", n) for o, n in scan.corrupt)
+        if scan.truncated_tail:
+            file_notes.append(Problem(WARNING, source, f"last record of the {where} is truncated "
+                                      f"({scan.truncated_tail} bytes); dropped"))
+    return records, corrupt
+
+
+def _decode_records(records: list[tuple[str, bytes]], source: str,
+                    file_notes: list[Problem]) -> tuple[list[_Record], int]:
+    """The records that decode as tf.train.Example, and how many did not."""
+    decoded: list[_Record] = []
+    bad_payloads = 0
+    for offset, payload in records:
+        try:
+            features = decode_example(payload)
+        except ExampleDecodeError as exc:
+            bad_payloads += 1
+            file_notes.append(Problem(WARNING, source, f"record at {offset} has valid CRCs but is not a "
+                                      f"tf.train.Example ({exc}); skipped"))
+            continue
+        decoded.append(_record_to_step(offset, features))
+    return decoded, bad_payloads
+
+
+def _describe_corrupt(corrupt: list[tuple[str, int]]) -> str:
+    if not corrupt:
+        return ""
+    total = sum(n for _, n in corrupt)
+    spots = ", ".join(f"{n} bytes at {o}" for o, n in corrupt[:5]) + (", ..." if len(corrupt) > 5 else "")
+    return f"{len(corrupt)} corrupt region(s) ({total} bytes) skipped [{spots}]"
+
+
+def _fill_episode(ep: Episode, recs: list[_Record], corrupt_text: str) -> bool:
+    """Append the records as steps in step_index order (file order without one) and report the
+    step_index gaps; True when a gap is put down to the file's corrupt regions (`corrupt_text`)."""
+    indexed = all(r.step_index is not None for r in recs)
+    if indexed:
+        recs = sorted(recs, key=lambda r: r.step_index)  # stable: duplicates stay in file order
+        seen: set[int] = set()
+        for r in recs:
+            if r.step_index in seen:
+                ep.warn(f"step_index {r.step_index} appears more than once (record at {r.offset})")
+            seen.add(r.step_index)
+    elif any(r.step_index is not None for r in recs):
+        ep.warn("step_index missing on some records; records kept in file order")
+    for r in recs:
+        index = len(ep.steps)
+        for fld, msg in r.notes:
+            ep.error(f"{msg} (record at {r.offset})", step=index, field=fld)
+        for fld, msg in r.command_notes:
+            ep.warn(msg, step=index, field=fld)
+        ep.steps.append(step_from_obj(r.raw_step, index, ep))
+    if not indexed:
+        return False
+    missing, which = _gaps([r.step_index for r in recs])
+    if not missing:
+        return False
+    have = len({r.step_index for r in recs})
+    detail = f"steps {which} missing (recovered {have} of {have + missing} by step_index)"
+    if corrupt_text:
+        ep.warn(f"{corrupt_text}; {detail}")
+        ep.steps_lost += missing
+        return True
+    ep.warn(f"step_index gap: {detail}")
+    return False
