@@ -72,3 +72,8 @@ class Control(Protocol):
 class NoControl:
     def poll(self, step: int) -> ControlCommand:
         return ControlCommand()
+
+
+class TrainSetupError(ValueError):
+    """The job cannot start: bad data, unknown component, a run dir that holds another job, or a
+    configuration the memory budget cannot fit. The message names the parameter or path."""

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import reprlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from typing import Any
 from hope_models.data.features import FeatureSpec
 from hope_models.data.windows import WindowSpec, window_spec
 from hope_models.models.configs import FastLoopConfig, MidLoopConfig, VQVAEConfig
+from hope_models.numbers import short
 from hope_models.train.contract import COMPONENTS
 
 # component -> (window scale, default window_spec kwargs)
@@ -36,13 +36,6 @@ WINDOW_KEYS = ("duration_s", "k", "horizons_s")
 MAX_INT = 2**31 - 1
 MAX_TUPLE = 64
 
-_repr = reprlib.Repr()
-_repr.maxstring = _repr.maxother = 60  # a message shows a value, never a 4 kB string or a deep tree
-
-
-def short(value: Any) -> str:
-    """repr() for a message: bounded in length and depth, whatever the value."""
-    return _repr.repr(value)
 
 
 @dataclass(frozen=True)

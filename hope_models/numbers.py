@@ -1,0 +1,103 @@
+"""One rule for numbers at every door, and the one place that applies it.
+
+The doors: a command-line flag, an environment variable, `config.toml`, the JSON of the HTTP API,
+and a run's stored config that a worker reads back. The rule:
+
+- an integer field takes an integer, written `2000`, or a float with no fraction (`2000.0`,
+  `2e3`); never `2000.5`, `true`/`false`, NaN or an infinity;
+- a number field takes any finite number (an integer too); never `true`/`false`, NaN or an
+  infinity (`1e999` overflows to one);
+- where the medium has a number type (JSON, TOML) a number must be one: the string `"2000"` is
+  refused, as it would be for any other field that wants a number;
+- where everything is text (a flag, an environment variable) the text is read as a JSON number
+  (`2000`, `2e3`, `1e-3`, `-5`; not `0x10`, `1_000`, `nan`), then the same check applies.
+
+So `--steps 2e3`, `HOPE_PORT=8765.0` and `{"steps": 2000.0}` all mean 2000, and `--steps 2000.5`,
+`HOPE_PORT=true` and `{"steps": "2000"}` are refused with a message naming the field.
+"""
+from __future__ import annotations
+
+import math
+import re
+import reprlib
+from typing import Any
+
+_repr = reprlib.Repr()
+_repr.maxstring = _repr.maxother = 60  # a message shows a value, never a 4 kB string or a deep tree
+
+# JSON's number grammar (RFC 8259), the only text accepted as a number
+_JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
+
+
+def short(value: Any) -> str:
+    """repr() for a message: bounded in length and depth, whatever the value."""
+    return _repr.repr(value)
+
+
+class NumberError(ValueError):
+    """A value a numeric field cannot take. str() is "<name>: <reason>"; `reason` alone lets a
+    caller phrase the field its own way (e.g. a command-line flag), and `rule` is the bound a
+    number broke ("must be >= 1"), None for a value that is no number."""
+
+    def __init__(self, name: str, reason: str, rule: str | None = None):
+        super().__init__(f"{name}: {reason}")
+        self.name, self.reason, self.rule = name, reason, rule
+
+
+def _bound(name: str, value: Any, rule: str) -> NumberError:
+    return NumberError(name, f"{short(value)} {rule}", rule)
+
+
+def from_text(name: str, text: str) -> int | float:
+    """The number a flag or an environment variable spells (an int when written as one)."""
+    if not isinstance(text, str) or not _JSON_NUMBER.fullmatch(text.strip()):
+        raise NumberError(name, f"expected a number, got {short(text)}")
+    text = text.strip()
+    if re.fullmatch(r"-?[0-9]+", text):
+        if len(text) > 400:  # int() of a huge digit string is slow and no field takes it
+            raise NumberError(name, f"{short(text)} is out of range")
+        return int(text)
+    return float(text)
+
+
+def _finite(name: str, value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise NumberError(name, f"expected {what}, got {short(value)}")
+    try:
+        v = float(value)
+    except OverflowError:  # an integer with hundreds of digits
+        v = math.inf
+    if not math.isfinite(v):
+        raise NumberError(name, f"{short(value)} is not a finite number")
+    return v
+
+
+def as_int(name: str, value: Any, *, minimum: int | None = None, maximum: int | None = None) -> int:
+    """`value` as an integer field, within [minimum, maximum]."""
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise NumberError(name, f"expected an integer, got {short(value)}")
+    if minimum is not None and value < minimum:
+        raise _bound(name, value, f"must be >= {minimum}")
+    if maximum is not None and value > maximum:
+        raise _bound(name, value, f"must be <= {maximum}")
+    return value
+
+
+def as_float(name: str, value: Any, *, minimum: float | None = None, maximum: float | None = None,
+             above: float | None = None, below: float | None = None) -> float:
+    """`value` as a number field: finite, >= minimum, <= maximum, > above, < below (each optional)."""
+    v = _finite(name, value, "a number")
+    if minimum is not None and v < minimum:
+        raise _bound(name, v, f"must be >= {minimum:g}")
+    if above is not None and v <= above:
+        raise _bound(name, v, f"must be > {above:g}")
+    if maximum is not None and v > maximum:
+        raise _bound(name, v, f"must be <= {maximum:g}")
+    if below is not None and v >= below:
+        raise _bound(name, v, f"must be < {below:g}")
+    return v
+
+
+__all__ = ["NumberError", "as_float", "as_int", "from_text", "short"]
