@@ -112,12 +112,28 @@ def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20,
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     n_pos = obs_dim // 2
-    n_vel = obs_dim - n_pos
     weights = rng.normal(0, 0.5, (obs_dim, act_dim)) / math.sqrt(obs_dim)
     bias = rng.normal(0, 0.1, act_dim)
-    template = _step_template(n_pos, n_vel, act_dim, frames, frame_blobs)
+    writer = _EpisodeWriter(out, rng, seed, n_pos, obs_dim - n_pos, weights, bias, frames, frame_blobs,
+                            _step_template(n_pos, obs_dim - n_pos, act_dim, frames, frame_blobs))
+    lengths = _plan_episodes(rng, n_steps_total, rates_hz, episode_seconds)
+    n_imagined = int(round(imagined_fraction * len(lengths)))
+    total_bytes = 0
+    clock_ns = start_unix_s * 10**9
+    for i, (n, rate) in enumerate(lengths):
+        imagined = i >= len(lengths) - n_imagined
+        episode_id = f"{'imag' if imagined else id_prefix}_{i:05d}_{int(rate)}hz"
+        written, last_ns = writer.write(episode_id, n, rate, clock_ns, imagined)
+        total_bytes += written
+        clock_ns = last_ns + 5 * 10**9  # next recording starts a few seconds later
+    return GeneratedDataset(out, len(lengths), sum(n for n, _ in lengths), n_imagined, total_bytes,
+                            time.perf_counter() - started)
 
-    lengths: list[tuple[int, float]] = []  # (steps, rate) per episode, planned before writing
+
+def _plan_episodes(rng: np.random.Generator, n_steps_total: int, rates_hz: tuple[float, ...],
+                   episode_seconds: tuple[float, float]) -> list[tuple[int, float]]:
+    """(steps, rate) per episode, planned before writing: rates cycle, lengths are drawn in seconds."""
+    lengths: list[tuple[int, float]] = []
     remaining = n_steps_total
     while remaining > 0:
         rate = float(rates_hz[len(lengths) % len(rates_hz)])
@@ -128,37 +144,54 @@ def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20,
             break
         lengths.append((n, rate))
         remaining -= n
-    n_imagined = int(round(imagined_fraction * len(lengths)))
+    return lengths
 
-    total_bytes = 0
-    clock_ns = start_unix_s * 10**9
-    for i, (n, rate) in enumerate(lengths):
-        imagined = i >= len(lengths) - n_imagined
-        episode_id = f"{'imag' if imagined else id_prefix}_{i:05d}_{int(rate)}hz"
-        ep_dir = out / episode_id
+
+@dataclass
+class _EpisodeWriter:
+    """Writes one generated episode dir: steps (one %-template line each), metadata, frame blobs."""
+
+    out: Path
+    rng: np.random.Generator
+    seed: int
+    n_pos: int
+    n_vel: int
+    weights: np.ndarray
+    bias: np.ndarray
+    frames: bool
+    frame_blobs: bool
+    template: str
+
+    def write(self, episode_id: str, n: int, rate: float, clock_ns: int, imagined: bool) -> tuple[int, int]:
+        """(bytes written, timestamp of the last step in ns)."""
+        ep_dir = self.out / episode_id
         (ep_dir / "steps").mkdir(parents=True, exist_ok=True)
-        pos, vel, act = _episode_signals(rng, n, rate, n_pos, n_vel, weights, bias)
+        pos, vel, act = _episode_signals(self.rng, n, rate, self.n_pos, self.n_vel, self.weights, self.bias)
         period_ns = int(round(1e9 / rate))
         ts = clock_ns + np.arange(n, dtype=np.int64) * period_ns
         reward = -np.abs(act).mean(axis=1)
-        images = _frame_images(pos) if (frames or frame_blobs) else None
-        image_text = _frames_text(images) if frames else None
-        if frame_blobs:
-            total_bytes += write_frame_blobs(ep_dir, images)
+        images = _frame_images(pos) if (self.frames or self.frame_blobs) else None
+        image_text = _frames_text(images) if self.frames else None
+        total_bytes = write_frame_blobs(ep_dir, images) if self.frame_blobs else 0
         pos_l, vel_l, act_l, ts_l, rew_l = pos.tolist(), vel.tolist(), act.tolist(), ts.tolist(), reward.tolist()
         lines = []
         for s in range(n):
             values = [s, ts_l[s], ts_l[s], *pos_l[s], *vel_l[s]]
             if image_text is not None:
                 values.append(image_text[s])
-            if frame_blobs:
+            if self.frame_blobs:
                 values.append(s)
             values += [*act_l[s], rew_l[s], "true" if s == n - 1 else "false"]
-            lines.append(template % tuple(values))
+            lines.append(self.template % tuple(values))
         text = "\n".join(lines) + "\n"
         (ep_dir / "steps" / "000000.jsonl").write_text(text, encoding="utf-8")
+        meta_text = json.dumps(self.metadata(episode_id, rate, clock_ns, (n - 1) * period_ns, imagined), indent=1)
+        (ep_dir / "metadata.json").write_text(meta_text, encoding="utf-8")
+        return total_bytes + len(text) + len(meta_text), int(ts[-1])
+
+    def metadata(self, episode_id: str, rate: float, start_ns: int, duration_ns: int, imagined: bool) -> dict:
         tags = ["synthetic", f"{int(rate)}hz"] + ([IMAGINED_TAG] if imagined else [])
-        metadata = {
+        return {
             "schema_version": "1.1",
             "episode_id": episode_id,
             "xr_mode": "trainer",
@@ -167,17 +200,11 @@ def generate_dataset(out_dir: str | Path, n_steps_total: int, obs_dim: int = 20,
             "robot_model": "synthetic_arm",
             "tags": tags,
             "software": {"xr_app": "gen_dataset", "continuonbrain_os": "gen_dataset", "glove_firmware": "absent"},
-            "start_time_unix_ms": clock_ns // 10**6,
-            "duration_ms": (n - 1) * period_ns // 10**6,
+            "start_time_unix_ms": start_ns // 10**6,
+            "duration_ms": duration_ns // 10**6,
             "provenance": {"origin": ORIGIN_IMAGINED if imagined else ORIGIN_REAL,
-                           "notes": f"seed={seed} rate_hz={rate}"},
+                           "notes": f"seed={self.seed} rate_hz={rate}"},
         }
-        meta_text = json.dumps(metadata, indent=1)
-        (ep_dir / "metadata.json").write_text(meta_text, encoding="utf-8")
-        total_bytes += len(text) + len(meta_text)
-        clock_ns = int(ts[-1]) + 5 * 10**9  # next recording starts a few seconds later
-    return GeneratedDataset(out, len(lengths), sum(n for n, _ in lengths), n_imagined, total_bytes,
-                            time.perf_counter() - started)
 
 
 def write_episode(dataset_dir: str | Path, episode_id: str, steps: list[dict], *,
