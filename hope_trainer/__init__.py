@@ -1,8 +1,8 @@
 """HOPE Seed Trainer as a tool: the `hope-trainer` command (`python -m hope_trainer`) and the
 commands that compose every layer below it (serve, demo, infer, the webapp launcher).
 
-This is the top layer: it may import hope_models, registry, daemon, workers and webapp; nothing
-imports it (children are started by module name, see hope_models/child_command.py).
+This is the top layer: it may import hope_models, registry, daemon, workers and webapp; no layer
+below imports it (children are started by module name, see hope_models/child_command.py).
 """
 from __future__ import annotations
 

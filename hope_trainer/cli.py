@@ -24,10 +24,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim-demos": ("hope_models.cli.sim_demos", "record expert demonstrations in the dm_control reacher as RLDS"),
     "imagine": ("hope_models.cli.imagine", "produce imagined rollouts by offline search, stored as RLDS"),
     "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
-    "demo": ("hope_trainer.commands.demo", "the whole loop through the services: sim demos, chain training, gate, serve, reflex"),
+    "demo": ("hope_trainer.commands.demo",
+             "the whole loop through the services: sim demos, chain training, gate, serve, reflex"),
     "demo-data": ("hope_models.cli.demo", "the data-layer demo on generated episodes (no server)"),
     # the service side: none of these imports torch in its own process (training runs in job children)
-    "serve": ("hope_trainer.commands.serve", "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
+    "serve": ("hope_trainer.commands.serve",
+              "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
     "daemon": ("daemon.cli.daemon", "the supervisor service: dispatch, monitors, recovery, events (systemd)"),
     "worker": ("workers.cli", "the Celery worker that trains one queued run at a time (-Q queue)"),
     "webapp": ("hope_trainer.commands.webapp", "the Robot Editor API and Socket.IO server (systemd; events via Redis)"),
@@ -41,7 +43,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # promotion: promote gates with torch in its own process; rollback is torch-free
     "promote": ("daemon.cli.promote", "gate a completed run's checkpoint and promote it if it passes"),
     "rollback": ("daemon.cli.rollback", "serve the previously promoted model of a component again"),
-    "infer": ("hope_trainer.commands.infer", "one tick of the promoted model: action, version, latency (serve, or --local)"),
+    "infer": ("hope_trainer.commands.infer",
+              "one tick of the promoted model: action, version, latency (serve, or --local)"),
 }
 
 

@@ -45,8 +45,8 @@ def _run(cmd: list, **kw) -> subprocess.CompletedProcess:
 
 def _clean_env(**extra: str) -> dict[str, str]:
     """This environment without what would point a child at the checkout or at another $HOPE_HOME."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("HOPE_", "PYTHON", "PIP_")) and k not in ("VIRTUAL_ENV", "NOTIFY_SOCKET", "WATCHDOG_USEC")}
+    dropped = ("VIRTUAL_ENV", "NOTIFY_SOCKET", "WATCHDOG_USEC")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("HOPE_", "PYTHON", "PIP_")) and k not in dropped}
     env.update({"PIP_DISABLE_PIP_VERSION_CHECK": "1", "PIP_NO_INPUT": "1", "PYTHONUNBUFFERED": "1"}, **extra)
     return env
 
