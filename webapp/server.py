@@ -33,6 +33,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler, select_address_family
+
 log = logging.getLogger(__name__)
 
 
@@ -87,124 +89,125 @@ def _refusal(limit: int) -> bytes:
     return head + body
 
 
-def _make_server_classes():
-    from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler
+class GuardedRequestHandler(WSGIRequestHandler):
+    """Werkzeug's handler with the socket timeout, and each request's connection put in its phase."""
 
-    class GuardedRequestHandler(WSGIRequestHandler):
-        def setup(self):
-            self.timeout = self.server.limits.io_timeout_s  # StreamRequestHandler applies it to the socket
-            super().setup()
+    def setup(self):
+        self.timeout = self.server.limits.io_timeout_s  # StreamRequestHandler applies it to the socket
+        super().setup()
 
-        def make_environ(self):
-            environ = super().make_environ()
-            conn = self.server.connection_of(self.connection)
-            environ[_CONN_KEY] = conn
-            limits = self.server.limits
-            if conn is not None:
-                if environ.get("HTTP_UPGRADE", "").lower() == "websocket":
-                    conn.enter("websocket", None)
-                    self.connection.settimeout(limits.ws_idle_timeout_s)
-                elif _has_body(environ):
-                    conn.enter("body", time.monotonic() + limits.body_timeout_s)
-                    environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ)
-                else:
-                    conn.enter("app", None)
-            return environ
+    def make_environ(self):
+        environ = super().make_environ()
+        conn = self.server.connection_of(self.connection)
+        environ[_CONN_KEY] = conn
+        limits = self.server.limits
+        if conn is not None:
+            if environ.get("HTTP_UPGRADE", "").lower() == "websocket":
+                conn.enter("websocket", None)
+                self.connection.settimeout(limits.ws_idle_timeout_s)
+            elif _has_body(environ):
+                conn.enter("body", time.monotonic() + limits.body_timeout_s)
+                environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ)
+            else:
+                conn.enter("app", None)
+        return environ
 
-        def log_error(self, format, *args):  # noqa: A002 - http.server's signature
-            # "Request timed out" and friends from clients we cut off are not the service's errors.
-            log.debug("http: " + format, *args)
+    def log_error(self, format, *args):  # noqa: A002 - http.server's signature
+        # "Request timed out" and friends from clients we cut off are not the service's errors.
+        log.debug("http: " + format, *args)
 
-    class GuardedServer(ThreadedWSGIServer):
-        def __init__(self, *args, limits: ConnectionLimits, **kwargs):
-            self.limits = limits
-            self._conns: dict[int, _Connection] = {}
-            self._conns_lock = threading.Lock()
-            self.refused = 0
-            super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
-            self._reaper_stop = threading.Event()
-            self._reaper = threading.Thread(target=self._reap, name="http-deadlines", daemon=True)
-            self._reaper.start()
 
-        def connection_of(self, sock) -> _Connection | None:
-            with self._conns_lock:
-                return self._conns.get(id(sock))
+class GuardedServer(ThreadedWSGIServer):
+    """Werkzeug's threaded server under the limits: the connection cap (evicting a stalled request
+    first), and a reaper thread that cuts a connection past its phase's deadline."""
 
-        @property
-        def open_connections(self) -> int:
-            with self._conns_lock:
-                return len(self._conns)
+    def __init__(self, *args, limits: ConnectionLimits, **kwargs):
+        self.limits = limits
+        self._conns: dict[int, _Connection] = {}
+        self._conns_lock = threading.Lock()
+        self.refused = 0
+        super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
+        self._reaper_stop = threading.Event()
+        self._reaper = threading.Thread(target=self._reap, name="http-deadlines", daemon=True)
+        self._reaper.start()
 
-        def process_request(self, request, client_address):
-            victim = None
-            with self._conns_lock:
-                full = len(self._conns) >= self.limits.max_connections
-                if full and len(self._conns) < self.limits.max_connections + EVICTION_SLACK:
-                    # A client still sending its request after others have been served is the one
-                    # to drop (slow-header floods), not the newcomer: evict the oldest such.
-                    stalled = [c for c in self._conns.values() if c.phase in ("headers", "body") and not c.evicted]
-                    if stalled:
-                        victim = min(stalled, key=lambda c: c.opened)
-                        victim.evicted, full = True, False
-                if not full:
-                    self._conns[id(request)] = _Connection(request, time.monotonic() + self.limits.header_timeout_s)
-            if victim is not None:
-                victim.cut()
-            if full:
-                self.refused += 1
-                self._refuse(request)
-                return
+    def connection_of(self, sock) -> _Connection | None:
+        with self._conns_lock:
+            return self._conns.get(id(sock))
+
+    @property
+    def open_connections(self) -> int:
+        with self._conns_lock:
+            return len(self._conns)
+
+    def process_request(self, request, client_address):
+        victim = None
+        with self._conns_lock:
+            full = len(self._conns) >= self.limits.max_connections
+            if full and len(self._conns) < self.limits.max_connections + EVICTION_SLACK:
+                # A client still sending its request after others have been served is the one
+                # to drop (slow-header floods), not the newcomer: evict the oldest such.
+                stalled = [c for c in self._conns.values() if c.phase in ("headers", "body") and not c.evicted]
+                if stalled:
+                    victim = min(stalled, key=lambda c: c.opened)
+                    victim.evicted, full = True, False
+            if not full:
+                self._conns[id(request)] = _Connection(request, time.monotonic() + self.limits.header_timeout_s)
+        if victim is not None:
+            victim.cut()
+        if full:
+            self.refused += 1
+            self._refuse(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except Exception:  # e.g. "can't start new thread": the connection must not stay counted
+            self._forget(request)
+            self.shutdown_request(request)
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._forget(request)
+
+    def _forget(self, request) -> None:
+        with self._conns_lock:
+            self._conns.pop(id(request), None)
+
+    def _refuse(self, request) -> None:
+        # On the accepting thread: never block it. Read what the client already sent (so closing
+        # does not reset the connection before it sees the answer), say why, close.
+        try:
+            request.setblocking(False)
             try:
-                super().process_request(request, client_address)
-            except Exception:  # e.g. "can't start new thread": the connection must not stay counted
-                self._forget(request)
-                self.shutdown_request(request)
-                raise
-
-        def process_request_thread(self, request, client_address):
-            try:
-                super().process_request_thread(request, client_address)
-            finally:
-                self._forget(request)
-
-        def _forget(self, request) -> None:
-            with self._conns_lock:
-                self._conns.pop(id(request), None)
-
-        def _refuse(self, request) -> None:
-            # On the accepting thread: never block it. Read what the client already sent (so closing
-            # does not reset the connection before it sees the answer), say why, close.
-            try:
-                request.setblocking(False)
-                try:
-                    request.recv(65536)
-                except OSError:
-                    pass
-                request.send(_refusal(self.limits.max_connections))
+                request.recv(65536)
             except OSError:
                 pass
-            if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
-                log.warning("refused a connection: %d open, the limit (%d refused so far)",
-                            self.limits.max_connections, self.refused)
-            self.shutdown_request(request)
+            request.send(_refusal(self.limits.max_connections))
+        except OSError:
+            pass
+        if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+            log.warning("refused a connection: %d open, the limit (%d refused so far)",
+                        self.limits.max_connections, self.refused)
+        self.shutdown_request(request)
 
-        def _reap(self) -> None:
-            while not self._reaper_stop.wait(0.25):
-                now = time.monotonic()
-                with self._conns_lock:
-                    late = [c for c in self._conns.values() if c.deadline is not None and now >= c.deadline]
-                for conn in late:
-                    conn.deadline = None
-                    log.debug("http: closing a connection that overran its %s deadline", conn.phase)
-                    conn.cut()
+    def _reap(self) -> None:
+        while not self._reaper_stop.wait(0.25):
+            now = time.monotonic()
+            with self._conns_lock:
+                late = [c for c in self._conns.values() if c.deadline is not None and now >= c.deadline]
+            for conn in late:
+                conn.deadline = None
+                log.debug("http: closing a connection that overran its %s deadline", conn.phase)
+                conn.cut()
 
-        def server_close(self):
-            stop = getattr(self, "_reaper_stop", None)
-            if stop is not None:
-                stop.set()
-            super().server_close()
-
-    return GuardedServer
+    def server_close(self):
+        stop = getattr(self, "_reaper_stop", None)
+        if stop is not None:
+            stop.set()
+        super().server_close()
 
 
 def _has_body(environ) -> bool:
@@ -277,8 +280,6 @@ def _bounded_drain(app, drain_s: float):
 
 class HttpServer:
     def __init__(self, app, host: str, port: int, limits: ConnectionLimits | None = None):
-        from werkzeug.serving import select_address_family
-
         # Werkzeug logs every request at INFO; keep the service logs about the service.
         logging.getLogger("werkzeug").setLevel(logging.WARNING)
         self.limits = limits or ConnectionLimits()
@@ -290,8 +291,8 @@ class HttpServer:
             sock.bind((host, port))
             sock.listen(128)
             bound_port = sock.getsockname()[1]
-            self._server = _make_server_classes()(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
-                                                  fd=sock.fileno(), limits=self.limits)
+            self._server = GuardedServer(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
+                                         fd=sock.fileno(), limits=self.limits)
         except OSError as exc:
             raise ServerError(f"cannot listen on {host}:{port}: {exc.strerror or exc} "
                               "(set another port with --port or HOPE_PORT)") from None
