@@ -18,6 +18,8 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from hope_models.numbers import NumberError, as_float, as_int, from_text, short
+
 DEFAULT_HOME = "~/.local/share/hope-trainer"
 
 
@@ -42,6 +44,9 @@ class Settings:
     # (webapp/hosts.py): a browser reaching it through any other name may be DNS rebinding.
     allowed_hosts: list[str] = field(default_factory=list)
     max_connections: int = 200  # open HTTP/WebSocket connections at once; more get 503 (webapp/server.py)
+    # Engine.IO's ping interval for Socket.IO sessions (python-engineio's default): how often the
+    # server pings a browser, and how long a closed session's ping thread lingers (webapp/socket_guard.py)
+    socketio_ping_interval_s: float = 25.0
     max_file_mb: int = 512  # reader guard: larger episode files are refused
     max_line_kb: int = 64 * 1024  # reader guard: a JSONL line longer than this is refused
     # promotion (hope_models/promote/gate.py, daemon/autopromote.py)
@@ -71,6 +76,7 @@ _ENV = {
     "HOPE_MEMORY_BUDGET_MB": "memory_budget_mb",
     "HOPE_ALLOWED_HOSTS": "allowed_hosts",
     "HOPE_MAX_CONNECTIONS": "max_connections",
+    "HOPE_SOCKETIO_PING_INTERVAL_S": "socketio_ping_interval_s",
     "HOPE_THERMAL_ZONE": "thermal_zone_path",
     "HOPE_VCGENCMD": "vcgencmd_path",
     "HOPE_THERMAL_SOFT_C": "thermal_soft_c",
@@ -87,13 +93,13 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
-            "max_connections": 8}
+            "max_connections": 8, "socketio_ping_interval_s": 1.0}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
 _WORD_LISTS = {"allowed_hosts"}
 
 
-def _coerce(name: str, value, where: str):
+def _coerce(name: str, value, where: str, from_env: bool = False):
     types = {f.name: f.type for f in fields(Settings)}
     kind = types[name]
     try:
@@ -104,17 +110,11 @@ def _coerce(name: str, value, where: str):
             if text in _TRUE or text in _FALSE:
                 return text in _TRUE
             raise ValueError(value)
-        if kind == "int":
-            if isinstance(value, bool):
-                raise ValueError(value)
-            return _at_least(name, int(value), where)
-        if kind == "float":
-            if isinstance(value, bool):
-                raise ValueError(value)
-            v = float(value)
-            if v != v or v in (float("inf"), float("-inf")):
-                raise ValueError(value)
-            return _at_least(name, v, where)
+        if kind in ("int", "float"):
+            # the one rule for numbers (numbers.py): text only where everything is text
+            number = from_text(name, value) if from_env else value
+            checked = as_int(name, number) if kind == "int" else as_float(name, number)
+            return _at_least(name, checked, where)
         if kind == "list[str]":
             if isinstance(value, str):
                 if name in _WORD_LISTS:
@@ -126,6 +126,8 @@ def _coerce(name: str, value, where: str):
         return str(value)
     except SettingsError:
         raise
+    except NumberError as exc:
+        raise SettingsError(f"{where}: setting {name!r} = {short(value)} is not a valid {kind}: {exc.reason}") from None
     except (TypeError, ValueError):
         raise SettingsError(f"{where}: setting {name!r} = {value!r} is not a valid {kind}") from None
 
@@ -197,7 +199,7 @@ def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | N
             values[key] = _coerce(key, value, str(config_file))
     for var, name in _ENV.items():
         if var in env and env[var] != "":
-            values[name] = _coerce(name, env[var], f"environment variable {var}")
+            values[name] = _coerce(name, env[var], f"environment variable {var}", from_env=True)
     if "HOPE_DATA_ROOTS" in env:
         values["data_roots"] = _coerce("data_roots", env["HOPE_DATA_ROOTS"], "environment variable HOPE_DATA_ROOTS")
     return Settings(home=home_path, **values)

@@ -15,19 +15,19 @@ at the time the job starts.
 """
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hope_models.numbers import NumberError, as_int, short
 from hope_models.paths import PathError, confine_path
+from hope_models.train.config import (DEFAULT_REQUEST_STEPS, REQUEST_FIELDS, ConfigValueError, check_value,
+                                      over_deployment_budget)
 from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
-from hope_models.train.model_config import short
 
 QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
-DEFAULT_STEPS = 2000
-MAX_STEPS = 100_000_000
+DEFAULT_STEPS = DEFAULT_REQUEST_STEPS
 RUN_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # registry.models.new_run_id: r-<time>-<hex>
 
 
@@ -41,63 +41,25 @@ def listed(names: list[str], at_most: int = 5) -> str:
     return shown + (f" and {len(names) - at_most} more" if len(names) > at_most else "")
 
 
-# One rule for numbers at every door (the API's other endpoints use check_int too,
-# webapp/api/validation.py): a number is a JSON number, never a string that looks like one, so
-# "2000" is refused wherever 2000 is accepted; an integer may be written 2000.0, not 2000.5.
 def check_int(field_name: str, value: Any, *, minimum: int | None = None, maximum: int | None = None) -> int:
-    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
-        value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise RunRequestError(f"{field_name}: expected an integer, got {short(value)}")
-    v = value
-    if minimum is not None and v < minimum:
-        raise RunRequestError(f"{field_name}: {v} must be >= {minimum}")
-    if maximum is not None and v > maximum:
-        raise RunRequestError(f"{field_name}: {v} must be <= {maximum}")
-    return v
-
-
-def _float(field_name: str, value: Any, *, positive: bool = False, lo: float | None = None,
-           hi_exclusive: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RunRequestError(f"{field_name}: expected a number, got {short(value)}")
+    """An integer field of a request, by the one rule for numbers (hope_models/numbers.py)."""
     try:
-        v = float(value)
-    except OverflowError:  # an integer with hundreds of digits
-        v = math.inf
-    if not math.isfinite(v):
-        raise RunRequestError(f"{field_name}: {short(value)} is not a finite number")
-    if positive and v <= 0:
-        raise RunRequestError(f"{field_name}: {v} must be > 0")
-    if lo is not None and v < lo:
-        raise RunRequestError(f"{field_name}: {v} must be >= {lo}")
-    if hi_exclusive is not None and v >= hi_exclusive:
-        raise RunRequestError(f"{field_name}: {v} must be < {hi_exclusive}")
-    return v
+        return as_int(field_name, value, minimum=minimum, maximum=maximum)
+    except NumberError as exc:
+        raise RunRequestError(str(exc)) from None
 
 
-def _model_config(field_name: str, value: Any) -> dict:
-    if not isinstance(value, dict):
-        raise RunRequestError(f"{field_name}: expected a JSON object, e.g. {{\"d_model\": 64}}, got {short(value)}")
-    return dict(value)
+# The TrainConfig options a request may carry (train/config.py says which and how each is
+# checked), except vqvae_dir, which a request names on its own: a path confined to the data
+# roots, or vqvae_run.
+CONFIG_FIELDS = tuple(name for name in REQUEST_FIELDS if name != "vqvae_dir")
 
 
-# TrainConfig overrides a request may carry: name -> checker. Names are TrainConfig fields
-# (tests/test_cli_daemon.py checks that), except vqvae_run (the worker maps it to a run dir).
-CONFIG_FIELDS = {
-    "seed": lambda n, v: check_int(n, v, minimum=0, maximum=2**32 - 1),  # what numpy's seed takes
-    "batch_size": lambda n, v: check_int(n, v, minimum=1, maximum=65536),
-    "lr": lambda n, v: _float(n, v, positive=True),
-    "warmup": lambda n, v: check_int(n, v, minimum=0, maximum=MAX_STEPS),
-    "threads": lambda n, v: check_int(n, v, minimum=1, maximum=256),
-    "checkpoint_every_steps": lambda n, v: check_int(n, v, minimum=1, maximum=MAX_STEPS),
-    "checkpoint_every_s": lambda n, v: _float(n, v, positive=True),
-    "keep_last": lambda n, v: check_int(n, v, minimum=1, maximum=1000),
-    "log_every": lambda n, v: check_int(n, v, minimum=1, maximum=MAX_STEPS),
-    "memory_budget_mb": lambda n, v: _float(n, v, positive=True),
-    "imagined_ratio": lambda n, v: _float(n, v, lo=0.0, hi_exclusive=1.0),
-    "model_config": _model_config,
-}
+def check_config_field(name: str, value: Any) -> Any:
+    try:
+        return check_value(name, value)
+    except ConfigValueError as exc:
+        raise RunRequestError(str(exc)) from None
 
 
 @dataclass
@@ -156,7 +118,7 @@ def build_request(*, component: Any, data: Any, steps: Any = None, queue: Any = 
     if unknown:
         raise RunRequestError(f"unknown config field(s) {listed(unknown)} "
                               f"(known: {', '.join(sorted(CONFIG_FIELDS))})")
-    checked = {k: CONFIG_FIELDS[k](k, v) for k, v in overrides.items() if v is not None}
+    checked = {k: check_config_field(k, v) for k, v in overrides.items() if v is not None}
     if vqvae_dir is not None and vqvae_run is not None:
         raise RunRequestError("vqvae_dir and vqvae_run: give one, not both")
     if vqvae_run is not None and (not isinstance(vqvae_run, str) or not RUN_ID_RE.fullmatch(vqvae_run.strip())):
@@ -164,7 +126,7 @@ def build_request(*, component: Any, data: Any, steps: Any = None, queue: Any = 
     return RunRequest(
         component=check_component(component),
         data=resolve_path("data", data, base=base, allowed_roots=allowed_roots),
-        steps=DEFAULT_STEPS if steps is None else check_int("steps", steps, minimum=1, maximum=MAX_STEPS),
+        steps=DEFAULT_STEPS if steps is None else check_config_field("steps", steps),
         queue=check_queue(queue),
         priority=check_int("priority", priority, minimum=-1000, maximum=1000),
         max_attempts=check_int("max_attempts", max_attempts, minimum=1, maximum=100),
@@ -247,17 +209,15 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
     from hope_models.data.features import FeatureSpecError
     from hope_models.train import checkpoint as ckpt
     from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
-    from hope_models.train.loop import TrainConfig
+    from hope_models.train.config import TrainConfig
     from hope_models.train.model_config import check_keys, read_vqvae_config, resolve
 
     names = components or [req.component]
     chain = components is not None
-    limit = float(settings.memory_budget_mb)
-    budget = req.overrides.get("memory_budget_mb", limit)
-    if budget > limit:
-        # a request may ask for less than the deployment allows, never for more
-        raise RunRequestError(f"memory_budget_mb: {budget:g} MB is more than this deployment's budget of {limit:g} MB "
-                              "(HOPE_MEMORY_BUDGET_MB or memory_budget_mb in config.toml); ask for at most that")
+    budget = req.overrides.get("memory_budget_mb", float(settings.memory_budget_mb))
+    too_much = over_deployment_budget(budget, settings)
+    if too_much:
+        raise RunRequestError(too_much)
     model_config = req.overrides.get("model_config", {})
     for name in names:
         try:

@@ -28,12 +28,13 @@ import socket
 import threading
 import time
 import traceback
-from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable
 
 from hope_models.train.contract import ControlCommand
-from hope_models.train.loop import TrainConfig, TrainSetupError, train
+from hope_models.train.config import (REQUEST_FIELDS, ConfigValueError, TrainConfig, check_value, deployment_values,
+                                      over_deployment_budget)
+from hope_models.train.loop import TrainSetupError, train
 from hope_models.train.run_dir_lock import wait_until_free
 from registry.report_protocol import ChannelError, RunSnapshot, StaleDelivery
 from workers.report import open_channel
@@ -48,12 +49,13 @@ LOG_MAX_EVENTS = 2000  # log events per job; later ones go to the worker log onl
 THROTTLE_SLOW = 0.5  # throttle_level 1: sleep this fraction of each step
 RUN_DIR_WAIT_S = 60.0  # how long a new child waits for a superseded one to leave the run dir
 
-# Run config keys: TrainConfig fields, minus what the run row or the daemon decides, plus chain
-# links. run_dir comes from the row; component and steps may repeat the row's values.
+# What a run's stored config may hold: the TrainConfig options a run request may set
+# (train/config.py, checked here as the door checked them), the dataset and steps, the component
+# and steps again (they must repeat the row's), and a chain link. The deployment's values (the
+# thermal sources and limits, the cache dir) come from this worker's settings.
 DAEMON_OWNED = ("thermal_zone", "vcgencmd", "thermal_soft_c", "thermal_hard_c", "thermal_resume_c")
 EXTRA_KEYS = ("vqvae_run",)  # a run id whose run_dir becomes vqvae_dir
-RUN_CONFIG_KEYS = frozenset({f.name for f in fields(TrainConfig)} - set(DAEMON_OWNED) - {"run_dir"}
-                            | set(EXTRA_KEYS))
+RUN_CONFIG_KEYS = frozenset(REQUEST_FIELDS) | {"component", "data", "steps"} | set(EXTRA_KEYS)
 
 
 class JobConfigError(ValueError):
@@ -85,24 +87,24 @@ def build_train_config(settings, run: RunSnapshot, run_dir_of: Callable[[str], s
                              f"{run.total_steps}")
     if not cfg.get("data"):
         raise JobConfigError(f"run {run.id}: config has no 'data' (the dataset path to train on)")
-    if not isinstance(cfg.get("model_config", {}), dict):
-        raise JobConfigError(f"run {run.id}: config model_config must be a JSON object, "
-                             f"got {type(cfg['model_config']).__name__}")
+    for name in REQUEST_FIELDS:
+        if cfg.get(name) is not None:
+            try:
+                cfg[name] = check_value(name, cfg[name])
+            except ConfigValueError as exc:
+                raise JobConfigError(f"run {run.id}: config {exc}") from None
     vqvae_run = cfg.pop("vqvae_run", None)
     if vqvae_run is not None:
         if cfg.get("vqvae_dir"):
             raise JobConfigError(f"run {run.id}: config sets both vqvae_run and vqvae_dir; give one")
         cfg["vqvae_dir"] = run_dir_of(str(vqvae_run))
-    budget = cfg.setdefault("memory_budget_mb", float(settings.memory_budget_mb))
-    if isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget > settings.memory_budget_mb:
-        # the door refuses this (run_request.preflight); a run row written otherwise must not
-        # take more of this machine than its owner gave the worker either
-        raise JobConfigError(f"run {run.id}: memory_budget_mb {budget:g} is more than this worker's budget of "
-                             f"{settings.memory_budget_mb} MB (HOPE_MEMORY_BUDGET_MB); a run may ask for less, "
-                             "never for more")
-    cfg.setdefault("cache_dir", str(settings.cache_dir))
-    return TrainConfig(component=run.component, run_dir=run.run_dir, steps=run.total_steps,
-                       thermal_zone=None, vcgencmd=None, **cfg)
+    # the door refuses more than the deployment's budget (run_request.preflight); a run row written
+    # otherwise must not take more of this machine than its owner gave the worker either
+    too_much = over_deployment_budget(cfg.get("memory_budget_mb", 0.0), settings, "this worker's")
+    if too_much:
+        raise JobConfigError(f"run {run.id}: {too_much}")
+    deployment = {**deployment_values(settings), "thermal_zone": None, "vcgencmd": None}
+    return TrainConfig(component=run.component, run_dir=run.run_dir, steps=run.total_steps, **{**deployment, **cfg})
 
 
 def vqvae_dir_of(run: RunSnapshot) -> Callable[[str], str]:

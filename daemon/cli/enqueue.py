@@ -13,65 +13,40 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hope_models.cli.argtypes import json_object, non_negative_int, positive_float, positive_int
+from hope_models.numbers import NumberError, as_int, from_text
+from hope_models.train.config import DEFAULT_REQUEST_STEPS, OPTIONS, REQUEST_FIELDS, add_flag, add_flags, dest_of
 from hope_models.train.contract import COMPONENTS
-
-# TrainConfig override -> the CLI attribute it comes from
-OVERRIDE_ARGS = {
-    "seed": "seed",
-    "batch_size": "batch_size",
-    "lr": "lr",
-    "warmup": "warmup",
-    "threads": "threads",
-    "checkpoint_every_steps": "checkpoint_every",
-    "checkpoint_every_s": "checkpoint_seconds",
-    "keep_last": "keep",
-    "log_every": "log_every",
-    "memory_budget_mb": "memory_budget_mb",
-    "imagined_ratio": "imagined_ratio",
-    "model_config": "model_config",
-}
 
 
 def _int(text: str) -> int:
+    """A whole number by the one rule (hope_models/numbers.py); build_request checks its bounds."""
     try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        return as_int("value", from_text("value", text))
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason) from None
 
 
 def add_job_options(parser: argparse.ArgumentParser) -> None:
-    """Options shared by enqueue and sequential: what to train on and how; all optional except --data."""
-    from registry.run_request import DEFAULT_STEPS
-
-    parser.add_argument("--data", required=True, metavar="PATH",
-                        help="RLDS dataset dir, episode dir or episode file (made absolute)")
-    parser.add_argument("--steps", type=positive_int, default=DEFAULT_STEPS,
-                        help=f"total optimizer steps (default {DEFAULT_STEPS})")
-    parser.add_argument("--seed", type=non_negative_int, default=None, help="default 0")
-    parser.add_argument("--batch-size", type=positive_int, default=None, help="default 64")
-    parser.add_argument("--lr", type=positive_float, default=None, help="peak learning rate (default 1e-3)")
-    parser.add_argument("--warmup", type=non_negative_int, default=None, help="warmup steps (default 100)")
-    parser.add_argument("--threads", type=positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
-    parser.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="N",
-                        help="checkpoint every N steps (default 500)")
-    parser.add_argument("--checkpoint-seconds", type=positive_float, default=None, metavar="T",
-                        help="and every T seconds (default 300)")
-    parser.add_argument("--keep", type=positive_int, default=None, metavar="K", help="keep the last K checkpoints")
-    parser.add_argument("--log-every", type=positive_int, default=None, metavar="N", help="metrics every N steps")
-    parser.add_argument("--memory-budget-mb", type=positive_float, default=None,
-                        help="the job's memory budget (default: settings, 3072)")
-    parser.add_argument("--imagined-ratio", type=float, default=None, help="share of imagined episodes in a batch")
-    parser.add_argument("--model-config", type=json_object, default=None, metavar="JSON",
-                        help="model config overrides, e.g. '{\"d_model\": 64}'")
+    """Options shared by enqueue and sequential: what to train on and how (TrainConfig's request
+    options, train/config.py), and where it queues; all optional except --data."""
+    add_flag(parser, "data", required=True, help=OPTIONS["data"].help + " (made absolute)")
+    add_flag(parser, "steps", default=DEFAULT_REQUEST_STEPS,
+             help=f"total optimizer steps (default {DEFAULT_REQUEST_STEPS})")
+    add_flags(parser, "request", skip=("vqvae_dir",))
     parser.add_argument("--queue", default="pi", help="the worker queue that trains it (default pi)")
     parser.add_argument("--priority", type=_int, default=0, help="higher runs first (default 0)")
-    parser.add_argument("--max-attempts", type=positive_int, default=3, metavar="K",
+    parser.add_argument("--max-attempts", type=_int, default=3, metavar="K",
                         help="attempts before a run whose worker keeps dying is failed (default 3)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
+# run config override -> the argparse attribute it comes from (both from train/config.py)
+OVERRIDE_ARGS = {name: dest_of(name) for name in REQUEST_FIELDS if name != "vqvae_dir"}
+
+
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The TrainConfig options given on the command line (the run's config overrides); vqvae_dir
+    is not one: a run request names it on its own (vqvae_dir / vqvae_run)."""
     return {key: getattr(args, attr) for key, attr in OVERRIDE_ARGS.items() if getattr(args, attr, None) is not None}
 
 
@@ -79,8 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--component", required=True, choices=COMPONENTS, help="the component to train")
     add_job_options(parser)
     vq = parser.add_mutually_exclusive_group()
-    vq.add_argument("--vqvae", metavar="DIR", default=None,
-                    help="a trained VQ-VAE (checkpoint dir or run dir) whose codes fast_loop/mid_loop read")
+    add_flag(vq, "vqvae_dir")
     vq.add_argument("--vqvae-run", metavar="RUN", default=None,
                     help="or the id of a vqvae run in the registry (it must complete first)")
 

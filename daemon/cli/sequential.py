@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 
 from daemon.cli.enqueue import add_job_options, overrides_from_args
+from hope_models.train.config import add_flag
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,8 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated components in training order, e.g. vqvae,fast_loop,mid_loop")
     add_job_options(parser)
     vq = parser.add_mutually_exclusive_group()
-    vq.add_argument("--vqvae", metavar="DIR", default=None,
-                    help="a trained VQ-VAE for a chain without vqvae (checkpoint dir or run dir)")
+    add_flag(vq, "vqvae_dir", help="a trained VQ-VAE for a chain without vqvae (checkpoint dir or run dir)")
     vq.add_argument("--vqvae-run", metavar="RUN", default=None, help="or the id of a vqvae run in the registry")
 
 

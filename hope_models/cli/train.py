@@ -19,43 +19,21 @@ import sys
 import time
 from typing import Any
 
-from hope_models.cli.argtypes import json_object, non_negative_int, positive_float, positive_int
+from hope_models.train.config import OPTIONS, add_flag, add_flags
 from hope_models.train.contract import COMPONENTS, ControlCommand
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # every option's flag, default and help come from TrainConfig (train/config.py)
     what = parser.add_mutually_exclusive_group(required=True)
-    what.add_argument("--component", choices=COMPONENTS, help="the component to train")
+    what.add_argument("--component", choices=COMPONENTS, help=OPTIONS["component"].help)
     what.add_argument("--sequential", metavar="LIST",
                       help="comma-separated components trained one after the other, each in its own process "
                            "(e.g. vqvae,fast_loop,mid_loop); each gets RUN_DIR/<component>")
-    parser.add_argument("--data", required=True, metavar="PATH", help="RLDS dataset dir, episode dir or episode file")
-    parser.add_argument("--run-dir", required=True, metavar="DIR", help="checkpoints and metrics go here; "
-                        "re-running with the same dir resumes")
-    parser.add_argument("--steps", required=True, type=positive_int, help="total optimizer steps")
-    parser.add_argument("--seed", type=non_negative_int, default=0)
-    parser.add_argument("--batch-size", type=positive_int, default=64)
-    parser.add_argument("--lr", type=positive_float, default=1e-3, help="peak learning rate (default 1e-3)")
-    parser.add_argument("--warmup", type=non_negative_int, default=100,
-                        help="warmup steps, at most a tenth of --steps (default 100)")
-    parser.add_argument("--threads", type=positive_int, default=None, help="torch threads (default 1: small models on shared cores)")
-    parser.add_argument("--checkpoint-every", type=positive_int, default=500, metavar="N",
-                        help="checkpoint every N steps (default 500)")
-    parser.add_argument("--checkpoint-seconds", type=positive_float, default=300.0, metavar="T",
-                        help="and every T seconds (default 300)")
-    parser.add_argument("--keep", type=positive_int, default=3, metavar="K", help="keep the last K checkpoints")
-    parser.add_argument("--log-every", type=positive_int, default=10, metavar="N", help="metrics every N steps")
-    parser.add_argument("--memory-budget-mb", type=positive_float, default=None,
-                        help="the job's memory budget (default: settings, 3072)")
-    parser.add_argument("--thermal-zone", metavar="PATH", default=None,
-                        help="thermal zone file to watch (default: settings, /sys/class/thermal/thermal_zone0/temp)")
-    parser.add_argument("--vqvae", metavar="DIR", default=None,
-                        help="a trained VQ-VAE (checkpoint dir or run dir) whose codes fast_loop/mid_loop read")
-    parser.add_argument("--cache-dir", metavar="DIR", default=None, help="dataset cache root (default: $HOPE_HOME/cache)")
-    parser.add_argument("--spec", metavar="FILE", default=None, help="feature spec JSON overriding the inferred one")
-    parser.add_argument("--imagined-ratio", type=float, default=0.0, help="share of imagined episodes in a batch")
-    parser.add_argument("--model-config", type=json_object, default=None, metavar="JSON",
-                        help="model config overrides, e.g. '{\"d_model\": 64}'")
+    add_flag(parser, "data", required=True)
+    add_flag(parser, "run_dir", required=True)
+    add_flag(parser, "steps", required=True)
+    add_flags(parser, "train", skip=("run_dir",))
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
@@ -157,22 +135,18 @@ def _duration(seconds: Any) -> str:
 
 
 def config_from_args(args: argparse.Namespace, settings, component: str, run_dir: str):
-    from hope_models.train.loop import TrainConfig
+    """The TrainConfig of the flags given, the deployment's values from `settings` for the rest
+    of what the deployment decides, TrainConfig's defaults for everything else."""
+    from hope_models.train.config import TrainConfig, deployment_values, over_deployment_budget, values_from_args
+    from hope_models.train.loop import TrainSetupError
 
-    kw: dict[str, Any] = {}
-    if args.threads is not None:
-        kw["threads"] = args.threads
-    return TrainConfig(
-        component=component, data=args.data, run_dir=run_dir, steps=args.steps, seed=args.seed,
-        batch_size=args.batch_size, lr=args.lr, warmup=args.warmup,
-        checkpoint_every_steps=args.checkpoint_every, checkpoint_every_s=args.checkpoint_seconds,
-        keep_last=args.keep, log_every=args.log_every,
-        memory_budget_mb=float(args.memory_budget_mb or settings.memory_budget_mb),
-        thermal_zone=args.thermal_zone or settings.thermal_zone_path, vcgencmd=settings.vcgencmd_path,
-        thermal_soft_c=settings.thermal_soft_c, thermal_hard_c=settings.thermal_hard_c,
-        thermal_resume_c=settings.thermal_resume_c, vqvae_dir=args.vqvae,
-        cache_dir=str(args.cache_dir or settings.cache_dir), spec_path=args.spec,
-        imagined_ratio=args.imagined_ratio, model_config=dict(args.model_config or {}), **kw)
+    given = values_from_args(args, "train")
+    given.pop("run_dir", None)  # a sequence gives each component its own
+    too_much = over_deployment_budget(given.get("memory_budget_mb", 0.0), settings)
+    if too_much:
+        raise TrainSetupError(too_much)
+    return TrainConfig(component=component, data=args.data, run_dir=run_dir, steps=args.steps,
+                       **{**deployment_values(settings), **given})
 
 
 def _run_one(args: argparse.Namespace, settings) -> int:

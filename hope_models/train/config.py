@@ -87,27 +87,27 @@ class TrainConfig:
     steps: int = option(kind="int", minimum=1, maximum=MAX_STEPS, doors=(),
                         help="total optimizer steps of the job (a re-run continues up to this)")
     seed: int = option(0, kind="int", minimum=0, maximum=2**32 - 1, math=True,  # what numpy's seed takes
-                       help="seeds the init, the batches and every random draw (default 0)")
-    batch_size: int = option(64, kind="int", minimum=1, maximum=65536, math=True, help="windows per batch (default 64)")
-    lr: float = option(1e-3, kind="float", above=0, math=True, help="peak learning rate (default 1e-3)")
+                       help="seeds the init, the batches and every random draw")
+    batch_size: int = option(64, kind="int", minimum=1, maximum=65536, math=True, help="windows per batch")
+    lr: float = option(1e-3, kind="float", above=0, math=True, help="peak learning rate")
     warmup: int = option(100, kind="int", minimum=0, maximum=MAX_STEPS, math=True,
-                         help="linear warmup steps, at most a tenth of --steps, then cosine decay (default 100)")
+                         help="linear warmup steps, at most a tenth of --steps, then cosine decay")
     min_lr_ratio: float = option(0.1, kind="float", minimum=0, maximum=1, math=True,
-                                 help="the cosine ends at lr x this (default 0.1)")
+                                 help="the cosine ends at lr x this")
     weight_decay: float = option(0.01, kind="float", minimum=0, math=True,
-                                 help="AdamW weight decay, on matrices only (default 0.01)")
+                                 help="AdamW weight decay, on matrices only")
     grad_clip: float = option(1.0, kind="float", minimum=0, math=True,
-                              help="max global gradient norm; 0 disables clipping (default 1.0)")
+                              help="max global gradient norm; 0 disables clipping")
     threads: int = option(kind="int", minimum=1, maximum=256, factory=_single_thread,
-                          help="torch threads (default 1: small models on shared cores)")
+                          help="torch threads (small models on shared cores: more rarely help)")
     checkpoint_every_steps: int = option(500, kind="int", minimum=1, maximum=MAX_STEPS, flag="--checkpoint-every",
-                                         metavar="N", help="checkpoint every N steps (default 500)")
+                                         metavar="N", help="checkpoint every N steps")
     checkpoint_every_s: float = option(300.0, kind="float", above=0, flag="--checkpoint-seconds", metavar="T",
-                                       help="and every T seconds (default 300)")
+                                       help="and every T seconds")
     keep_last: int = option(3, kind="int", minimum=1, maximum=1000, flag="--keep", metavar="K",
-                            help="keep the last K checkpoints (default 3)")
+                            help="keep the last K checkpoints")
     log_every: int = option(10, kind="int", minimum=1, maximum=MAX_STEPS, metavar="N",
-                            help="metrics every N steps (default 10)")
+                            help="metrics every N steps")
     memory_budget_mb: float = option(float(_DEPLOYMENT.memory_budget_mb), kind="float", above=0,
                                      help="the job's memory budget in MB (default: the settings' memory_budget_mb, "
                                           "HOPE_MEMORY_BUDGET_MB; a run may ask for less, never more)")
@@ -128,9 +128,9 @@ class TrainConfig:
     spec_path: str | None = option(None, kind="path", doors=("train",), flag="--spec", metavar="FILE",
                                    help="feature spec JSON overriding the inferred one")
     imagined_ratio: float = option(0.0, kind="float", minimum=0, below=1, math=True,
-                                   help="share of imagined episodes in a batch, in [0, 1) (default 0)")
+                                   help="share of imagined episodes in a batch, in [0, 1)")
     val_fraction: float = option(0.1, kind="float", minimum=0, below=1, math=True,
-                                 help="share of episodes held out for validation, in [0, 1) (default 0.1)")
+                                 help="share of episodes held out for validation, in [0, 1)")
     model_config: dict[str, Any] = option(kind="object", factory=dict, math=True, metavar="JSON",
                                           help="model config overrides, e.g. '{\"d_model\": 64}'")
     control_interval_s: float = option(0.2, kind="float", minimum=0, doors=(),
@@ -159,7 +159,8 @@ class TrainConfig:
                 raise ConfigValueError(f"{name}={short(value)} {rule}" if rule else str(exc)) from None
 
 
-OPTIONS: dict[str, Option] = {f.name: f.metadata["option"] for f in fields(TrainConfig)}
+_FIELDS = {f.name: f for f in fields(TrainConfig)}
+OPTIONS: dict[str, Option] = {name: f.metadata["option"] for name, f in _FIELDS.items()}
 IDENTITY = tuple(name for name, opt in OPTIONS.items() if opt.math)
 REQUEST_FIELDS = tuple(name for name, opt in OPTIONS.items() if "request" in opt.doors)
 TRAIN_FLAGS = tuple(name for name, opt in OPTIONS.items() if "train" in opt.doors)
@@ -180,7 +181,7 @@ def check_value(name: str, value: Any) -> Any:
         raise ConfigValueError(str(exc)) from exc
     if opt.kind == "object":
         if not isinstance(value, dict):
-            raise ConfigValueError(f"{name}: expected a JSON object, e.g. {{\"d_model\": 64}}, got {short(value)}")
+            raise ConfigValueError(f"{name} must be a JSON object, e.g. {{\"d_model\": 64}}, got {short(value)}")
         return dict(value)
     if opt.kind in ("path", "name"):
         if not isinstance(value, str) or not value:
@@ -226,8 +227,17 @@ def add_flag(parser: Any, name: str, **overrides: Any) -> None:
     (required=True, default=..., help=...)."""
     opt = OPTIONS[name]
     kw = {"dest": dest_of(name), "type": _text_type(name), "default": None, "metavar": opt.metavar,
-          "help": opt.help, **overrides}
+          "help": opt.help + _default_text(name), **overrides}
     parser.add_argument(flag_of(name), **kw)
+
+
+def _default_text(name: str) -> str:
+    """" (default X)" from the field itself, so a help text never restates a default."""
+    f = _FIELDS[name]
+    default = f.default_factory() if f.default_factory is not MISSING else f.default
+    if "default" in OPTIONS[name].help or default is MISSING or default is None or isinstance(default, dict):
+        return ""
+    return f" (default {default:g})" if isinstance(default, float) else f" (default {default})"
 
 
 def add_flags(parser: argparse.ArgumentParser, door: str, *, skip: tuple[str, ...] = ()) -> None:
@@ -249,6 +259,16 @@ def values_from_args(args: argparse.Namespace, door: str) -> dict[str, Any]:
     return out
 
 
+def over_deployment_budget(budget: float, settings: Settings, whose: str = "this deployment's") -> str | None:
+    """Why a run asking for `budget` MB may not have it (a run may ask for less than the
+    deployment's memory_budget_mb, never for more), or None when it may."""
+    limit = float(settings.memory_budget_mb)
+    if budget <= limit:
+        return None
+    return (f"memory_budget_mb: {budget:g} MB is more than {whose} budget of {settings.memory_budget_mb} MB "
+            "(HOPE_MEMORY_BUDGET_MB or memory_budget_mb in config.toml); a run may ask for less, never for more")
+
+
 def deployment_values(settings: Settings) -> dict[str, Any]:
     """The fields the deployment decides, from loaded settings."""
     return {"memory_budget_mb": float(settings.memory_budget_mb), "thermal_zone": settings.thermal_zone_path,
@@ -259,4 +279,4 @@ def deployment_values(settings: Settings) -> dict[str, Any]:
 
 __all__ = ["ConfigValueError", "DEFAULT_REQUEST_STEPS", "IDENTITY", "MAX_STEPS", "OPTIONS", "Option",
            "REQUEST_FIELDS", "TRAIN_FLAGS", "TrainConfig", "add_flag", "add_flags", "check_value", "deployment_values",
-           "dest_of", "flag_of", "values_from_args"]
+           "dest_of", "flag_of", "over_deployment_budget", "values_from_args"]
