@@ -26,7 +26,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval-reflex": ("hope_models.cli.eval_reflex", "run a fast_loop in closed loop in the reacher and score it"),
     "demo": ("hope_trainer.commands.demo",
              "the whole loop through the services: sim demos, chain training, gate, serve, reflex"),
-    "demo-data": ("hope_models.cli.demo", "the data-layer demo on generated episodes (no server)"),
     # the service side: none of these imports torch in its own process (training runs in job children)
     "serve": ("hope_trainer.commands.serve",
               "all-in-one: daemon + webapp + a worker child (first run, no Redis needed)"),
