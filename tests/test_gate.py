@@ -19,7 +19,7 @@ from daemon import promotion
 from registry.db import Registry
 from registry.models import Model
 from hope_models.promote.gate import GateError, gate_candidate, sim_task
-from hope_models.promote.pointers import checkpoint_version, read_pointer
+from hope_models.promoted import checkpoint_version, read_pointer
 from hope_models.settings import load_settings
 
 ENV = {"HOPE_GATE_REFLEX_EPISODES": "2"}
@@ -164,13 +164,13 @@ def hostile(models, tmp_path, edit) -> Path:
 def no_data_reads(monkeypatch):
     """Fail the test if the gate opens a dataset, a spec or a cache (or makes a cache dir)."""
     import hope_models.data.cache
-    import hope_models.train.loop
+    import hope_models.train.dataset_dir
 
     def refuse(*args, **kwargs):
         raise AssertionError(f"the gate read or created {args!r}")
 
     monkeypatch.setattr(hope_models.data.cache, "load_or_build", refuse)
-    monkeypatch.setattr(hope_models.train.loop, "dataset_dir_for", refuse)
+    monkeypatch.setattr(hope_models.train.dataset_dir, "dataset_dir_for", refuse)
 
 
 @pytest.mark.parametrize("field", ["data", "cache_dir", "spec_path"])

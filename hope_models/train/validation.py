@@ -18,10 +18,11 @@ block a checkpoint's config.json holds, so the gate re-creates a finished run's 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
-from hope_models.train.model_config import short
+from hope_models.numbers import short
+from hope_models.train.config import OPTIONS, ConfigValueError, TrainConfig, check_value
 
 
 class NoValidationSplit(ValueError):
@@ -40,30 +41,27 @@ class ValidationSetup:
     def from_train_config(cls, cfg: Any, where: str = "the training config") -> "ValidationSetup":
         """From a TrainConfig or a checkpoint's config.json "train" dict (TrainConfig.to_json_obj).
         The dict is untrusted (the gate reads it from a candidate's checkpoint): each value must be
-        of its type and within VALIDATION_LIMITS, else ValueError naming `where` and the field."""
+        of its type and within TrainConfig's bounds, else ValueError naming `where` and the field."""
         get = cfg.get if isinstance(cfg, Mapping) else (lambda k, d=None: getattr(cfg, k, d))
         values = {}
-        for name, (kind, default, lo, hi) in VALIDATION_LIMITS.items():
-            v = get(name, default)
-            if isinstance(v, bool) or not isinstance(v, (int, float) if kind is float else int):
-                raise ValueError(f"{where}: {name}={short(v)} is not {'a number' if kind is float else 'an integer'}")
-            if not (lo <= v <= hi):  # also refuses NaN
-                raise ValueError(f"{where}: {name}={short(v)} is outside {lo}..{hi}")
-            values[name] = kind(v)
+        for name in VALIDATION_FIELDS:
+            v = get(name, _DEFAULTS.get(name))
+            kind = OPTIONS[name].kind
+            if isinstance(v, bool) or not isinstance(v, (int, float) if kind == "float" else int):
+                raise ValueError(f"{where}: {name}={short(v)} is not {'a number' if kind == 'float' else 'an integer'}")
+            try:
+                values[name] = check_value(name, v)  # TrainConfig's own bounds (train/config.py)
+            except ConfigValueError:
+                raise ValueError(f"{where}: {name}={short(v)} is outside {OPTIONS[name].range_text()}") from None
         return cls(batch_size=values["batch_size"], seed=values["seed"], imagined_ratio=values["imagined_ratio"],
                    val_fraction=values["val_fraction"], batches=values["val_batches"])
 
 
-# TrainConfig field -> (type, default when absent, lowest, highest). batch_size has no default: a
-# training config always has one. The highs are far above any real run and keep a hostile config
-# from asking the gate for a batch or a number of batches that would take the Pi's memory or days.
-VALIDATION_LIMITS: dict[str, tuple[type, Any, Any, Any]] = {
-    "batch_size": (int, None, 1, 65536),
-    "seed": (int, 0, 0, 2**63 - 1),
-    "imagined_ratio": (float, 0.0, 0.0, 1.0),
-    "val_fraction": (float, 0.1, 0.0, 0.99),
-    "val_batches": (int, 4, 1, 1000),
-}
+# The TrainConfig fields validation reads. The bounds are TrainConfig's: far above any real run,
+# they keep a hostile config from asking the gate for a batch or a number of batches that would
+# take the Pi's memory or days. batch_size has no default: a training config always has one.
+VALIDATION_FIELDS = ("batch_size", "seed", "imagined_ratio", "val_fraction", "val_batches")
+_DEFAULTS = {f.name: f.default for f in fields(TrainConfig) if f.name in VALIDATION_FIELDS and f.name != "batch_size"}
 
 
 def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, imagined_ratio: float,
