@@ -1,4 +1,4 @@
-"""What a dataset holds once compiled: the figures `run_trainer.py dataset` and the demo print."""
+"""What a dataset holds once compiled: the figures `run_trainer.py dataset` and examples/data_tour.py print."""
 from __future__ import annotations
 
 import statistics

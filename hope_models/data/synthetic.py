@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """Synthetic canonical RLDS datasets: episode dirs exactly as ingest writes them.
 
-Used by the data-pipeline benchmark (bench/gen_dataset.py is its command line), the tests and the demo. The signals are
-learnable on purpose: joint positions are smooth sinusoids, velocities their derivative, and the
-action is a fixed (per seed) squashed linear function of the current state, so behaviour cloning
-on a generated dataset has something real to fit.
+Used by the data-pipeline benchmark (bench/gen_dataset.py is its command line), the tests and the
+data tour (examples/data_tour.py). The signals are learnable on purpose: joint positions are smooth
+sinusoids, velocities their derivative, and the action is a fixed (per seed) squashed linear
+function of the current state, so behaviour cloning on a generated dataset has something real to fit.
 
 Lines are formatted with one %-template per dataset instead of json.dumps per step, because the
 benchmark writes millions of steps and json.dumps is ~5x slower for float-heavy lines.
