@@ -1,12 +1,8 @@
 """A compiled dataset cache opened for reading: DatasetCache, and the layout it reads.
 
-Training reads windows from these arrays instead of JSON, so its memory does not grow with the
-dataset: the build streams one episode at a time into flat files, and readers map them (or, past
-a resident budget, read just the rows they need; see DatasetCache). The cache
-dir is named by sha256(dataset file paths + contents, the spec request, the cache format), so it is
-reused while the data is unchanged and rebuilt when any file changes. A build writes into a
-`.building-*` temp dir and renames it into place only when complete (manifest written last), so
-a crash never leaves a half cache under a valid name.
+Readers map the step arrays (or, past a resident budget, read just the rows they need; see
+DatasetCache), so training's memory does not grow with the dataset. cache.py keys and finds a
+cache (load_or_build), cache_build.py writes one.
 
 Layout of <cache_root>/<key>/:
     manifest.json   counts, dims, array shapes/dtypes, excluded episodes, fingerprints, build time
