@@ -2,7 +2,7 @@
 
 1. One tick at batch 1, every form in the same run, interleaved in blocks so machine noise falls
    on all of them alike (default model size: d_model 128, d_state 256, K=5, trained briefly):
-   - the recurrent NumPy form BrainService runs (FastLoopNumpy.act: normalise, step, denormalise),
+   - the recurrent NumPy form (FastLoopNumpyAct.act: the tick BrainService runs, normalisation folded in),
    - the whole service call (BrainService.infer with a session: validation, lock, state, answer),
    - torch's recurrent form (FastLoop.step), for reference,
    - re-running the whole window each tick: torch FastLoop.forward on the last K observations,
@@ -88,7 +88,7 @@ def train_run(data: Path, run_dir: Path, cache: Path, steps: int, every: int, mo
 def write_pointer(home: Path, ckpt: Path, model_id: int = 1) -> None:
     from datetime import datetime, timezone
 
-    from hope_models.promote.pointers import checkpoint_version, write_pointer as write
+    from hope_models.promoted import checkpoint_version, write_pointer as write
 
     version, sha = checkpoint_version(ckpt)
     write(home, "fast_loop", {"component": "fast_loop", "checkpoint": str(ckpt.resolve()), "version": version,
@@ -112,11 +112,11 @@ def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[s
     import torch
 
     from hope_models.runtime.brain_service import BrainService
-    from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
+    from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
     from hope_models.train.components import component_from_checkpoint
 
     torch.set_num_threads(1)
-    model = FastLoopNumpy.from_checkpoint(ckpt)
+    model = FastLoopNumpyAct.from_checkpoint(ckpt)
     tmodel = component_from_checkpoint(ckpt).model.eval()
     k = model.window_k
     rng = np.random.default_rng(0)
@@ -158,7 +158,7 @@ def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[s
         model.denormalise(model.forward(window[None])[0])
 
     forms: dict[str, Callable[[int], None]] = {
-        "numpy recurrent (FastLoopNumpy.act)": numpy_recurrent,
+        "numpy recurrent (FastLoopNumpyAct.act)": numpy_recurrent,
         "BrainService.infer (session)": service,
         "torch recurrent (FastLoop.step)": torch_recurrent,
         "torch window re-run (FastLoop.forward)": torch_window,
@@ -183,7 +183,7 @@ def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[s
 # -- 2. the swap pause ---------------------------------------------------------------------------------
 
 def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, Any]:
-    from hope_models.promote.pointers import checkpoint_version
+    from hope_models.promoted import checkpoint_version
     from hope_models.runtime.brain_service import BrainService
 
     va, vb = checkpoint_version(ckpt_a)[0], checkpoint_version(ckpt_b)[0]
@@ -249,7 +249,7 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
 
 def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
     from daemon import promotion
-from registry import runs
+    from registry import runs
     from registry.db import Registry
     from registry.models import Run
     from registry.run_request import build_request, submit
@@ -402,10 +402,10 @@ def main() -> int:
 
 def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
     forms = r["tick"]["K=5"]["forms"]
-    rec = forms["numpy recurrent (FastLoopNumpy.act)"]
+    rec = forms["numpy recurrent (FastLoopNumpyAct.act)"]
     svc = forms["BrainService.infer (session)"]
     out = []
-    for name, f in (("FastLoopNumpy.act", rec), ("BrainService.infer", svc)):
+    for name, f in (("FastLoopNumpyAct.act", rec), ("BrainService.infer", svc)):
         out.append({"target": f"{name} p99 < {TARGET_P99_MS:g} ms", "value": f"{f['p99_ms']:.3f} ms",
                     "pass": f["p99_ms"] < TARGET_P99_MS})
     for other in ("torch window re-run (FastLoop.forward)", "numpy window re-run (FastLoopNumpy.forward)"):

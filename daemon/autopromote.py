@@ -35,7 +35,7 @@ from sqlalchemy import exists, func, select
 from registry import runs
 from registry.models import Model, Run, utcnow
 from hope_models.child_command import trainer_argv
-from hope_models.cli.json_result import last_json_object
+from hope_models.child_result import last_json_object
 from hope_models.settings import GATE_ENV
 
 log = logging.getLogger(__name__)

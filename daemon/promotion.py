@@ -10,7 +10,7 @@ gate.py) runs in its own process (`run_trainer.py promote`); this module only re
     rollback(s, settings, "fast_loop")  # back to what was served before the current one
 
 The models table is the history; the pointer file $HOPE_HOME/promoted/<component>.json is what
-serving reads (hope_models.promote.pointers). A pointer is written after the rows are flushed and
+serving reads (hope_models.promoted). A pointer is written after the rows are flushed and
 before the caller commits: if writing it fails, the changes are rolled back (a savepoint) and
 PromotionError is raised, so the table never says "promoted" for a model the pointer does not name.
 """
@@ -25,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from registry.models import Model, Run, iso, utcnow
 from hope_models.json_finite import finite
-from hope_models.promote.pointers import PointerError, checkpoint_version, read_pointer, write_pointer
+from hope_models.promoted import PointerError, checkpoint_version, read_pointer, write_pointer
 
 HISTORY_LIMIT = 20
 
@@ -74,7 +74,7 @@ def pointer_obj(model: Model, sha256: str) -> dict[str, Any]:
 def _check_checkpoint(model: Model) -> str:
     """The sha256 of the model's weights, after checking the dir is still a complete checkpoint
     holding the same weights that were gated."""
-    from hope_models.train.checkpoint import verify
+    from hope_models.checkpoint_format import verify
 
     ckpt = Path(model.checkpoint_path)
     if not ckpt.is_dir():

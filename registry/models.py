@@ -182,7 +182,7 @@ class Model(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     component: Mapped[str] = mapped_column(String(32))
     checkpoint_path: Mapped[str] = mapped_column(Text)
-    # "<run>@<step>:<sha12>" (hope_models.promote.pointers.checkpoint_version); null only for rows
+    # "<run>@<step>:<sha12>" (hope_models.checkpoint_format.version_name); null only for rows
     # written before revision 0002
     version: Mapped[str | None] = mapped_column(String(200))
     run_id: Mapped[str | None] = mapped_column(ForeignKey("runs.id", ondelete="SET NULL"), index=True)

@@ -11,7 +11,7 @@ datasets; about 10 s in all on an idle core:
     runs["other"]                      a fast_loop for another robot (obs 8 -> act 3)
 
 `promote_pointer(home, ckpt)` writes $HOPE_HOME/promoted/fast_loop.json the way the gate does
-(hope_models.promote.pointers), and `rewrite_manifest(ckpt)` re-hashes a checkpoint dir a test has
+(hope_models.promoted), and `rewrite_manifest(ckpt)` re-hashes a checkpoint dir a test has
 edited, so the edit reaches the check under test instead of stopping at the manifest.
 """
 from __future__ import annotations
@@ -68,7 +68,7 @@ def brain_runs(tmp_path_factory) -> dict[str, Path]:
 
 def promote_pointer(home: Path, ckpt: Path, component: str = "fast_loop", model_id: int = 1) -> dict:
     """Write the component's pointer to `ckpt` as the promotion code does; returns the pointer."""
-    from hope_models.promote.pointers import checkpoint_version, write_pointer
+    from hope_models.promoted import checkpoint_version, write_pointer
 
     version, sha = checkpoint_version(ckpt)
     obj = {"component": component, "checkpoint": str(Path(ckpt).resolve()), "version": version, "sha256": sha,

@@ -796,7 +796,7 @@ def test_first_inference_time_is_recorded_once_through_the_callback(api, setting
 
     run_id, last = add_completed_run(api.registry, settings, brain_runs(tmp_path_factory)["alpha30"].parent.parent,
                                      finished_ago_s=3.0)
-    from hope_models.promote.pointers import checkpoint_version
+    from hope_models.promoted import checkpoint_version
 
     version, _ = checkpoint_version(last)
     with api.registry.session() as s:

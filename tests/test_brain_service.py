@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from brain_fixtures import brain_runs, overflowing_copy, promote_pointer, rewrite_manifest
-from hope_models.promote.pointers import checkpoint_version, pointer_path
+from hope_models.promoted import checkpoint_version, pointer_path
 from hope_models.runtime.brain_service import MAX_ABS_OBSERVATION, BrainError, BrainService
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
+from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
 
 REPO = Path(__file__).resolve().parents[1]
 OBS6 = [0.1, -0.2, 0.3, 0.05, -0.4, 0.2]
@@ -103,7 +103,7 @@ def test_nothing_promoted_is_503_then_serves_and_follows_a_promotion_within_1s(r
 
 def test_loads_what_is_promoted_at_start_and_answers_like_the_checkpoint(runs, home):
     promote_pointer(home, runs["alpha30"])
-    model = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     with BrainService(home) as brain:  # no wait: start() loads synchronously
         got = brain.infer("fast_loop", OBS6)
     want, _ = model.act(OBS6, model.init_state())
@@ -162,8 +162,8 @@ def test_hot_reload_under_load(runs, home):
 
 def test_rollback_is_followed_and_sessions_reset_on_a_version_change(runs, home):
     promote_pointer(home, runs["alpha15"])
-    model15 = FastLoopNumpy.from_checkpoint(runs["alpha15"])
-    model30 = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model15 = FastLoopNumpyAct.from_checkpoint(runs["alpha15"])
+    model30 = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     with BrainService(home) as brain:
         for _ in range(3):
             brain.infer("fast_loop", OBS6, session="s")
@@ -226,7 +226,7 @@ def test_checkpoints_that_do_not_fit_are_refused_while_the_old_one_serves(runs, 
 
 
 def _pointer_with_sha(home: Path, ckpt: Path, sha: str) -> None:
-    from hope_models.promote.pointers import write_pointer
+    from hope_models.promoted import write_pointer
 
     obj = promote_pointer(home, ckpt)
     write_pointer(home, "fast_loop", {**obj, "sha256": sha, "model_id": 7})
@@ -252,7 +252,7 @@ def test_a_refused_first_checkpoint_means_503_with_the_reason(runs, home):
 
 def test_sessions_keep_state_reset_and_are_bounded(runs, home):
     promote_pointer(home, runs["alpha30"])
-    model = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     rng = np.random.default_rng(5)
     obs = rng.normal(0, 1, (12, 6))
     with BrainService(home, max_sessions=3) as brain:
@@ -422,7 +422,7 @@ def test_infer_cli_local(runs, home):
     proc = _infer_cli(home, "--local", "--observation", obs, "--json")
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
-    model = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     want, _ = model.act(OBS6, model.init_state())
     assert out["model_version"] == model.version and out["via"] == "local"
     assert np.allclose(out["action"], want, atol=1e-6) and out["latency_ms"] > 0
@@ -460,7 +460,7 @@ def test_infer_cli_asks_the_running_webapp(runs, home):
     promote_pointer(home, runs["alpha30"])
     settings = load_settings(home, env={})
     token = load_or_create_token(settings)
-    model = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     with BrainService(home) as brain:
         app, _ = create_app(settings, token=token, brain=brain)
         server = make_server("127.0.0.1", 0, app, threaded=True)

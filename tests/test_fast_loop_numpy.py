@@ -3,7 +3,7 @@
 Equality within 1e-5 (normalised action) against FastLoop.step over thousands of ticks, against
 FastLoop.forward on each trailing window (including an episode's first K-1 ticks, whose windows have
 a masked prefix), for a fast_loop that reads VQ-VAE codes too, and the whole tick from raw values
-(normalisation, denormalisation, the reacher's clipping) against ReflexPolicy. Then what it refuses.
+(FastLoopNumpyAct: normalisation, denormalisation, the reacher's clipping) against ReflexPolicy. Then what it refuses.
 """
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ import pytest
 import torch
 
 from brain_fixtures import brain_runs, rewrite_manifest
-from hope_models.promote.pointers import checkpoint_version
+from hope_models.promoted import checkpoint_version
+from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
 from hope_models.runtime.fast_loop_numpy import FastLoopNumpy, FastLoopNumpyError
 from hope_models.train.components import component_from_checkpoint
 
@@ -129,10 +130,10 @@ def _as_reacher(src: Path, dst: Path) -> Path:
 
 
 def test_act_from_raw_values_equals_reflex_policy(runs, tmp_path, torch_one_thread):
-    from hope_models.runtime.reflex_policy import ReflexPolicy
+    from hope_models.promote.reflex_policy import ReflexPolicy
 
     ckpt = _as_reacher(runs["alpha30"], tmp_path / "run" / "checkpoints" / "00000030")
-    model = FastLoopNumpy.from_checkpoint(ckpt)
+    model = FastLoopNumpyAct.from_checkpoint(ckpt)
     policy = ReflexPolicy.from_checkpoint(ckpt)
     assert model.version == policy.version == checkpoint_version(ckpt)[0]
     assert model.action_bounds == (-1.0, 1.0)
@@ -161,7 +162,7 @@ def test_other_specs_are_not_clipped(runs):
 
 
 def test_observation_checks_name_the_problem(runs):
-    model = FastLoopNumpy.from_checkpoint(runs["alpha30"])
+    model = FastLoopNumpyAct.from_checkpoint(runs["alpha30"])
     with pytest.raises(FastLoopNumpyError, match="has 5 values.*needs 6"):
         model.act([0.0] * 5, model.init_state())
     with pytest.raises(FastLoopNumpyError, match="non-finite"):

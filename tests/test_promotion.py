@@ -1,4 +1,4 @@
-"""Promotion records and pointers (daemon/promotion.py, hope_models/promote/pointers.py), rollback,
+"""Promotion records and pointers (daemon/promotion.py, hope_models/promoted.py), rollback,
 the loop-closure record, the promotion settings, and the daemon's AutoPromoter with real promote
 children on a tiny trained fast_loop."""
 from __future__ import annotations
@@ -20,7 +20,7 @@ from registry import runs
 from daemon.autopromote import LOG_FILE, AutoPromoter, describe
 from registry.db import Registry
 from registry.models import Model, Run, utcnow
-from hope_models.promote.pointers import (
+from hope_models.promoted import (
     PointerError, checkpoint_version, pointer_path, read_pointer, remove_pointer, write_pointer,
 )
 from hope_models.settings import SettingsError, load_settings

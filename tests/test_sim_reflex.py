@@ -21,7 +21,7 @@ from hope_models.data.cache import load_or_build
 from hope_models.data.synthetic import generate_dataset
 from hope_models.data.windows import make_windows
 from hope_models.durable import file_sha256
-from hope_models.runtime.reflex_policy import ReflexPolicy, ReflexPolicyError
+from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError
 from hope_models.sim.evaluate import evaluate_policy, expert_factory, random_factory
 from hope_models.sim.reacher import make_env
 from hope_models.sim.recorder import record_dataset

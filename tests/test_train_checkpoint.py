@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from hope_models.durable import file_sha256
 from hope_models.train import checkpoint as ckpt
 
 
@@ -118,7 +119,7 @@ def test_pickle_as_model_safetensors_is_refused_even_with_a_matching_manifest(tm
 
 def _manifest_with(path: Path, name: str, target: Path) -> None:
     manifest = json.loads((path / "manifest.json").read_text())
-    manifest["files"][name] = {"sha256": ckpt.file_sha256(target), "size": target.stat().st_size}
+    manifest["files"][name] = {"sha256": file_sha256(target), "size": target.stat().st_size}
     (path / "manifest.json").write_text(json.dumps(manifest))
 
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from hope_models.child_command import trainer_argv
-from hope_models.cli.json_result import last_json_object
+from hope_models.child_result import last_json_object
 
 log = logging.getLogger(__name__)
 

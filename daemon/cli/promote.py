@@ -127,15 +127,15 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | Non
 
 def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
     """The checkpoint's component (from its config.json; `expected` if given) and its version."""
-    from hope_models.promote.pointers import PointerError, checkpoint_version
-    from hope_models.train.checkpoint import CheckpointError, read_json_object
+    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
+    from hope_models.promoted import PointerError, checkpoint_version
 
     try:
-        component = read_json_object(ckpt / "config.json").get("component")
+        component = read_json_object(ckpt / CONFIG_FILE).get("component")
     except (OSError, CheckpointError) as exc:
-        raise UsageError(f"{ckpt / 'config.json'}: not readable: {exc}") from None
+        raise UsageError(f"{ckpt / CONFIG_FILE}: not readable: {exc}") from None
     if component not in COMPONENTS:
-        raise UsageError(f"{ckpt / 'config.json'}: component {component!r} is not one of {', '.join(COMPONENTS)}")
+        raise UsageError(f"{ckpt / CONFIG_FILE}: component {component!r} is not one of {', '.join(COMPONENTS)}")
     if expected and expected != component:
         raise UsageError(f"{ckpt} holds a {component} checkpoint, not a {expected}")
     try:

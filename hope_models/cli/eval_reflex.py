@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
-    from hope_models.runtime.reflex_policy import ReflexPolicy, ReflexPolicyError
+    from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError
     from hope_models.sim.evaluate import evaluate_policy, expert_factory, json_number, random_factory
 
     torch.set_num_threads(args.threads)

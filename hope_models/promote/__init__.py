@@ -1,6 +1,6 @@
-"""Promotion: the gate a candidate checkpoint must pass (gate.py, needs torch) and the pointer
-files that say which checkpoint each component serves (pointers.py, torch-free).
+"""Promotion: the gate a candidate checkpoint must pass (gate.py, needs torch) and the torch reflex
+policy its sim check drives (reflex_policy.py). The pointer files that say which checkpoint each
+component serves are hope_models/promoted.py, below this package, because the runtime reads them.
 
-Import the submodules directly; this package imports nothing, so the webapp and the daemon can
-read pointers without paying for torch.
+Import the submodules directly; this package imports nothing, so importing it costs no torch.
 """

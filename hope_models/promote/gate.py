@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
 from hope_models.json_finite import finite
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
@@ -86,19 +87,17 @@ class _Gate:
 # -- loading -------------------------------------------------------------------------------------
 
 def _read_config(ckpt: Path) -> dict[str, Any]:
-    from hope_models.train.checkpoint import CheckpointError, read_json_object
-
     try:
-        return read_json_object(ckpt / "config.json")
+        return read_json_object(ckpt / CONFIG_FILE)
     except FileNotFoundError:
-        raise GateError(f"{ckpt / 'config.json'}: not found") from None
+        raise GateError(f"{ckpt / CONFIG_FILE}: not found") from None
     except CheckpointError as exc:
         raise GateError(str(exc)) from None
 
 
 def resolve_candidate(path: str | Path) -> Path:
     """A complete checkpoint dir from a checkpoint dir or a run dir; GateError otherwise."""
-    from hope_models.train.checkpoint import CheckpointError, resolve_checkpoint_dir
+    from hope_models.train.checkpoint import resolve_checkpoint_dir
 
     p = Path(path)
     if not p.exists():
@@ -113,10 +112,10 @@ def non_finite_tensors(ckpt: Path) -> list[str]:
     """Names of the floating tensors of model.safetensors holding NaN or Inf (safetensors only)."""
     import torch
 
-    from hope_models.train.checkpoint import CheckpointError, load_tensors
+    from hope_models.train.checkpoint import load_tensors
 
     try:
-        tensors = load_tensors(ckpt / "model.safetensors")
+        tensors = load_tensors(ckpt / MODEL_FILE)
     except CheckpointError as exc:
         raise GateError(str(exc)) from None
     return sorted(name for name, t in tensors.items()
@@ -306,7 +305,7 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
     from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
 
     tol = float(gate.settings.gate_val_tolerance)
-    where = cand_dir / "config.json"
+    where = cand_dir / CONFIG_FILE
     try:
         source = train_source(cand_cfg, where, data, gate.settings)
         train_cfg = cand_cfg.get("train") or {"batch_size": 64}
@@ -373,7 +372,7 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
 
 
 def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
-    from hope_models.runtime.reflex_policy import (
+    from hope_models.promote.reflex_policy import (
         SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec,
     )
     from hope_models.sim.evaluate import evaluate_policy

@@ -1,1 +1,2 @@
-"""Inference-side runtime pieces: the reflex policy (a fast_loop stepped once per control tick)."""
+"""The torch-free serving side: BrainService (brain_service.py) and the NumPy fast_loop it runs
+(fast_loop_numpy.py; what it accepts as a checkpoint: fast_loop_checkpoint.py)."""

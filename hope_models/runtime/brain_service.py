@@ -8,10 +8,11 @@
     brain.stop()
 
 The promoted model of a component is named by its pointer file $HOPE_HOME/promoted/<component>.json
-(hope_models.promote.pointers). A watcher thread reads the pointer every poll_s (0.2 s) and compares
+(hope_models.promoted). A watcher thread reads the pointer every poll_s (0.2 s) and compares
 its bytes with the last seen, so a promotion or a rollback is noticed within a poll. The new
-checkpoint is then loaded on the watcher thread, off the request path: its manifest verified, its
-weights' sha256 checked against the pointer's, its config checked to fit (a fast_loop this runtime
+checkpoint is then loaded on the watcher thread, off the request path: its manifest verified (each
+file read and hashed once, the weights loaded from the bytes that were hashed), their sha256 checked
+against the pointer's, its config checked to fit (a fast_loop this runtime
 can run, with the same observation and action layout as the model being served), warmed with one
 tick, and only then swapped in by assigning one reference. A request reads that reference once at
 its start and finishes on the object it read, so requests in flight complete on the old weights and
@@ -45,7 +46,6 @@ from __future__ import annotations
 
 import logging
 import math
-import queue
 import threading
 import time
 from collections import OrderedDict
@@ -56,7 +56,11 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy, FastLoopNumpyError, NumpyWindowState
+from hope_models.promoted import PointerError, pointer_path, read_pointer
+from hope_models.runtime.fast_loop_checkpoint import FastLoopNumpyError
+from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
+from hope_models.runtime.hook_thread import HookThread
+from hope_models.runtime.numpy_layers import NumpyWindowState
 
 log = logging.getLogger(__name__)
 
@@ -147,10 +151,7 @@ class BrainService:
         self._check_lock = threading.Lock()  # one pointer check at a time (watcher vs check_now)
         # on_first_inference runs on its own thread: the webapp's hook writes to SQLite, which may
         # wait for the daemon's write lock, and a robot's request must never wait for that.
-        self._hooks: queue.SimpleQueue = queue.SimpleQueue()
-        self._hooks_pending = 0
-        self._hooks_cond = threading.Condition()
-        self._hooks_thread: threading.Thread | None = None
+        self._hooks = HookThread("brain-hooks")
 
     @property
     def components(self) -> tuple[str, ...]:
@@ -173,12 +174,7 @@ class BrainService:
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout)
-        self.wait_hooks(timeout)
-        with self._hooks_cond:
-            hooks, self._hooks_thread = self._hooks_thread, None
-        if hooks is not None:
-            self._hooks.put(None)
-            hooks.join(timeout)
+        self._hooks.stop(timeout)
 
     def __enter__(self) -> "BrainService":
         return self.start()
@@ -201,8 +197,6 @@ class BrainService:
                 self._check(slot)
 
     def _check(self, slot: _Slot) -> None:
-        from hope_models.promote.pointers import PointerError, pointer_path, read_pointer
-
         path = pointer_path(self.home, slot.component)
         try:
             raw = path.read_bytes()
@@ -239,8 +233,6 @@ class BrainService:
         self._swap(slot, served)
 
     def _load(self, slot: _Slot, pointer: dict[str, Any], path: Path) -> _Served | None:
-        from hope_models.train.checkpoint import CheckpointError, resolve_checkpoint_dir
-
         target = pointer.get("checkpoint")
         if not isinstance(target, str) or not target:
             raise BrainError(f"{path}: 'checkpoint' is missing or not a path")
@@ -251,11 +243,9 @@ class BrainService:
         current = slot.served
         if current is not None and current.checkpoint == ckpt and sha == current.model.sha256:
             return None
-        try:
-            ckpt = resolve_checkpoint_dir(ckpt)  # verifies the manifest: a torn or altered checkpoint is refused
-        except CheckpointError as exc:
-            raise BrainError(f"promoted {slot.component} ({path}): {exc}") from None
-        model = RUNTIMES[slot.component].from_checkpoint(ckpt, expected_sha256=sha)
+        # verify_manifest: a torn or altered checkpoint is refused; each file is hashed once
+        model = RUNTIMES[slot.component].from_checkpoint(ckpt, expected_sha256=sha, verify_manifest=True)
+        ckpt = model.checkpoint  # a run dir named by hand resolves to its newest complete checkpoint
         if current is not None:
             self._check_fits(slot, current.model, model)
         # warm: one tick, so the first real request after the swap pays no first-call costs
@@ -385,35 +375,14 @@ class BrainService:
             if served.first_inference_done:
                 return
             served.first_inference_done = True
-        # Once per loaded version; `when` is now (the answer exists), the hook runs on the hook thread.
-        self._post_hook("on_first_inference", slot.component, served.version, str(served.checkpoint), _utcnow())
-
-    # -- the hook thread ------------------------------------------------------------------------
-    def _post_hook(self, name: str, *args) -> None:
-        with self._hooks_cond:
-            self._hooks_pending += 1
-            if self._hooks_thread is None:
-                self._hooks_thread = threading.Thread(target=self._run_hooks, name="brain-hooks", daemon=True)
-                self._hooks_thread.start()
-        self._hooks.put((name, args))
-
-    def _run_hooks(self) -> None:
-        while True:
-            item = self._hooks.get()
-            if item is None:
-                return
-            name, args = item
-            try:
-                self._callback(getattr(self, name), *args)  # the attribute as it is now (the webapp rewires)
-            finally:
-                with self._hooks_cond:
-                    self._hooks_pending -= 1
-                    self._hooks_cond.notify_all()
+        # Once per loaded version; `when` is now (the answer exists), the hook runs on the hook thread
+        # and reads the attribute as it is then (the webapp rewires it).
+        self._hooks.post(lambda *args: self._callback(self.on_first_inference, *args),
+                         slot.component, served.version, str(served.checkpoint), _utcnow())
 
     def wait_hooks(self, timeout: float = 5.0) -> bool:
         """Wait until every queued hook has run (tests; `infer --local` before it exits). True if so."""
-        with self._hooks_cond:
-            return self._hooks_cond.wait_for(lambda: self._hooks_pending == 0, timeout)
+        return self._hooks.wait(timeout)
 
     # -- status ---------------------------------------------------------------------------------
     def status(self) -> dict[str, dict[str, Any]]:

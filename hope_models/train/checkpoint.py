@@ -16,43 +16,30 @@ files do not match it (a torn write, a truncated file, a disk error), is not a c
 walks from the newest step down and skips such dirs with a warning naming the dir and the reason.
 
 Everything here is torch-free at import (the sequential manager and the daemon read the pointer
-and manifests without loading a model); tensors are written and read with safetensors only.
+and manifests without loading a model); tensors are written and read with safetensors only. The
+file names, the manifest check, the JSON reader and the pickle sniffing are
+hope_models/checkpoint_format.py's: the runtime and the gate read checkpoints without this module's
+writer.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
 import shutil
-import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
-from hope_models.durable import atomic_write, file_sha256, fsync_path
+from hope_models.checkpoint_format import (
+    CHECKPOINT_FORMAT, CONFIG_FILE, MANIFEST, MODEL_FILE, STATE_JSON, STATE_TENSORS, CheckpointError,
+    NotACheckpoint, VerifiedCheckpoint, read_json_object, read_verified, refuse_non_safetensors, sha256_hex, verify,
+)
+from hope_models.durable import atomic_write, fsync_path
 
-CHECKPOINT_FORMAT = "hope.checkpoint/1"
-MANIFEST = "manifest.json"
-MODEL_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
-STATE_TENSORS = "training_state.safetensors"
-STATE_JSON = "training_state.json"
 POINTER = "last"
 _STEP_DIR = re.compile(r"^\d{8}$")
-# A safetensors file starts with an 8-byte little-endian header length, then a JSON object; a
-# pickle starts with 0x80 and its protocol byte, which read as a length is far past the limit.
-_PICKLE_PROTOCOL_BYTE = 0x80
-_ZIP_MAGIC = b"PK\x03\x04"  # torch.save's default format: a zip of pickles
-_MAX_HEADER = 100_000_000  # safetensors' own limit on the JSON header
-# config.json, training_state.json and manifest.json are a few kB to a few MB (the feature spec's
-# statistics, the loss history); a bigger one is not something this code wrote.
-MAX_JSON_BYTES = 64 << 20
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint cannot be written or read; the message names the dir or file and why."""
 
 
 @dataclass
@@ -140,7 +127,7 @@ def save_checkpoint(run_dir: str | Path, step: int, *, model_state: dict[str, An
         manifest = {"format": CHECKPOINT_FORMAT, "step": step, "files": {}}
         for fname, data in files.items():
             _write_bytes(tmp / fname, data)
-            manifest["files"][fname] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+            manifest["files"][fname] = {"sha256": sha256_hex(data), "size": len(data)}
         _write_bytes(tmp / MANIFEST, _json_bytes(manifest))
         fsync_path(tmp)
         final = ckdir / name
@@ -205,82 +192,6 @@ def list_step_dirs(run_dir: str | Path) -> list[tuple[int, Path]]:
     return sorted(out, reverse=True)
 
 
-def _no_constant(name: str):
-    raise ValueError(f"{name} is not JSON (JSON has no NaN or Infinity)")
-
-
-def read_json_object(path: str | Path, max_bytes: int = MAX_JSON_BYTES) -> dict[str, Any]:
-    """A checkpoint's JSON file (config.json, training_state.json, manifest.json) as a dict.
-
-    A checkpoint dir may come from anyone who can write one (a promotion names any dir under the
-    data roots), so its JSON is untrusted: only a regular file (not a FIFO or a device, whose read
-    would never end), at most max_bytes, strict JSON (no NaN/Infinity: this module writes none),
-    not nested deeper than the parser's recursion limit, and an object. CheckpointError names the
-    file and the reason; FileNotFoundError passes through for callers that say what is missing."""
-    path = Path(path)
-    try:
-        # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer, forever
-        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
-            st = os.fstat(f.fileno())
-            if not stat.S_ISREG(st.st_mode):
-                raise CheckpointError(f"{path}: not a regular file")
-            if st.st_size > max_bytes:
-                raise CheckpointError(f"{path}: {st.st_size} bytes, more than the {max_bytes} a checkpoint's JSON "
-                                      "may have")
-            data = f.read(max_bytes + 1)
-    except FileNotFoundError:
-        raise
-    except OSError as exc:
-        raise CheckpointError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(data) > max_bytes:  # grew while we looked
-        raise CheckpointError(f"{path}: more than the {max_bytes} bytes a checkpoint's JSON may have")
-    try:
-        obj = json.loads(data.decode("utf-8"), parse_constant=_no_constant)
-    except UnicodeDecodeError as exc:
-        raise CheckpointError(f"{path}: not UTF-8 text: {exc.reason} at byte {exc.start}") from None
-    except ValueError as exc:  # JSONDecodeError, NaN / Infinity
-        raise CheckpointError(f"{path}: not readable JSON: {exc}") from None
-    except RecursionError:
-        raise CheckpointError(f"{path}: not readable JSON: nested too deeply") from None
-    if not isinstance(obj, dict):
-        raise CheckpointError(f"{path}: must be a JSON object, not {type(obj).__name__}")
-    return obj
-
-
-def verify(path: str | Path) -> str | None:
-    """None when the dir is a complete checkpoint, else the reason it is not."""
-    path = Path(path)
-    try:
-        manifest = read_json_object(path / MANIFEST)
-    except FileNotFoundError:
-        return "no manifest.json (the write never finished)"
-    except CheckpointError as exc:
-        return f"manifest.json unreadable: {exc}"
-    if manifest.get("format") != CHECKPOINT_FORMAT:
-        return f"manifest.json is not a {CHECKPOINT_FORMAT} manifest"
-    files = manifest.get("files")
-    if not isinstance(files, dict) or not {MODEL_FILE, CONFIG_FILE, STATE_TENSORS, STATE_JSON} <= set(files):
-        return "manifest.json does not list the four checkpoint files"
-    for fname, entry in files.items():
-        # Only plain files of this dir: a name like "../../x" or a symlink would have the
-        # hash below read any file (or /dev/zero, forever) on the word of the manifest.
-        if not isinstance(entry, dict) or fname in (".", "..") or "/" in fname or "\\" in fname or "\x00" in fname:
-            return f"manifest.json lists {fname!r}, which is not a file of a checkpoint dir"
-        f = path / fname
-        try:
-            st = f.lstat()
-        except (OSError, ValueError):
-            return f"{fname} is missing"
-        if not stat.S_ISREG(st.st_mode):
-            return f"{fname} is not a regular file"
-        size = st.st_size
-        if size != entry.get("size"):
-            return f"{fname} is {size} bytes, the manifest says {entry.get('size')} (truncated or overwritten)"
-        if file_sha256(f) != entry.get("sha256"):
-            return f"{fname} does not match its sha256 in the manifest"
-    return None
-
-
 def latest_complete(run_dir: str | Path, warn: Callable[[str], None] | None = None) -> Path | None:
     """The newest step dir that verifies, warning about each newer one skipped. Torch-free."""
     for _, p in list_step_dirs(run_dir):
@@ -296,22 +207,6 @@ def _warn(warn: Callable[[str], None] | None, message: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=3)
     else:
         warn(message)
-
-
-def refuse_non_safetensors(path: Path) -> None:
-    """Raise CheckpointError unless the file starts like a safetensors file. torch.save output (a
-    zip of pickles) or a raw pickle is never handed to any loader."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(9)
-    except OSError as exc:
-        raise CheckpointError(f"{path}: cannot read: {exc.strerror}") from None
-    n = int.from_bytes(head[:8], "little") if len(head) >= 8 else -1
-    if 2 <= n <= _MAX_HEADER and head[8:9] == b"{":
-        return  # safetensors' own parser checks the rest
-    if head[:4] == _ZIP_MAGIC or head[:1] == bytes([_PICKLE_PROTOCOL_BYTE]):
-        raise CheckpointError(f"{path}: is a pickle (torch.save) file, not safetensors; pickle is never loaded")
-    raise CheckpointError(f"{path}: not a safetensors file (bad header)")
 
 
 def load_tensors(path: Path) -> dict[str, Any]:
@@ -354,21 +249,28 @@ def load_latest(run_dir: str | Path, warn: Callable[[str], None] | None = None) 
     return None
 
 
-def resolve_checkpoint_dir(path: str | Path) -> Path:
-    """A checkpoint dir from a checkpoint dir, a run dir or its checkpoints/ dir (newest that
-    verifies). Torch-free; CheckpointError when there is none."""
+def open_checkpoint(path: str | Path, keep: Iterable[str] = (),
+                    warn: Callable[[str], None] | None = None) -> VerifiedCheckpoint:
+    """A checkpoint dir from a checkpoint dir, a run dir or its checkpoints/ dir (the newest that
+    verifies, warning about each newer one skipped), its files checked against the manifest with
+    each hashed once and the bytes of those in `keep` handed back (checkpoint_format.read_verified),
+    so a loader reads what was verified. Torch-free; CheckpointError when there is none."""
     p = Path(path)
     if (p / MANIFEST).is_file() or (p / MODEL_FILE).is_file():
-        reason = verify(p)
-        if reason:
-            raise CheckpointError(f"{p}: not a complete checkpoint: {reason}")
-        return p
+        return read_verified(p, keep)
     run_dir = p.parent if p.name == "checkpoints" else p
-    found = latest_complete(run_dir)
-    if found is None:
-        raise CheckpointError(f"{p}: no complete checkpoint found (expected a checkpoint dir or a run dir "
-                              "with checkpoints/<step>/)")
-    return found
+    for _, step_dir in list_step_dirs(run_dir):
+        try:
+            return read_verified(step_dir, keep)
+        except NotACheckpoint as exc:
+            _warn(warn, f"skipping checkpoint {step_dir}: {exc.reason}")
+    raise CheckpointError(f"{p}: no complete checkpoint found (expected a checkpoint dir or a run dir "
+                          "with checkpoints/<step>/)")
+
+
+def resolve_checkpoint_dir(path: str | Path) -> Path:
+    """open_checkpoint's dir (a checkpoint dir, or a run dir's newest that verifies)."""
+    return open_checkpoint(path).path
 
 
 # -- optimizer state <-> flat tensors + JSON ---------------------------------------------------------

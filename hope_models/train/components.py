@@ -38,6 +38,9 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file
 
+from hope_models.checkpoint_format import (
+    CONFIG_FILE, CONFIG_FORMAT, MODEL_FILE, SNIFF_BYTES, looks_like_pickle, weights_misfit,
+)
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.windows import WindowSpec
 from hope_models.durable import file_sha256
@@ -50,9 +53,6 @@ from hope_models.train.model_config import make_config, resolve
 
 log = logging.getLogger(__name__)
 
-CONFIG_FORMAT = "hope.component_config/1"
-WEIGHTS_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
 
 class CheckpointError(ValueError):
     """A checkpoint cannot be used; the message names the file and why."""
@@ -224,9 +224,9 @@ def component_from_checkpoint(ckpt_dir: str | Path) -> _Component:
     # huge dim costs an error message instead of the Pi's memory.
     with torch.device("meta"):
         described = _from_config_checked(obj, cfg_path)
-    _check_header_fits(described.model, ckpt / WEIGHTS_FILE)
+    _check_header_fits(described.model, ckpt / MODEL_FILE)
     comp = _from_config_checked(obj, cfg_path)
-    load_model_weights(comp.model, ckpt / WEIGHTS_FILE)
+    load_model_weights(comp.model, ckpt / MODEL_FILE)
     return comp
 
 
@@ -273,40 +273,31 @@ def load_model_weights(model: torch.nn.Module, path: str | Path) -> None:
 def _not_safetensors(path: Path, exc: Exception) -> CheckpointError:
     try:
         with open(path, "rb") as f:
-            head = f.read(2)
+            head = f.read(SNIFF_BYTES)
     except OSError:
         head = b""
-    kind = " It looks like a pickle / torch.save file;" if head[:1] == b"\x80" or head == b"PK" else ""
+    kind = " It looks like a pickle / torch.save file;" if looks_like_pickle(head) else ""
     return CheckpointError(f"{path}: not a valid safetensors file ({exc}).{kind} pickle checkpoints are "
                            "never loaded (they can run code); only safetensors weights are accepted")
 
 
 def _raise_unless_fits(path: Path, expected: dict[str, Any], found: dict[str, Any]) -> None:
     """expected / found: tensor name -> its shape (and dtype) as the model and the file have them."""
-    missing = sorted(set(expected) - set(found))
-    unexpected = sorted(set(found) - set(expected))
-    wrong = [f"{k}: file {found[k]}, model {v}" for k, v in expected.items() if k in found and found[k] != v]
-    if missing or unexpected or wrong:
-        parts = []
-        if wrong:
-            parts.append(f"shape/dtype mismatch: {'; '.join(wrong[:5])}{' ...' if len(wrong) > 5 else ''}")
-        if missing:
-            parts.append(f"missing: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
-        if unexpected:
-            parts.append(f"unexpected: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
-        raise CheckpointError(f"{path}: weights do not fit the model its config.json describes ({', '.join(parts)})")
+    misfit = weights_misfit(expected, found, described_by="model")
+    if misfit:
+        raise CheckpointError(f"{path}: weights do not fit the model its config.json describes ({misfit})")
 
 
 # -- helpers -------------------------------------------------------------------------------------
 
 def _read_json(path: Path) -> dict:
-    from hope_models.train.checkpoint import CheckpointError as FileError
-    from hope_models.train.checkpoint import read_json_object
+    from hope_models.checkpoint_format import CheckpointError as FileError
+    from hope_models.checkpoint_format import read_json_object
 
     try:
         return read_json_object(path)
     except FileNotFoundError:
-        raise CheckpointError(f"{path}: not found (a checkpoint dir holds {WEIGHTS_FILE} + {CONFIG_FILE})") from None
+        raise CheckpointError(f"{path}: not found (a checkpoint dir holds {MODEL_FILE} + {CONFIG_FILE})") from None
     except FileError as exc:
         raise CheckpointError(str(exc)) from None
 
@@ -362,5 +353,5 @@ def _load_vqvae(vqvae_dir: Path, spec: FeatureSpec) -> tuple[VQVAE, dict]:
                          "initialised)")
     cfg_obj = _read_json(vqvae_dir / CONFIG_FILE)
     ref = {"path": str(vqvae_dir.resolve()), "config_sha256": _config_sha256(cfg_obj),
-           "weights_sha256": file_sha256(vqvae_dir / WEIGHTS_FILE), "model_config": asdict(vq.cfg)}
+           "weights_sha256": file_sha256(vqvae_dir / MODEL_FILE), "model_config": asdict(vq.cfg)}
     return vq, json.loads(json.dumps(ref))

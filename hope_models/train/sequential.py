@@ -26,7 +26,7 @@ from typing import Any
 import psutil
 
 from hope_models.child_command import trainer_argv
-from hope_models.cli.json_result import last_json_object
+from hope_models.child_result import last_json_object
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
 

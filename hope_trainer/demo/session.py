@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.child_command import trainer_argv
-from hope_models.cli.json_result import last_json_object
+from hope_models.child_result import last_json_object
 from hope_models.durable import fsync_path
 from hope_trainer.demo.chain import ChainSteps
 from hope_trainer.demo.closure import ClosureSteps

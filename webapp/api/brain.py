@@ -87,7 +87,7 @@ def wait_serving(brain, component: str, version: str | None, timeout_s: float = 
 @bp.get("")
 def status():
     from daemon import promotion
-    from hope_models.promote.pointers import PointerError, read_pointer
+    from hope_models.promoted import PointerError, read_pointer
 
     limit = query_int("history", default=10, minimum=0, maximum=100)
     state = _state()

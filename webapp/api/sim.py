@@ -178,7 +178,7 @@ def _state():
 
 @bp.post("/reflex")
 def start_reflex():
-    from hope_models.promote.pointers import PointerError, read_pointer
+    from hope_models.promoted import PointerError, read_pointer
 
     body = json_body(allowed=("episodes", "seed", "task"))
     episodes = get_int(body, "episodes", default=1, minimum=1, maximum=MAX_EPISODES)

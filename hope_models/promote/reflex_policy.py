@@ -20,8 +20,11 @@ action_bounds=None to use it for another robot).
 
 `.version` names the weights: "<run name>@<step>:<first 12 hex of sha256(model.safetensors)>"
 (the run name is the run dir's name; a bare checkpoint dir gives its own name), so every action
-can be traced to the file that produced it. The rule is hope_models.promote.pointers.checkpoint_version,
+can be traced to the file that produced it. The rule is hope_models.checkpoint_format.version_name,
 shared with the promotion pointers and BrainService.
+
+It lives with the gate, whose sim reflex check drives it (as does `eval-reflex`, that check on its
+own); the torch-free serving form of the same model is runtime/fast_loop_numpy.py.
 """
 from __future__ import annotations
 
@@ -110,30 +113,31 @@ class ReflexPolicy:
                         expect_observation: Sequence[tuple[str, int]] | None = SIM_OBSERVATION,
                         expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
                         action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
-        from hope_models.promote.pointers import checkpoint_version
+        from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, version_name
         from hope_models.train.checkpoint import CheckpointError as CkptError
-        from hope_models.train.checkpoint import resolve_checkpoint_dir
+        from hope_models.train.checkpoint import open_checkpoint
         from hope_models.train.components import CheckpointError, component_from_checkpoint
 
         p = Path(path)
         if not p.exists():
             raise ReflexPolicyError(f"{p}: checkpoint not found (give a run dir or a checkpoints/<step> dir)")
         try:
-            ckpt = resolve_checkpoint_dir(p)
+            verified = open_checkpoint(p, keep=(CONFIG_FILE,))  # each file hashed once, the version from it
+            version = version_name(verified.path, verified.sha256[MODEL_FILE], verified.json(CONFIG_FILE))
         except CkptError as exc:
             raise ReflexPolicyError(str(exc)) from None
+        ckpt = verified.path
         try:
             comp = component_from_checkpoint(ckpt)
         except CheckpointError as exc:
             raise ReflexPolicyError(str(exc)) from None
-        where = str(ckpt / "config.json")
+        where = str(ckpt / CONFIG_FILE)
         if comp.name != "fast_loop":
             raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a fast_loop checkpoint")
         if comp.model.wants_frames:
             raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "
                                     "the reflex runtime drives state-only fast_loops")
         check_spec(comp.spec, where, expect_observation, expect_action)
-        version, _sha = checkpoint_version(ckpt)  # the one naming rule (promotion pointers use it too)
         return cls(comp.model, comp.spec, version, action_bounds, ckpt)
 
     # -- the tick -------------------------------------------------------------------------------

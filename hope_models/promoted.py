@@ -10,9 +10,11 @@ promoted` resolves it); the models table in the registry is the history. A point
 atomically (a temp file in the same dir, fsynced, renamed over the old one, the dir fsynced), so
 a reader sees the old pointer or the new one, never half of one, even across a power cut.
 
-`checkpoint_version` is the one rule that names a set of weights; ReflexPolicy, BrainService and
-the promotion records all use it, so a response's version always matches the pointer's.
-Torch-free (the daemon and the webapp import this).
+The version a pointer records is checkpoint_format.version_name, the one rule that names a set of
+weights (BrainService and ReflexPolicy name what they serve with it too). This module sits at the
+bottom of the package, beside checkpoint_format.py: the promotion writes pointers (the daemon, the
+gate's `promote` command) and the torch-free runtime reads them (BrainService), and neither of
+those imports the other.
 """
 from __future__ import annotations
 
@@ -22,11 +24,10 @@ import re
 from pathlib import Path
 from typing import Any
 
-from hope_models.durable import atomic_write, file_sha256, fsync_path
+from hope_models import checkpoint_format
+from hope_models.durable import atomic_write, fsync_path
 
 POINTER_DIR = "promoted"
-MODEL_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
 # The fields a pointer must hold, and their JSON types (None allowed where the tuple says so).
 POINTER_FIELDS: dict[str, tuple[type, ...]] = {
     "component": (str,),
@@ -120,30 +121,12 @@ def remove_pointer(home: str | os.PathLike, component: str) -> bool:
 
 
 def checkpoint_version(ckpt_dir: str | os.PathLike) -> tuple[str, str]:
-    """(version, sha256 of model.safetensors) of a checkpoint dir.
-
-    version = "<run name>@<step>:<first 12 hex of the sha256>": the run name is the run dir's name
-    (checkpoints/<step> sits in <run dir>/checkpoints), a bare checkpoint dir gives its own name;
-    the step comes from config.json's "checkpoint"."step", else from a numeric dir name, else 0.
-    """
-    from hope_models.train.checkpoint import CheckpointError, read_json_object
-
-    ckpt = Path(ckpt_dir)
-    weights = ckpt / MODEL_FILE
+    """(version, sha256 of model.safetensors) a pointer records for a checkpoint dir
+    (checkpoint_format.checkpoint_version); PointerError when the weights cannot be read."""
     try:
-        sha = file_sha256(weights)
-    except FileNotFoundError:
-        raise PointerError(f"{weights}: not found (a checkpoint dir holds {MODEL_FILE})") from None
-    except OSError as exc:
-        raise PointerError(f"{weights}: cannot read: {exc.strerror or exc}") from None
-    try:  # the config is untrusted: read bounded, and any shape of it only loses the step
-        step = read_json_object(ckpt / CONFIG_FILE).get("checkpoint", {}).get("step")
-    except (OSError, CheckpointError, AttributeError):
-        step = None
-    if not isinstance(step, int) or isinstance(step, bool):
-        step = int(ckpt.name) if ckpt.name.isdigit() else 0
-    run_name = ckpt.parent.parent.name if ckpt.parent.name == "checkpoints" else ckpt.name
-    return f"{run_name}@{int(step)}:{sha[:12]}", sha
+        return checkpoint_format.checkpoint_version(ckpt_dir)
+    except checkpoint_format.CheckpointError as exc:
+        raise PointerError(str(exc)) from None
 
 
 __all__ = ["PointerError", "pointer_path", "read_pointer", "write_pointer", "remove_pointer", "checkpoint_version",
