@@ -238,6 +238,10 @@ def read_verified(path: str | Path, keep: Iterable[str] = ()) -> VerifiedCheckpo
         if st.st_size != entry.get("size"):
             raise NotACheckpoint(path, f"{fname} is {st.st_size} bytes, the manifest says {entry.get('size')} "
                                        "(truncated or overwritten)")
+        if fname in keep and fname.endswith(".json") and st.st_size > MAX_JSON_BYTES:
+            # kept means read whole: the JSON bound read_json_object applies, before the read
+            raise CheckpointError(f"{f}: {st.st_size} bytes, more than the {MAX_JSON_BYTES} a checkpoint's JSON "
+                                  "may have")
         try:
             digest, content = file_digest(f, keep=fname in keep)
         except OSError as exc:
