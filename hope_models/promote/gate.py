@@ -180,7 +180,8 @@ def _open_data(source: TrainSource):
     """The candidate run's dataset cache (built like the trainer builds it); ValueError with the reason."""
     from hope_models.data.cache import CacheError, load_or_build
     from hope_models.data.features import FeatureSpecError
-    from hope_models.train.loop import TrainSetupError, dataset_dir_for
+    from hope_models.train.contract import TrainSetupError
+    from hope_models.train.dataset_dir import dataset_dir_for
 
     data, cache_root = source.data, source.cache_root
     try:

@@ -49,6 +49,16 @@ class Option:
     flag: str | None = None  # the command-line flag, if not --<name-with-dashes>
     metavar: str | None = None
 
+    def range_text(self) -> str:
+        """The allowed range as a reader writes it: "1..65536", "[0, 1)", ">= 0"."""
+        lo, hi = self.minimum if self.minimum is not None else self.above, \
+            self.maximum if self.maximum is not None else self.below
+        if lo is None or hi is None:
+            return self.bounds_text()
+        if self.minimum is not None and self.maximum is not None:
+            return f"{lo:g}..{hi:g}"
+        return f"{'[' if self.minimum is not None else '('}{lo:g}, {hi:g}{']' if self.maximum is not None else ')'}"
+
     def bounds_text(self) -> str:
         parts = []
         if self.minimum is not None:

@@ -28,16 +28,10 @@ import psutil
 from hope_models.child_command import trainer_argv
 from hope_models.child_result import last_json_object
 from hope_models.train import checkpoint as ckpt
+from hope_models.train.config import flag_of, values_from_args
 from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
 
 POLL_S = 0.2
-# CLI options passed through to every child: (attribute, flag)
-PASS_THROUGH = (("data", "--data"), ("steps", "--steps"), ("seed", "--seed"), ("batch_size", "--batch-size"),
-                ("lr", "--lr"), ("warmup", "--warmup"), ("threads", "--threads"),
-                ("checkpoint_every", "--checkpoint-every"), ("checkpoint_seconds", "--checkpoint-seconds"),
-                ("keep", "--keep"), ("log_every", "--log-every"), ("memory_budget_mb", "--memory-budget-mb"),
-                ("thermal_zone", "--thermal-zone"), ("cache_dir", "--cache-dir"), ("spec", "--spec"),
-                ("imagined_ratio", "--imagined-ratio"))
 
 
 class SequenceError(ValueError):
@@ -65,12 +59,10 @@ def parse_sequence(text: str) -> list[str]:
 
 def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae: Path | None) -> list[str]:
     cmd = trainer_argv("train", "--component", component, "--run-dir", str(run_dir), "--json")
-    for attr, flag in PASS_THROUGH:
-        value = getattr(args, attr, None)
-        if value is not None:
-            cmd += [flag, str(value)]
-    if getattr(args, "model_config", None):
-        cmd += ["--model-config", json.dumps(args.model_config)]
+    cmd += ["--data", str(args.data), "--steps", str(args.steps)]
+    for name, value in values_from_args(args, "train").items():
+        if name not in ("run_dir", "vqvae_dir"):  # each child gets its own run dir; the vqvae below
+            cmd += [flag_of(name), json.dumps(value) if isinstance(value, dict) else str(value)]
     if vqvae is not None and component != "vqvae":
         cmd += ["--vqvae", str(vqvae)]
     return cmd
