@@ -25,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from registry.models import Model, Run, iso, utcnow
 from hope_models.json_finite import finite
-from hope_models.promoted import PointerError, checkpoint_version, read_pointer, write_pointer
+from hope_models.promoted import PointerError, read_pointer, write_pointer
 
 HISTORY_LIMIT = 20
 
@@ -74,18 +74,25 @@ def pointer_obj(model: Model, sha256: str) -> dict[str, Any]:
 def _check_checkpoint(model: Model) -> str:
     """The sha256 of the model's weights, after checking the dir is still a complete checkpoint
     holding the same weights that were gated."""
-    from hope_models.checkpoint_format import verify
+    from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, NotACheckpoint, \
+        read_verified, version_name
 
     ckpt = Path(model.checkpoint_path)
     if not ckpt.is_dir():
         raise PromotionError(f"model {model.id} ({model.version}): checkpoint {ckpt} no longer exists")
-    reason = verify(ckpt)
-    if reason is not None:
-        raise PromotionError(f"model {model.id} ({model.version}): {ckpt} is not a complete checkpoint: {reason}")
-    try:
-        version, sha = checkpoint_version(ckpt)
-    except PointerError as exc:
+    try:  # each file hashed once: the manifest check gives the weights' sha256 the version is named by
+        verified = read_verified(ckpt, keep=(CONFIG_FILE,))
+    except NotACheckpoint as exc:
+        raise PromotionError(f"model {model.id} ({model.version}): {ckpt} is not a complete checkpoint: "
+                             f"{exc.reason}") from None
+    except CheckpointError as exc:
         raise PromotionError(f"model {model.id}: {exc}") from None
+    sha = verified.sha256[MODEL_FILE]
+    try:  # the config is untrusted: any shape of it only loses the step in the name
+        config = verified.json(CONFIG_FILE)
+    except CheckpointError:
+        config = None
+    version = version_name(ckpt, sha, config)
     if model.version is not None and version != model.version:
         raise PromotionError(f"model {model.id}: {ckpt} now holds {version}, not the {model.version} that was "
                              "gated; gate it again")
