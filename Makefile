@@ -6,6 +6,12 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 # pytest options for `make test`; e.g. make test PYTEST_ARGS="-k rlds"
 PYTEST_ARGS ?=
+# pytest-xdist workers for `make test`: most tests wait on servers and child processes, so two
+# workers on CI's two cores overlap those waits (PYTEST_WORKERS=0 runs everything in one process).
+# worksteal keeps each worker on a contiguous run of files (module fixtures built once) and lets an
+# idle worker take tests from the busy one.
+PYTEST_WORKERS ?= 2
+PYTEST_XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --dist worksteal)
 
 .PHONY: setup test demo bench clean system-deps assets
 
@@ -47,7 +53,7 @@ $(STAMP): pyproject.toml
 	@touch $@
 
 test: setup system-deps
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(PYTEST_XDIST) --durations=15 $(PYTEST_ARGS)
 
 demo: setup
 	$(PY) run_trainer.py demo

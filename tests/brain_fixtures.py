@@ -1,6 +1,6 @@
 """Tiny real fast_loop checkpoints for the inference-runtime tests (BrainService, the NumPy fast_loop).
 
-Trained once per test session (module cache) with the real trainer, one thread, on small synthetic
+Trained once per test run (shared by the xdist workers) with the real trainer, one thread, on small synthetic
 datasets; about 10 s in all on an idle core:
 
     runs = brain_runs(tmp_path_factory)
@@ -38,8 +38,19 @@ def _train(data: Path, run_dir: Path, cache: Path, component: str, steps: int, e
 
 
 def brain_runs(tmp_path_factory) -> dict[str, Path]:
+    """Trained once per test run (conftest.shared_build), whatever the number of xdist workers."""
     if _RUNS:
         return _RUNS
+    from conftest import shared_build
+
+    root = shared_build(tmp_path_factory, "brain", _build_runs)
+    runs = {name: root / rel for name, rel in json.loads((root / "runs.json").read_text()).items()}
+    assert (runs["alpha15"] / "model.safetensors").is_file()
+    _RUNS.update(runs)
+    return _RUNS
+
+
+def _build_runs(root: Path) -> None:
     import torch
 
     from hope_models.data.synthetic import generate_dataset
@@ -47,7 +58,6 @@ def brain_runs(tmp_path_factory) -> dict[str, Path]:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        root = tmp_path_factory.mktemp("brain")
         generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
         generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
         cache = root / "cache"
@@ -61,9 +71,7 @@ def brain_runs(tmp_path_factory) -> dict[str, Path]:
         runs["other"] = _train(root / "ds8", root / "runs" / "other", cache, "fast_loop", 10, 10, SMALL)
     finally:
         torch.set_num_threads(threads)
-    assert (runs["alpha15"] / "model.safetensors").is_file()
-    _RUNS.update(runs)
-    return _RUNS
+    (root / "runs.json").write_text(json.dumps({name: str(p.relative_to(root)) for name, p in runs.items()}))
 
 
 def promote_pointer(home: Path, ckpt: Path, component: str = "fast_loop", model_id: int = 1) -> dict:

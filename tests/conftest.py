@@ -1,5 +1,8 @@
+import fcntl
 import os
+import shutil
 from pathlib import Path
+from typing import Callable
 
 import pytest
 
@@ -33,3 +36,25 @@ def torch_one_thread():
     yield
     torch.set_num_threads(threads)
     torch.use_deterministic_algorithms(det)
+
+
+def shared_build(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
+    """A directory built once per test run by `build(dir)`, even when pytest-xdist runs the tests in
+    several workers (`make test` does): the first worker to ask builds it under a file lock in the
+    run's shared temp root, the others wait for it and reuse it. What is built there is read-only
+    for the tests, as a session-wide fixture is."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # .../pytest-N/popen-gw0 -> .../pytest-N, shared by the workers
+    target = root / f"shared-{name}"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not (target / ".built").exists():
+                shutil.rmtree(target, ignore_errors=True)  # a build that failed half-way
+                target.mkdir()
+                build(target)
+                (target / ".built").touch()
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return target

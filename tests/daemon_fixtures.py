@@ -3,8 +3,8 @@ worker, the daemon, a redis-server on a free loopback port) and wait_until, whic
 fails with the registry's state and the processes' log tails, so a failure says what happened.
 
 Test modules import what they use:  from daemon_fixtures import ...  (tests/ is on sys.path).
-Fixtures are plain functions here; the dataset is built once per test session (module cache),
-however many modules import it.
+Fixtures are plain functions here; the dataset is built once per test run (conftest.shared_build),
+however many modules and xdist workers use it.
 """
 from __future__ import annotations
 
@@ -28,13 +28,17 @@ _DATASET: dict[str, Path] = {}
 
 
 def tiny_dataset_path(tmp_path_factory) -> Path:
-    """~600 steps of a learnable synthetic dataset (obs 4, act 2): a fast_loop step takes ~15 ms."""
+    """~600 steps of a learnable synthetic dataset (obs 4, act 2): a fast_loop step takes ~15 ms.
+    Built once per test run (conftest.shared_build), whatever the number of xdist workers."""
     if "path" not in _DATASET:
-        from hope_models.data.synthetic import generate_dataset
+        from conftest import shared_build
 
-        root = tmp_path_factory.mktemp("daemon-ds")
-        generate_dataset(root / "ds", 600, obs_dim=4, act_dim=2, episode_seconds=(3, 9), seed=3)
-        _DATASET["path"] = root / "ds"
+        def build(root: Path) -> None:
+            from hope_models.data.synthetic import generate_dataset
+
+            generate_dataset(root / "ds", 600, obs_dim=4, act_dim=2, episode_seconds=(3, 9), seed=3)
+
+        _DATASET["path"] = shared_build(tmp_path_factory, "daemon-ds", build) / "ds"
     return _DATASET["path"]
 
 

@@ -316,7 +316,10 @@ def test_a_real_serve_comes_back_to_its_baseline_after_the_hostile_patterns(tmp_
     from daemon_fixtures import Home
     from test_cli_daemon import Serve
 
-    home = Home(tmp_path / "home")
+    # Engine.IO keeps each session's ping thread asleep for a ping interval after the session is gone
+    # (25 s by default), so threads come back to the baseline only after one; 3 s here spares the two
+    # waits below ~45 s without changing what is measured (the editor still answers every ping).
+    home = Home(tmp_path / "home", extra_env={"HOPE_SOCKETIO_PING_INTERVAL_S": "3"})
     ckpt_src = brain_runs(tmp_path_factory)["alpha30"]
     run_dir = home.path / "runs" / "alpha"
     shutil.copytree(ckpt_src.parents[1], run_dir)
@@ -378,5 +381,11 @@ def test_a_real_serve_comes_back_to_its_baseline_after_the_hostile_patterns(tmp_
         editor.pump(0.2)
         editor.close()
     finally:
-        serve.proc.stop()
+        serve.proc.kill()  # nothing here checks a clean stop (test_cli_daemon does); SIGTERM waits ~5 s
         home.close()
+
+
+def test_the_socket_io_ping_interval_is_a_setting(served):
+    # production keeps Engine.IO's 25 s; the real-serve test above shortens it through the environment
+    assert served().socketio.server.eio.ping_interval == 25
+    assert served(HOPE_SOCKETIO_PING_INTERVAL_S="3").socketio.server.eio.ping_interval == 3

@@ -41,16 +41,24 @@ def _cfg(data: Path, run_dir: Path, cache: Path, component: str = "fast_loop", s
 
 @pytest.fixture(scope="module")
 def bc(tmp_path_factory):
+    from conftest import shared_build
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # for the whole module (restored at its end); train() uses threads=1 too
-    root = tmp_path_factory.mktemp("bc")
-    record_dataset(root / "demos", 20, task="reach", noise=1.0)
-    started = time.perf_counter()
-    result = train(_cfg(root / "demos", root / "run", root / "cache"))
-    elapsed = time.perf_counter() - started
-    assert result.outcome == "completed", result.message
-    print(f"\nBC run: {BC_STEPS} steps in {elapsed:.1f} s, final loss {result.final_loss:.4f}")
-    yield {"root": root, "run": root / "run", "ckpt": Path(result.checkpoint), "train_s": elapsed}
+
+    def build(root: Path) -> None:
+        record_dataset(root / "demos", 20, task="reach", noise=1.0)
+        started = time.perf_counter()
+        result = train(_cfg(root / "demos", root / "run", root / "cache"))
+        elapsed = time.perf_counter() - started
+        assert result.outcome == "completed", result.message
+        print(f"\nBC run: {BC_STEPS} steps in {elapsed:.1f} s, final loss {result.final_loss:.4f}")
+        (root / "bc.json").write_text(json.dumps({"ckpt": result.checkpoint, "train_s": elapsed}))
+
+    # built once even when the module's tests are spread over two xdist workers
+    root = shared_build(tmp_path_factory, "bc", build)
+    built = json.loads((root / "bc.json").read_text())
+    yield {"root": root, "run": root / "run", "ckpt": Path(built["ckpt"]), "train_s": built["train_s"]}
     torch.set_num_threads(threads)
 
 

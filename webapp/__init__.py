@@ -90,7 +90,8 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     # threading mode: no eventlet/gevent monkey-patching; WebSocket through simple-websocket.
     # Browser origins follow the Host rule (webapp/hosts.py), never X-Forwarded-* headers.
     socketio = SocketIO(app, async_mode="threading", message_queue=message_queue, logger=False,
-                        engineio_logger=False, cors_allowed_origins=hosts.origin_allowed)
+                        engineio_logger=False, cors_allowed_origins=hosts.origin_allowed,
+                        ping_interval=settings.socketio_ping_interval_s)
     app.extensions["hope"].socket_guard = SocketGuard(socketio, auth_timeout_s=socket_auth_timeout_s)
     app.extensions["hope"].reflex_jobs.socketio = socketio  # sim.frame events of the reflex jobs
     errors.install(app)  # first: the body size is checked before the token
