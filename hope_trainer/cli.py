@@ -40,7 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pause": ("daemon.cli.pause", "pause a run (a running job checkpoints and stops)"),
     "resume": ("daemon.cli.resume", "queue a paused run again; it resumes from its checkpoint"),
     # promotion: promote gates with torch in its own process; rollback is torch-free
-    "promote": ("daemon.cli.promote", "gate a completed run's checkpoint and promote it if it passes"),
+    "promote": ("hope_trainer.commands.promote", "gate a completed run's checkpoint and promote it if it passes"),
     "rollback": ("daemon.cli.rollback", "serve the previously promoted model of a component again"),
     "infer": ("hope_trainer.commands.infer",
               "one tick of the promoted model: action, version, latency (serve, or --local)"),

@@ -48,10 +48,10 @@ HOPE_MODELS_TIERS: tuple[tuple[str, ...], ...] = (
     ("cli",),
 )
 
-# Imports inside hope_models that break the order today, as (importing file, imported
-# sub-package). Being removed: this list only shrinks. An entry whose import is gone, or no
-# longer against the order, fails the test, so it cannot outlive its violation.
-KNOWN_HOPE_MODELS_VIOLATIONS: frozenset[tuple[str, str]] = frozenset()
+# The packages whose own processes must never load torch (the daemon, the webapp and a worker's
+# parent: torch costs hundreds of MB on a Pi); training imports it only inside the job's child,
+# through hope_models.
+NO_TORCH = ("daemon", "registry", "webapp", "workers")
 
 
 @dataclass(frozen=True)
@@ -179,26 +179,15 @@ def _problem(imp: Import, src: str, dst: str, pairs: set[tuple[str, str]], root:
     return None
 
 
-def _allowlisted(edge: tuple[Import, str, str], allow: frozenset[tuple[str, str]]) -> bool:
-    return (edge[0].file, edge[2]) in allow
-
-
-def hope_models_violations(edges: list[tuple[Import, str, str]], root: Path = REPO,
-                           allow: frozenset[tuple[str, str]] = frozenset()) -> list[str]:
-    """The problems of the imports not in `allow`; an allowed import does not count as one side
-    of a pair importing each other either."""
-    counted = [e for e in edges if not _allowlisted(e, allow)]
-    pairs = {(a, b) for _, a, b in counted}
-    return [p for p in (_problem(*e, pairs, root) for e in counted) if p is not None]
-
-
-def stale_allowances(edges: list[tuple[Import, str, str]], allow: frozenset[tuple[str, str]],
-                     root: Path = REPO) -> list[tuple[str, str]]:
-    """Entries of `allow` that no longer name a violation: the import is gone, or it is fine now
-    (e.g. the other side of a pair stopped importing back)."""
+def hope_models_violations(edges: list[tuple[Import, str, str]], root: Path = REPO) -> list[str]:
     pairs = {(a, b) for _, a, b in edges}
-    still = {(e[0].file, e[2]) for e in edges if _allowlisted(e, allow) and _problem(*e, pairs, root) is not None}
-    return sorted(allow - still)
+    return [p for p in (_problem(*e, pairs, root) for e in edges) if p is not None]
+
+
+def torch_imports(imports: list[Import]) -> list[str]:
+    return [f"{imp.where()}: imports {imp.module}; {imp.file.split('/')[0]}/ never loads torch (only a job's "
+            "child does, through hope_models)" for imp in imports
+            if imp.file.split("/")[0] in NO_TORCH and imp.module.split(".")[0] == "torch"]
 
 
 def test_layers_import_downwards_only():
@@ -207,16 +196,13 @@ def test_layers_import_downwards_only():
 
 
 def test_hope_models_parts_import_downwards_only():
-    bad = hope_models_violations(hope_models_edges(all_imports()), allow=KNOWN_HOPE_MODELS_VIOLATIONS)
+    bad = hope_models_violations(hope_models_edges(all_imports()))
     assert not bad, "imports against hope_models' order:\n" + "\n".join(bad)
 
 
-def test_known_violations_are_still_violations():
-    """An allowlisted import that is gone, or no longer against the order, must leave the
-    allowlist: it only shrinks."""
-    stale = stale_allowances(hope_models_edges(all_imports()), KNOWN_HOPE_MODELS_VIOLATIONS)
-    assert not stale, ("KNOWN_HOPE_MODELS_VIOLATIONS lists imports that are gone or no longer violations; "
-                       "remove them: " + ", ".join(f"{f} -> hope_models.{d}" for f, d in stale))
+def test_no_torch_in_the_service_packages():
+    bad = torch_imports(all_imports())
+    assert not bad, "\n".join(bad)
 
 
 def test_every_hope_models_part_is_placed():
@@ -267,10 +253,7 @@ def test_the_checker_sees_every_import_form(tmp_path):
         _fake(tmp_path, "hope_models/data/z.py", "import hope_models.sim\n"), tmp_path)
     bad = hope_models_violations(hope_models_edges(mutual, tmp_path), tmp_path)
     assert len(bad) == 2 and all("must not import each other" in b for b in bad)
-    allow = frozenset({("hope_models/sim/__init__.py", "data")})
-    assert hope_models_violations(hope_models_edges(mutual, tmp_path), tmp_path, allow) == []
-    assert stale_allowances(hope_models_edges(mutual, tmp_path), allow, tmp_path) == []
-    ok = imports_of(tmp_path / "hope_models/sim/__init__.py", tmp_path)  # one way only: fine, so stale
-    assert stale_allowances(hope_models_edges(ok, tmp_path), allow, tmp_path) == [("hope_models/sim/__init__.py",
-                                                                                   "data")]
-    assert stale_allowances([], allow, tmp_path) == [("hope_models/sim/__init__.py", "data")]
+    ok = imports_of(tmp_path / "hope_models/sim/__init__.py", tmp_path)  # one way only: fine
+    assert hope_models_violations(hope_models_edges(ok, tmp_path), tmp_path) == []
+    local = _fake(tmp_path, "webapp/x.py", "def f():\n    import torch.nn\n")
+    assert "webapp/ never loads torch" in torch_imports(imports_of(local, tmp_path))[0]
