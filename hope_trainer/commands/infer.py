@@ -23,6 +23,8 @@ import json
 import sys
 from typing import Any
 
+from hope_models.numbers import NumberError, as_float, from_text
+
 NOT_ANSWERED_EXIT = 1
 USAGE_EXIT = 2
 
@@ -33,14 +35,11 @@ class InferFailure(Exception):
         self.code = code
 
 
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0 < v <= 600:
-        raise argparse.ArgumentTypeError(f"{v} must be within (0, 600] seconds")
-    return v
+def _timeout_s(text: str) -> float:
+    try:  # the one rule for numbers (hope_models/numbers.py)
+        return as_float("--timeout", from_text("--timeout", text), above=0.0, maximum=600.0)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason + " (seconds)") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reset", action="store_true", help="start the session's episode again with this tick")
     parser.add_argument("--local", action="store_true",
                         help="answer in this process from the promoted pointer instead of asking the service")
-    parser.add_argument("--timeout", type=_positive_float, default=5.0, help="HTTP timeout in seconds (default 5)")
+    parser.add_argument("--timeout", type=_timeout_s, default=5.0, help="HTTP timeout in seconds (default 5)")
     parser.add_argument("--json", action="store_true", help="print the answer as JSON on stdout")
 
 
