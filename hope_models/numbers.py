@@ -1,19 +1,20 @@
 """One rule for numbers at every door, and the one place that applies it.
 
-The doors: a command-line flag, an environment variable, `config.toml`, the JSON of the HTTP API,
-and a run's stored config that a worker reads back. The rule:
+The doors: a command-line flag, an environment variable, a query parameter, `config.toml`, the
+JSON of the HTTP API, and a run's stored config that a worker reads back. The rule:
 
-- an integer field takes an integer, written `2000`, or a float with no fraction (`2000.0`,
-  `2e3`); never `2000.5`, `true`/`false`, NaN or an infinity;
-- a number field takes any finite number (an integer too); never `true`/`false`, NaN or an
-  infinity (`1e999` overflows to one);
+- a number field takes any finite number; never `true`/`false`, NaN or an infinity (`1e999`
+  overflows to one);
+- an integer field takes an integer; a float with no fraction (`2000.0`) is that integer, while
+  `2000.5` is refused;
 - where the medium has a number type (JSON, TOML) a number must be one: the string `"2000"` is
-  refused, as it would be for any other field that wants a number;
-- where everything is text (a flag, an environment variable) the text is read as a JSON number
-  (`2000`, `2e3`, `1e-3`, `-5`; not `0x10`, `1_000`, `nan`), then the same check applies.
+  refused, as for any other field that wants a number;
+- where everything is text (a flag, an environment variable, a query parameter) a number is
+  written as JSON writes it, without blanks (`-5`, `0.001`, `1e-3`; not `+5`, `0x10`, `1_000`,
+  `nan`, ` 5`), and an integer as decimal digits only (`2000`; not `2e3` or `2000.0`).
 
-So `--steps 2e3`, `HOPE_PORT=8765.0` and `{"steps": 2000.0}` all mean 2000, and `--steps 2000.5`,
-`HOPE_PORT=true` and `{"steps": "2000"}` are refused with a message naming the field.
+So `--steps 2000`, `HOPE_PORT=8765` and `{"steps": 2000.0}` are accepted, and `--steps 2000.5`,
+`HOPE_PORT=true`, `?limit=1e3` and `{"steps": "2000"}` are refused with a message naming the field.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ _repr.maxstring = _repr.maxother = 60  # a message shows a value, never a 4 kB s
 
 # JSON's number grammar (RFC 8259), the only text accepted as a number
 _JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
+_DIGITS = re.compile(r"-?[0-9]+")
 
 
 def short(value: Any) -> str:
@@ -49,15 +51,27 @@ def _bound(name: str, value: Any, rule: str) -> NumberError:
 
 
 def from_text(name: str, text: str) -> int | float:
-    """The number a flag or an environment variable spells (an int when written as one)."""
-    if not isinstance(text, str) or not _JSON_NUMBER.fullmatch(text.strip()):
+    """The number a flag, an environment variable or a query parameter spells (an int when
+    written as one)."""
+    if not isinstance(text, str) or not _JSON_NUMBER.fullmatch(text):
         raise NumberError(name, f"expected a number, got {short(text)}")
-    text = text.strip()
-    if re.fullmatch(r"-?[0-9]+", text):
+    if _DIGITS.fullmatch(text):
         if len(text) > 400:  # int() of a huge digit string is slow and no field takes it
             raise NumberError(name, f"{short(text)} is out of range")
         return int(text)
     return float(text)
+
+
+def int_from_text(name: str, text: str, *, minimum: int | None = None, maximum: int | None = None) -> int:
+    """An integer field written as text: decimal digits (an optional minus), then as_int's bounds."""
+    if not isinstance(text, str) or not _DIGITS.fullmatch(text):
+        raise NumberError(name, f"expected an integer, got {short(text)}")
+    return as_int(name, from_text(name, text), minimum=minimum, maximum=maximum)
+
+
+def float_from_text(name: str, text: str, **bounds: float | None) -> float:
+    """A number field written as text, then as_float's bounds."""
+    return as_float(name, from_text(name, text), **bounds)
 
 
 def _finite(name: str, value: Any, what: str) -> float:
@@ -100,4 +114,4 @@ def as_float(name: str, value: Any, *, minimum: float | None = None, maximum: fl
     return v
 
 
-__all__ = ["NumberError", "as_float", "as_int", "from_text", "short"]
+__all__ = ["NumberError", "as_float", "as_int", "float_from_text", "from_text", "int_from_text", "short"]

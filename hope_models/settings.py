@@ -18,7 +18,7 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from hope_models.numbers import NumberError, as_float, as_int, from_text, short
+from hope_models.numbers import NumberError, as_float, as_int, float_from_text, int_from_text, short
 
 DEFAULT_HOME = "~/.local/share/hope-trainer"
 
@@ -112,8 +112,10 @@ def _coerce(name: str, value, where: str, from_env: bool = False):
             raise ValueError(value)
         if kind in ("int", "float"):
             # the one rule for numbers (numbers.py): text only where everything is text
-            number = from_text(name, value) if from_env else value
-            checked = as_int(name, number) if kind == "int" else as_float(name, number)
+            if kind == "int":
+                checked = int_from_text(name, value) if from_env else as_int(name, value)
+            else:
+                checked = float_from_text(name, value) if from_env else as_float(name, value)
             return _at_least(name, checked, where)
         if kind == "list[str]":
             if isinstance(value, str):

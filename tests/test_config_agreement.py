@@ -29,11 +29,17 @@ def probes(name: str) -> list:
                                                           for w in values[:i])]
 
 
-def cli_text(value) -> str | None:
-    """What a user types for `value` on a command line (None: no text means it)."""
-    if isinstance(value, bool) or isinstance(value, (int, float)):
-        return json.dumps(value) if not isinstance(value, float) or math.isfinite(value) else \
-            {math.inf: "1e999", -math.inf: "-1e999"}.get(value, "nan")
+def cli_text(name: str, value) -> str | None:
+    """What a user types on a command line for `value` of option `name` (None: no text means
+    it). As text an integer is decimal digits, so 2.0 is typed 2 for an integer option."""
+    if isinstance(value, bool):
+        return json.dumps(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return {math.inf: "1e999", -math.inf: "-1e999"}.get(value, "nan")
+    if isinstance(value, float) and value.is_integer() and OPTIONS[name].kind == "int":
+        return str(int(value))
+    if isinstance(value, (int, float)):
+        return json.dumps(value)
     return None
 
 
@@ -105,7 +111,7 @@ def test_request_doors_agree_value_by_value(doors, name):
         assert api_ok == worker_ok == loop_ok, (name, value, api_v, worker_v, loop_v)
         if loop_ok:
             assert api_v == worker_v == loop_v and type(api_v) is type(loop_v), (name, value)
-        text = cli_text(value)
+        text = cli_text(name, value)
         if text is None:
             continue
         for module in ("daemon.cli.enqueue", "daemon.cli.sequential", "hope_models.cli.train"):
@@ -120,7 +126,7 @@ def test_train_flags_agree_with_the_trainer(doors, name):
     """The `train` flags that no request may set (e.g. none today, or deployment ones) still
     check as the trainer does."""
     for value in probes(name):
-        text = cli_text(value)
+        text = cli_text(name, value)
         if text is None:
             continue
         loop_ok, loop_v = accepted(by_loop, name, value)
@@ -148,14 +154,17 @@ def test_every_option_open_at_a_door_has_its_flag_and_its_key():
 
 
 def test_the_one_rule_for_numbers():
-    from hope_models.numbers import NumberError, as_float, as_int, from_text
+    from hope_models.numbers import NumberError, as_float, as_int, float_from_text, from_text, int_from_text
 
-    assert as_int("n", 2000) == as_int("n", 2000.0) == as_int("n", from_text("n", "2e3")) == 2000
-    assert as_float("x", from_text("x", "1e-3")) == 0.001
+    assert as_int("n", 2000) == as_int("n", 2000.0) == int_from_text("n", "2000") == 2000
+    assert as_float("x", from_text("x", "1e-3")) == float_from_text("x", "0.001") == float_from_text("x", "1e-3")
+    for text in ("2e3", "2000.0", "+5", " 5"):  # as text, an integer is decimal digits
+        with pytest.raises(NumberError, match="expected an integer"):
+            int_from_text("n", text)
     for bad in (2000.5, True, "2000", None, math.nan, math.inf, [2000]):
         with pytest.raises(NumberError, match="^n: "):
             as_int("n", bad)
-    for text in ("0x10", "1_000", "nan", "inf", " ", "", "2000.", ".5", "+5", "5 5"):
+    for text in ("0x10", "1_000", "nan", "inf", " ", "", "2000.", ".5", "+5", "5 5", " 5", "5\n"):
         with pytest.raises(NumberError, match="expected a number"):
             from_text("n", text)
     with pytest.raises(NumberError, match="must be >= 1"):
@@ -165,9 +174,9 @@ def test_the_one_rule_for_numbers():
 def test_settings_follow_the_one_rule(tmp_path):
     from hope_models.settings import SettingsError
 
-    assert load_settings(tmp_path / "a", env={"HOPE_PORT": "8765.0"}).port == 8765
-    assert load_settings(tmp_path / "b", env={"HOPE_MEMORY_BUDGET_MB": "2e3"}).memory_budget_mb == 2000
-    for env in ({"HOPE_PORT": "8765.5"}, {"HOPE_PORT": "true"}, {"HOPE_PORT": "0x10"},
+    assert load_settings(tmp_path / "a", env={"HOPE_PORT": "8765"}).port == 8765
+    assert load_settings(tmp_path / "b", env={"HOPE_GATE_VAL_TOLERANCE": "5e-2"}).gate_val_tolerance == 0.05
+    for env in ({"HOPE_PORT": "8765.5"}, {"HOPE_PORT": "8765.0"}, {"HOPE_PORT": "true"}, {"HOPE_PORT": "0x10"},
                 {"HOPE_GATE_VAL_TOLERANCE": "nan"}):
         with pytest.raises(SettingsError, match=next(iter(env))):
             load_settings(tmp_path / "c", env=env)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hope_models.numbers import NumberError, as_int, from_text
+from hope_models.numbers import NumberError, int_from_text
 from hope_models.train.config import DEFAULT_REQUEST_STEPS, OPTIONS, REQUEST_FIELDS, add_flag, add_flags, dest_of
 from hope_models.train.contract import COMPONENTS
 
@@ -21,7 +21,7 @@ from hope_models.train.contract import COMPONENTS
 def _int(text: str) -> int:
     """A whole number by the one rule (hope_models/numbers.py); build_request checks its bounds."""
     try:
-        return as_int("value", from_text("value", text))
+        return int_from_text("value", text)
     except NumberError as exc:
         raise argparse.ArgumentTypeError(exc.reason) from None
 

@@ -14,6 +14,7 @@ import sys
 import time
 from typing import Any
 
+from hope_models.numbers import NumberError, float_from_text
 from hope_models.train.contract import OUTCOME_EXIT_CODES
 
 END_EXIT_CODES = {"completed": OUTCOME_EXIT_CODES["completed"], "failed": OUTCOME_EXIT_CODES["failed"],
@@ -22,13 +23,10 @@ BAR_WIDTH = 24
 
 
 def _interval(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(v) or not 0.05 <= v <= 60:
-        raise argparse.ArgumentTypeError(f"{text} must be between 0.05 and 60 seconds")
-    return v
+    try:  # the one rule for numbers (hope_models/numbers.py)
+        return float_from_text("--interval", text, minimum=0.05, maximum=60.0)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason + " (seconds)") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,34 +1,34 @@
 """argparse `type=` checkers shared by every sub-command, so a bad value gets the same one-line
 message (naming the value and the rule) from `train`, `enqueue`, `sim-demos` or `daemon` alike.
-Numbers are read by the one rule of hope_models/numbers.py (the flag's text as a JSON number;
-an integer may be written 2000 or 2e3, never 2000.5). Torch-free and cheap: parsers import this
+Numbers are read by the one rule of hope_models/numbers.py (a JSON number's text;
+an integer as decimal digits). Torch-free and cheap: parsers import this
 module before any command runs. TrainConfig's own flags get theirs from train/config.py."""
 from __future__ import annotations
 
 import argparse
 from typing import Any, Callable
 
-from hope_models.numbers import NumberError, as_float, as_int, from_text
+from hope_models.numbers import NumberError, float_from_text, int_from_text
 
 
-def _number(check: Callable[..., Any], text: str, **bounds: Any) -> Any:
+def _number(parse: Callable[..., Any], text: str, **bounds: Any) -> Any:
     try:
-        return check("value", from_text("value", text), **bounds)
+        return parse("value", text, **bounds)
     except NumberError as exc:
         raise argparse.ArgumentTypeError(exc.reason) from None
 
 
 def non_negative_int(text: str) -> int:
-    return _number(as_int, text, minimum=0)
+    return _number(int_from_text, text, minimum=0)
 
 
 def positive_int(text: str) -> int:
-    return _number(as_int, text, minimum=1)
+    return _number(int_from_text, text, minimum=1)
 
 
 def positive_float(text: str) -> float:
-    return _number(as_float, text, above=0.0)
+    return _number(float_from_text, text, above=0.0)
 
 
 def non_negative_float(text: str) -> float:
-    return _number(as_float, text, minimum=0.0)
+    return _number(float_from_text, text, minimum=0.0)

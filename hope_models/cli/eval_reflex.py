@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 
 from hope_models.cli.argtypes import non_negative_int, positive_int
+from hope_models.numbers import NumberError, float_from_text
 
 PROMOTED = "promoted"
 POINTER_DIR = "promoted"
@@ -69,23 +70,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _fps(text: str) -> float:
     from hope_models.sim.frames import MAX_FPS
 
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0 < v <= MAX_FPS:
-        raise argparse.ArgumentTypeError(f"{v:g} must be within (0, {MAX_FPS:g}]")
-    return v
+    try:  # the one rule for numbers (hope_models/numbers.py)
+        return float_from_text("--fps", text, above=0.0, maximum=MAX_FPS)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason) from None
 
 
 def _speed(text: str) -> float:
     try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"{v:g} must be a finite number >= 0")
-    return v
+        return float_from_text("--stream-speed", text, minimum=0.0)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason) from None
 
 
 def _prepare_gl() -> str | None:

@@ -70,12 +70,12 @@ def format_summary(s: dict[str, Any]) -> str:
         f"episodes     {s['episodes']} ({s['imagined_episodes']} imagined; split train {s['split']['train_episodes']}"
         f" / val {s['split']['val_episodes']})",
         f"steps        {s['steps']}",
-        f"rates        " + ", ".join(f"{k}: {v}" for k, v in s["rates"].items()),
+        "rates        " + ", ".join(f"{k}: {v}" for k, v in s["rates"].items()),
         f"durations    total {d['total']:.1f} s; per episode min {d['min']:.2f} / median {d['median']:.2f} "
         f"/ max {d['max']:.2f} s",
         f"observation  {s['obs_dim']} dims: {fields(s['observation_fields'])}",
         f"action       {s['act_dim']} dims: {fields(s['action_fields'])}",
-        f"frame        " + ("none" if s["frame"] is None else f"{s['frame']['path']} {s['frame']['shape']}"
+        "frame        " + ("none" if s["frame"] is None else f"{s['frame']['path']} {s['frame']['shape']}"
                             + (" (.npy frame blobs)" if s["frame"].get("source") == "blob" else "")),
         f"cache        {s['cache_path']} ({'reused' if s['reused'] else 'built'}"
         + ("" if s["reused"] else f" in {s['build_seconds']:.1f} s") + f"; access {s['access_mode']})",

@@ -23,7 +23,7 @@ import json
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, Callable
 
-from hope_models.numbers import NumberError, as_float, as_int, from_text, short
+from hope_models.numbers import NumberError, as_float, as_int, from_text, int_from_text, short
 from hope_models.settings import Settings
 
 MAX_STEPS = 100_000_000
@@ -215,7 +215,9 @@ def _text_type(name: str) -> Callable[[str], Any]:
 
     def parse(text: str) -> Any:
         try:
-            if opt.kind in ("int", "float"):
+            if opt.kind == "int":
+                return check_value(name, int_from_text(name, text))
+            if opt.kind == "float":
                 return check_value(name, from_text(name, text))
             if opt.kind == "object":
                 try:

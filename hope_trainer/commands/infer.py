@@ -23,7 +23,7 @@ import json
 import sys
 from typing import Any
 
-from hope_models.numbers import NumberError, as_float, from_text
+from hope_models.numbers import NumberError, float_from_text
 
 NOT_ANSWERED_EXIT = 1
 USAGE_EXIT = 2
@@ -37,7 +37,7 @@ class InferFailure(Exception):
 
 def _timeout_s(text: str) -> float:
     try:  # the one rule for numbers (hope_models/numbers.py)
-        return as_float("--timeout", from_text("--timeout", text), above=0.0, maximum=600.0)
+        return float_from_text("--timeout", text, above=0.0, maximum=600.0)
     except NumberError as exc:
         raise argparse.ArgumentTypeError(exc.reason + " (seconds)") from None
 

@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hope_models.numbers import NumberError, int_from_text
+
 log = logging.getLogger("hope.serve")
 
 SHUTDOWN_WAIT_S = 30.0  # for the running job to checkpoint and requeue itself
@@ -54,13 +56,10 @@ _PDEATHSIG_WRAPPER = (
 
 
 def port_number(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"{v} is not a port number (0-65535; 0 = any free port)")
-    return v
+    try:  # the one rule for numbers (hope_models/numbers.py)
+        return int_from_text("--port", text, minimum=0, maximum=65535)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(f"{exc.reason}: not a port number (0-65535; 0 = any free port)") from None
 
 
 def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
