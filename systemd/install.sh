@@ -84,6 +84,7 @@ for unit in hope-daemon.service hope-worker.service hope-webapp.service; do
   sed -e "s|@REPO@|$repo|g" -e "s|@PYTHON@|$python|g" \
       -e "s|^User=hope$|User=$user|" -e "s|^Group=hope$|Group=$user|" \
       -e "s|^Environment=HOPE_HOME=/var/lib/hope-trainer$|Environment=HOPE_HOME=$state_dir|" \
+      -e "s|^ReadWritePaths=/var/lib/hope-trainer$|ReadWritePaths=$state_dir|" \
       "$here/$unit" > "$unit_dir/$unit.tmp"
   chmod 0644 "$unit_dir/$unit.tmp"
   mv "$unit_dir/$unit.tmp" "$unit_dir/$unit"

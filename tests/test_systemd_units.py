@@ -2,13 +2,12 @@
 from __future__ import annotations
 
 import configparser
+import re
 import shutil
 import stat
 import subprocess
 import sys
 from pathlib import Path
-
-import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 UNITS = ("hope-daemon.service", "hope-worker.service", "hope-webapp.service")
@@ -84,13 +83,69 @@ def test_install_script_refuses_a_missing_python(tmp_path):
     assert not (tmp_path / "u").exists()
 
 
-def test_rendered_units_pass_systemd_analyze(tmp_path):
+def analyze() -> str:
     exe = shutil.which("systemd-analyze")
-    if exe is None:
-        pytest.skip("systemd-analyze is not installed here; the structural checks above still ran")
+    # no skip: `make test` runs `make system-deps`, which installs systemd where it is missing
+    assert exe is not None, "systemd-analyze is missing: make system-deps (apt-get install systemd)"
+    return exe
+
+
+def test_rendered_units_pass_systemd_analyze(tmp_path):
+    exe = analyze()
     units = render(tmp_path)
     proc = subprocess.run([exe, "verify", *(str(units / n) for n in UNITS)], capture_output=True, text=True,
                           timeout=60)
     # verify exits 0 even for unknown keys and bad values; it reports them on stderr naming the file
     complaints = [line for line in (proc.stdout + proc.stderr).splitlines() if str(units) in line]
     assert not complaints, "\n".join(complaints)
+
+
+MAX_EXPOSURE = 3.0  # systemd-analyze security rates up to 3.9 "OK"; the issue asks for 3.0 at most
+EXPOSURE_RE = re.compile(r"Overall exposure level for (\S+): (\d+(?:\.\d+)?) (\w+)")
+
+
+def test_rendered_units_are_hardened(tmp_path):
+    exe = analyze()
+    units = render(tmp_path)
+    levels = {}
+    for name in UNITS:
+        proc = subprocess.run([exe, "security", "--offline=true", "--no-pager", str(units / name)],
+                              capture_output=True, text=True, timeout=60)
+        out = proc.stdout + proc.stderr
+        found = EXPOSURE_RE.findall(out)
+        assert found and found[-1][0] == name, out
+        levels[name] = float(found[-1][1])
+    assert all(level <= MAX_EXPOSURE for level in levels.values()), levels
+
+
+def test_units_carry_the_hardening():
+    """What the exposure figure cannot show: these keys must be exactly so for the services to work
+    (and to stop on a configuration error instead of restarting forever)."""
+    for name in UNITS:
+        path = REPO / "systemd" / name
+        s = unit(path)["Service"]
+        assert s["RestartPreventExitStatus"] == "2", name
+        assert s["SyslogIdentifier"] == name.removesuffix(".service"), name
+        assert s["ProtectSystem"] == "strict" and s["NoNewPrivileges"] == "true", name
+        # $HOPE_HOME is the one writable path (install.sh rewrites it with --state-dir)
+        assert multi(path, "ReadWritePaths") == ["/var/lib/hope-trainer"], name
+        assert s["CapabilityBoundingSet"] == "" and s["PrivateTmp"] == "true", name
+        assert multi(path, "SystemCallFilter")[0] == "@system-service", name
+        assert s["SystemCallErrorNumber"] == "EPERM", name
+        families = set(s["RestrictAddressFamilies"].split())
+        assert {"AF_UNIX", "AF_INET", "AF_INET6"} <= families <= {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"}, name
+        # torch's CPU kernels are JIT-compiled (oneDNN) in the job child and the promotion gate children
+        assert "MemoryDenyWriteExecute" not in s, name
+        # psutil's memory and CPU figures come from /proc/meminfo and /proc/stat
+        assert s.get("ProcSubset", "all") == "all", name
+    # only the daemon and the webapp read the throttle flags through vcgencmd (/dev/vcio)
+    for name in ("hope-daemon.service", "hope-webapp.service"):
+        s = unit(REPO / "systemd" / name)["Service"]
+        assert s["DevicePolicy"] == "closed" and multi(REPO / "systemd" / name, "DeviceAllow") == ["/dev/vcio rw"]
+    assert unit(REPO / "systemd" / "hope-worker.service")["Service"]["PrivateDevices"] == "true"
+
+
+def test_install_script_points_the_writable_path_at_the_state_dir(tmp_path):
+    units = render(tmp_path)
+    for name in UNITS:
+        assert f"ReadWritePaths={tmp_path / 'state'}\n" in (units / name).read_text(), name
