@@ -13,7 +13,7 @@ PYTEST_ARGS ?=
 PYTEST_WORKERS ?= 2
 PYTEST_XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --dist worksteal)
 
-.PHONY: setup test demo bench clean system-deps assets
+.PHONY: setup test demo bench clean system-deps gl-deps assets install lock
 
 ASSETS := webapp/static/vendor/.stamp
 
@@ -23,8 +23,10 @@ setup: $(STAMP) $(ASSETS)
 # tests drive Debian's chromium (never `playwright install`: no browser downloads); npm installs the
 # Robot Editor's JS (socket.io-client, chart.js) from package-lock.json.
 APT_DEPS := redis-server:redis-server chromium:chromium npm:npm
-GL_DEPS := libegl1 libgl1-mesa-dri
-system-deps:
+# libopengl0 (libOpenGL.so.0): without it PyOpenGL's EGL platform cannot load GL on a minimal
+# Raspberry Pi OS and `import mujoco` under MUJOCO_GL=egl fails.
+GL_DEPS := libegl1 libgl1-mesa-dri libopengl0
+system-deps: gl-deps
 	@for dep in $(APT_DEPS); do cmd=$${dep%%:*}; pkg=$${dep#*:}; \
 	  command -v $$cmd >/dev/null 2>&1 && continue; \
 	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q $$pkg >/dev/null || \
@@ -32,7 +34,9 @@ system-deps:
 	  else sudo apt-get install -y -q $$pkg >/dev/null; fi; \
 	  command -v $$cmd >/dev/null 2>&1 || { echo "$$cmd is needed by the tests: apt-get install $$pkg" >&2; exit 1; }; \
 	done
-	@# MUJOCO_GL=egl (frames for the VQ-VAE and the reflex view) needs the EGL and Mesa drivers.
+
+# MUJOCO_GL=egl (frames for the VQ-VAE and the reflex view) needs the EGL and Mesa drivers.
+gl-deps:
 	@dpkg -s $(GL_DEPS) >/dev/null 2>&1 || { \
 	  if [ "$$(id -u)" = 0 ]; then apt-get install -y -q $(GL_DEPS) >/dev/null || \
 	    { apt-get update -q >/dev/null && apt-get install -y -q $(GL_DEPS) >/dev/null; }; \
@@ -72,3 +76,33 @@ dist: $(STAMP) $(ASSETS)
 
 clean:
 	rm -rf $(VENV) *.egg-info .pytest_cache node_modules webapp/static/vendor test-artifacts
+
+# The robot's install: runtime + [sim] from the lock of this machine's arch and Python (exact pins,
+# sha256 of every file, --no-deps: nothing unpinned), then the project itself without deps. No
+# pytest/playwright/fakeredis, no chromium, no npm: the Robot Editor's vendored JS comes prebuilt,
+# either in the checkout's webapp/static/vendor/ or in a wheel from `make dist` on a dev machine
+# (WHEEL=dist/hope_seed_trainer-....whl). Its own venv, so the developer .venv is never touched.
+#   sudo make install                                    # /opt/hope-trainer/venv
+#   make install INSTALL_VENV=/tmp/hope/venv WHEEL=dist/hope_seed_trainer-0.1.0-py3-none-any.whl
+INSTALL_VENV ?= /opt/hope-trainer/venv
+INSTALL_PYTHON ?= $(PYTHON)
+WHEEL ?=
+# recursive (=): evaluated only when a target uses it
+LOCK_TAG = $(if $(filter aarch64 arm64,$(shell uname -m)),pi-aarch64,$(shell uname -m))-py$(shell $(INSTALL_PYTHON) -c 'import sys; print("%d%d" % sys.version_info[:2])')
+LOCK ?= requirements/$(LOCK_TAG).txt
+VENDOR_JS = $(wildcard webapp/static/vendor/*.js)
+install: gl-deps
+	@test -f "$(LOCK)" || { echo "no lock $(LOCK) for this machine: $$(ls requirements/*.txt)" >&2; exit 1; }
+	@test -n "$(WHEEL)$(VENDOR_JS)" || { echo "webapp/static/vendor/ is empty and no WHEEL=: build the wheel" \
+	  "on a dev machine (make dist) and pass WHEEL=dist/hope_seed_trainer-*.whl (no JS is built here)" >&2; exit 1; }
+	test -x "$(INSTALL_VENV)/bin/python" || $(INSTALL_PYTHON) -m venv "$(INSTALL_VENV)"
+	"$(INSTALL_VENV)/bin/python" -m pip install --quiet --require-hashes --no-deps --only-binary=:all: -r "$(LOCK)"
+	@# build/ goes first, as for `make dist`: a stale one would carry deleted modules into the install
+	$(if $(WHEEL),"$(INSTALL_VENV)/bin/python" -m pip install --quiet --no-deps --force-reinstall "$(WHEEL)",\
+	  rm -rf build && "$(INSTALL_VENV)/bin/python" -m pip install --quiet --no-deps --no-build-isolation --force-reinstall .)
+	@rm -rf build
+	@echo "installed into $(INSTALL_VENV) from $(LOCK): $(INSTALL_VENV)/bin/hope-trainer"
+
+# Rewrites requirements/*.txt from pyproject.toml (uv resolves for the Pi's platforms from here).
+lock:
+	$(PYTHON) requirements/lock.py
