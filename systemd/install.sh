@@ -1,10 +1,11 @@
 #!/bin/sh
 # Install the HOPE Seed Trainer as three systemd services (daemon, worker, webapp) on a Pi.
 #
-#   sudo systemd/install.sh                      # repo = this checkout, venv = <repo>/.venv
-#   sudo systemd/install.sh --python /opt/hope/venv/bin/python --no-start
+#   sudo systemd/install.sh                      # repo = this checkout; `make install` -> /opt/hope-trainer/venv
+#   sudo systemd/install.sh --python /opt/hope/venv/bin/python --no-start   # an existing venv, no install
 #
 # What it does (docs/pi.md explains each step):
+#   0. unless --python is given, `make install` (runtime + sim from the lock, no dev tools) into --venv;
 #   1. checks the venv's python can import the services without torch in the parents;
 #   2. creates the system user `hope` (in the video group for vcgencmd) and /var/lib/hope-trainer (0700);
 #   3. writes the unit files to /etc/systemd/system with the repo and python paths filled in;
@@ -13,7 +14,7 @@
 #   6. warns when the memory cgroup controller is off (MemoryMax would be silently ignored).
 # Re-running it is safe: units are rewritten, the user, state dir and overrides file are kept.
 #
-# Options: --repo DIR, --python PATH, --user NAME, --state-dir DIR, --unit-dir DIR (default
+# Options: --repo DIR, --venv DIR, --python PATH, --user NAME, --state-dir DIR, --unit-dir DIR (default
 # /etc/systemd/system), --defaults-file FILE (default /etc/default/hope-trainer), --no-start,
 # --no-systemctl (only write files: for images and tests), --no-user (do not create the user).
 set -eu
@@ -21,6 +22,7 @@ set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(dirname "$here")
 python=""
+venv=/opt/hope-trainer/venv
 user=hope
 state_dir=/var/lib/hope-trainer
 unit_dir=/etc/systemd/system
@@ -35,6 +37,7 @@ while [ $# -gt 0 ]; do
   case "$1" in
     --repo) repo=$2; shift 2 ;;
     --python) python=$2; shift 2 ;;
+    --venv) venv=$2; shift 2 ;;
     --user) user=$2; shift 2 ;;
     --state-dir) state_dir=$2; shift 2 ;;
     --unit-dir) unit_dir=$2; shift 2 ;;
@@ -42,15 +45,19 @@ while [ $# -gt 0 ]; do
     --no-start) start=0; shift ;;
     --no-systemctl) use_systemctl=0; start=0; shift ;;
     --no-user) make_user=0; shift ;;
-    -h|--help) sed -n '2,21p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,19p' "$0"; exit 0 ;;
     *) die "unknown option $1 (see --help)" ;;
   esac
 done
 
 repo=$(cd "$repo" 2>/dev/null && pwd) || die "--repo: no such directory"
 [ -f "$repo/run_trainer.py" ] || die "$repo has no run_trainer.py: pass --repo <the hope-seed-trainer checkout>"
-[ -n "$python" ] || python="$repo/.venv/bin/python"
-[ -x "$python" ] || die "python $python not found: create the venv first (make setup) or pass --python"
+# 0. the production venv: exact pins for this arch and Python (make install; docs/pi.md "Install")
+if [ -z "$python" ]; then
+  make -C "$repo" install INSTALL_VENV="$venv" || die "make install into $venv failed (see above)"
+  python="$venv/bin/python"
+fi
+[ -x "$python" ] || die "python $python not found: run make install or pass --python"
 
 # 1. the services must import, and their parents must not load torch (memory budget)
 "$python" - "$repo" <<'PY' || die "the venv at $python cannot run the services (see the error above)"
