@@ -26,8 +26,9 @@ from __future__ import annotations
 import os
 import signal
 
-from celery.signals import worker_init, worker_shutting_down
+from celery.signals import setup_logging, worker_init, worker_shutting_down
 
+from hope_models.log_format import configure_logging
 from hope_models.settings import Settings, load_settings, use_private_umask
 from registry.broker import celery_app
 
@@ -74,6 +75,25 @@ def _private_files(**_kw) -> None:
     through run_trainer.py: its job children write checkpoints, logs and the registry under
     $HOPE_HOME, which are its user's alone (they inherit the umask from this parent)."""
     use_private_umask()
+
+
+@setup_logging.connect
+def _log_like_the_other_services(loglevel=None, **_kw) -> None:
+    """Celery's own handler would stamp every line with its own time and leave journald to file it
+    all as "info". With a receiver on this signal Celery configures no logging at all; the root
+    logger gets the daemon's and the webapp's format instead (hope_models/log_format.py: under
+    systemd, `<N>` priority prefixes and no timestamp), at --loglevel. The job runs in a forked pool
+    child, which inherits this handler, so its lines are formatted the same way."""
+    import logging
+
+    from celery.utils.log import get_multiprocessing_logger
+
+    handler = configure_logging(loglevel or "INFO")
+    mp_logger = get_multiprocessing_logger()  # billiard's pool logger does not propagate
+    if handler is not None and mp_logger is not None and not mp_logger.handlers:
+        # as Celery would: its errors (a pool child that died) on the same stream, nothing below
+        mp_logger.addHandler(handler)
+        mp_logger.setLevel(logging.ERROR)
 
 
 @worker_shutting_down.connect

@@ -64,13 +64,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hope_models.log_format import journal_prefix
     from hope_models.settings import SettingsError, load_settings
 
     try:
         settings = load_settings()
         cmd = worker_command(settings, args.queue, hostname=args.hostname, loglevel=args.loglevel)
     except (SettingsError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         return 2
     broker = "redis (HOPE_REDIS_URL)" if settings.redis_url else f"embedded ({settings.home / 'broker'})"
     print(f"worker: queue {args.queue}, broker {broker}, state {settings.home}", file=sys.stderr, flush=True)

@@ -44,15 +44,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from registry.db import RegistryError
+    from hope_models.log_format import configure_logging, journal_prefix
     from hope_models.settings import SettingsError, load_settings
 
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
+    configure_logging(getattr(logging, args.log_level.upper()))
     log = logging.getLogger("daemon")
     try:
         settings = load_settings()
     except SettingsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         return 2
 
     from daemon.events import NullSink, RedisEmitterSink
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon.start()
     except (RegistryError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         return 2
     try:
         daemon.run_forever(stop)

@@ -320,13 +320,15 @@ def brain_summary(brain: Any) -> str:
 
 def setup_logging(home: Path, console_level: int = logging.INFO) -> None:
     """Services log to $HOPE_HOME/logs/daemon.log; the terminal gets `console_level` and up (the
-    demo keeps it to warnings so its own lines stay readable)."""
-    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+    demo keeps it to warnings so its own lines stay readable). Under a systemd unit the terminal
+    lines carry journald priorities instead of a timestamp (hope_models/log_format.py)."""
+    from hope_models.log_format import console_formatter
+
     root = logging.getLogger()
     root.setLevel(logging.INFO)
     console = logging.StreamHandler(sys.stderr)
     console.setLevel(console_level)
-    console.setFormatter(fmt)
+    console.setFormatter(console_formatter("%H:%M:%S"))
     root.addHandler(console)
     (home / "logs").mkdir(parents=True, exist_ok=True)
     file_handler = logging.FileHandler(home / "logs" / "daemon.log", encoding="utf-8")

@@ -62,14 +62,15 @@ def _tail_events(registry, socketio, stop: threading.Event) -> None:
 def run(args: argparse.Namespace) -> int:
     from registry.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
+    from hope_models.log_format import configure_logging, journal_prefix
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
     from webapp.server import ConnectionLimits, HttpServer, ServerError
 
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
+    configure_logging(getattr(logging, args.log_level.upper()))
     for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     notifier = SdNotifier()
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         settings = listen_settings(args)
         registry = Registry.open(settings, migrate=True)
     except (SettingsError, RegistryError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         return 2
     threads: list[threading.Thread] = []
     brain = BrainService(settings.home)
@@ -88,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
                                    brain=brain)
         server = HttpServer(app, settings.host, settings.port, ConnectionLimits.from_settings(settings))
     except (TokenError, ServerError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         registry.close()
         return 2
 
