@@ -23,6 +23,8 @@ setup: $(STAMP) $(ASSETS)
 # tests drive Debian's chromium (never `playwright install`: no browser downloads); npm installs the
 # Robot Editor's JS (socket.io-client, chart.js) from package-lock.json.
 APT_DEPS := redis-server:redis-server chromium:chromium npm:npm
+# tests/test_systemd_units.py checks the units with systemd-analyze (verify, security --offline=true)
+APT_DEPS += systemd-analyze:systemd
 # libopengl0 (libOpenGL.so.0): without it PyOpenGL's EGL platform cannot load GL on a minimal
 # Raspberry Pi OS and `import mujoco` under MUJOCO_GL=egl fails.
 GL_DEPS := libegl1 libgl1-mesa-dri libopengl0
