@@ -76,6 +76,15 @@ dist: $(STAMP) $(ASSETS)
 	rm -rf build
 	$(PY) -m pip wheel --quiet --no-deps --no-build-isolation -w dist .
 
+# arm64 under qemu-user: a cached Debian bookworm arm64 root (debootstrap), a venv from
+# requirements/pi-aarch64-py311.txt, then sim-demos -> ingest -> train fast_loop -> promote ->
+# infer --local, each timed (bench/pi_smoke.sh; docs/pi.md has a recorded run). Needs root and the
+# network; slow under emulation, so not part of `make test`.
+PI_SMOKE_CACHE ?= /var/cache/hope-pi-smoke
+.PHONY: pi-smoke
+pi-smoke:
+	PI_SMOKE_CACHE=$(PI_SMOKE_CACHE) nice -n 19 bash bench/pi_smoke.sh
+
 clean:
 	rm -rf $(VENV) *.egg-info .pytest_cache node_modules webapp/static/vendor test-artifacts
 
