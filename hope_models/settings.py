@@ -54,6 +54,11 @@ class Settings:
     gate_val_tolerance: float = 0.05  # candidate val loss may be at most this fraction above the promoted one's
     gate_reflex_tolerance: float = 50.0  # sim reflex: mean return may be at most this many points below
     gate_reflex_episodes: int = 5  # held-out reacher seeds the reflex check runs
+    # a full disk (hope_models/disk.py, daemon/disk_guard.py): free MB under home a job needs before
+    # the daemon dispatches it (0 = its checkpoint size x (keep_last + 2) + 200 MB), and how many
+    # finished runs keep their run dirs (0 = keep all; promoted and pinned runs are always kept)
+    disk_floor_mb: int = 0
+    keep_runs: int = 20
 
     @property
     def datasets_dir(self) -> Path:
@@ -86,6 +91,8 @@ _ENV = {
     "HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance",
     "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
+    "HOPE_DISK_FLOOR_MB": "disk_floor_mb",
+    "HOPE_KEEP_RUNS": "keep_runs",
 }
 # the promotion gate's part of _ENV: the daemon passes these to the gate it spawns
 GATE_ENV = {var: name for var, name in _ENV.items() if name.startswith("gate_")}
@@ -93,7 +100,7 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
-            "max_connections": 8, "socketio_ping_interval_s": 1.0}
+            "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
 _WORD_LISTS = {"allowed_hosts"}

@@ -72,7 +72,7 @@ class Run(Base):
     sequence_id: Mapped[str | None] = mapped_column(String(64), index=True)
     sequence_index: Mapped[int | None] = mapped_column(Integer)
     state: Mapped[str] = mapped_column(String(16))
-    pause_reason: Mapped[str | None] = mapped_column(String(16))  # user | thermal | memory | shutdown
+    pause_reason: Mapped[str | None] = mapped_column(String(16))  # user | thermal | memory | shutdown | disk
     desired_state: Mapped[str] = mapped_column(String(16), default="run", server_default="run")  # run|pause|cancel
     requested_reason: Mapped[str | None] = mapped_column(String(16))  # why desired_state was set: user | shutdown
     throttle_level: Mapped[int] = mapped_column(Integer, default=0, server_default="0")  # 0..2, set by the daemon

@@ -40,11 +40,11 @@ ALLOWED: dict[str, set[str]] = {
     "cancelled": set(),
 }
 EVENT_KINDS = ("progress", "log", "state", "throttle", "checkpoint", "metric")
-PAUSE_REASONS = ("user", "thermal", "memory", "shutdown")
+PAUSE_REASONS = ("user", "thermal", "memory", "shutdown", "disk")
 DESIRED_STATES = ("run", "pause", "cancel")
 CONTROL_ACTIONS = ("cancel", "pause", "resume")
 # Trainer outcomes (hope_models.train.contract.OUTCOME_EXIT_CODES) that finish() accepts.
-OUTCOMES = ("completed", "failed", "cancelled", "paused_memory", "paused_user")
+OUTCOMES = ("completed", "failed", "cancelled", "paused_memory", "paused_user", "paused_disk")
 HEARTBEAT_FIELDS = ("step", "loss", "steps_per_s", "last_checkpoint")
 SHUTDOWN_MESSAGE = "stopped by shutdown; resumes on next start"
 

@@ -375,8 +375,8 @@ def finish(
     requested = run.requested_reason
     if outcome in ("completed", "failed", "cancelled"):
         transition(s, run, outcome, reason="trainer", message=message or None)
-    elif outcome == "paused_memory":
-        transition(s, run, "paused", reason="memory", message=message)
+    elif outcome in ("paused_memory", "paused_disk"):
+        transition(s, run, "paused", reason=outcome.removeprefix("paused_"), message=message)
     elif requested == "shutdown":  # paused_user because the service is stopping
         transition(s, run, "queued", reason="shutdown", message=SHUTDOWN_MESSAGE)
     else:

@@ -35,6 +35,7 @@ from hope_models.train.contract import ControlCommand
 from hope_models.train.config import (REQUEST_FIELDS, ConfigValueError, TrainConfig, check_value, deployment_values,
                                       over_deployment_budget)
 from hope_models.train.loop import TrainSetupError, train
+from hope_models.disk import full_message, is_disk_full
 from hope_models.train.run_dir_lock import wait_until_free
 from registry.report_protocol import ChannelError, RunSnapshot, StaleDelivery
 from workers.report import open_channel
@@ -367,6 +368,10 @@ class _Job:
             self.emitter("log", {"level": "error", "message": str(exc)})
             return "failed", str(exc), None, None
         except Exception as exc:  # a bug or an environment problem: say what and where
+            if is_disk_full(exc):  # a full disk is no bug: pause (reason "disk"), no traceback
+                message = full_message(exc, run.run_dir)
+                self.emitter("log", {"level": "error", "message": message})
+                return "paused_disk", message, None, None
             self.emitter("log", {"level": "error", "message": traceback.format_exc()})
             return "failed", f"{type(exc).__name__}: {exc}", None, None
 

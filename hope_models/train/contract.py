@@ -20,6 +20,7 @@ OUTCOME_EXIT_CODES = {
     "paused_memory": 3,  # checkpointed at the memory soft limit; re-run to resume
     "paused_user": 4,  # checkpointed because Control asked for a pause; re-run to resume
     "cancelled": 5,  # stopped because Control asked; checkpoints are kept
+    "paused_disk": 6,  # a write hit ENOSPC/EDQUOT; the last checkpoint is kept; free space, re-run to resume
 }
 
 

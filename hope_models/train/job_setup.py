@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Callable
 
+from hope_models.disk import is_disk_full
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.config import TrainConfig
 from hope_models.train.contract import TrainSetupError
@@ -32,6 +33,8 @@ def open_dataset(cfg: TrainConfig, log: Callable[[str, str], None]):
     except (CacheError, FeatureSpecError) as exc:
         raise TrainSetupError(f"--data {cfg.data}: {exc}") from None
     except OSError as exc:
+        if is_disk_full(exc):  # not a usage error: the job pauses (loop.train says where, how much is free)
+            raise
         raise TrainSetupError(f"--data {cfg.data}: {exc.filename or ''} {exc.strerror or exc}") from None
     if cache.n_episodes == 0 or cache.n_steps == 0:
         excluded = cache.manifest.get("excluded", [])

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from hope_models import disk
 from hope_models.durable import atomic_write
 from hope_models.train import checkpoint as ckpt
 from hope_models.train import job_setup, rng_state
@@ -88,7 +89,12 @@ def train(cfg: TrainConfig, control: Control | None = None, emit: Emit | None = 
     """
     trainer = _Trainer(cfg, control or NoControl(), emit, component_factory)
     trainer.mem, trainer.thermal = memory_guard, thermal
-    return trainer.run()
+    try:
+        return trainer.run()
+    except OSError as exc:  # a full disk in the cache build, the metrics' open/close or result.json
+        if not disk.is_disk_full(exc):
+            raise
+        return trainer.disk_full(exc)
 
 
 class _Trainer:
@@ -96,7 +102,7 @@ class _Trainer:
         _check_config(cfg, factory is not None)
         self.cfg, self.control, self._emit_fn, self.factory = cfg, control, emit, factory
         self.run_dir = Path(cfg.run_dir)
-        self.metrics = None
+        self.metrics, self.t_start = None, time.monotonic()
         self.mem = self.thermal = None
 
     # -- events ------------------------------------------------------------------------------
@@ -227,6 +233,18 @@ class _Trainer:
         with lock:
             return self._train(cache)
 
+    def disk_full(self, exc: OSError) -> TrainResult:
+        """paused_disk from the last checkpoint on disk, without a traceback; nothing more is written."""
+        step = getattr(self, "last_ckpt_step", 0)
+        path = getattr(self, "last_ckpt_path", None)
+        message = disk.full_message(exc, self.run_dir) + f"; resumes from {path or 'the start'} (step {step})"
+        self.log(message, "error")
+        history = getattr(self, "history", None)
+        first, last = (history.first(), history.last()) if history is not None else (None, None)
+        return TrainResult("paused_disk", self.cfg.component, step, self.cfg.steps, first, last,
+                           str(path) if path else None, self.mem.check().peak_mb if self.mem else 0.0, None, {},
+                           message, time.monotonic() - self.t_start)
+
     def _train(self, cache) -> TrainResult:
         import numpy as np
         import torch
@@ -329,6 +347,9 @@ class _Trainer:
         except _Stop as stop:
             return stop.outcome, stop.message, step
         except Exception as exc:  # an error inside the job: keep the last good checkpoint, say what happened
+            if disk.is_disk_full(exc):  # not the job's fault: it resumes from the last checkpoint
+                self.log(disk.full_message(exc, self.run_dir), "error")
+                return "paused_disk", disk.full_message(exc, self.run_dir), self.last_ckpt_step
             self.log(traceback.format_exc(), "error")
             return "failed", f"error at step {step + 1}: {type(exc).__name__}: {exc}", step
         return "completed", f"trained {cfg.component} to step {step}", step

@@ -1,0 +1,135 @@
+"""A full disk loses nothing: training on a real, small tmpfs runs out of space mid-run, pauses as
+"paused_disk" (exit 6) with the path and the free space in its message, keeps its last checkpoint,
+and once space is freed the same run dir resumes and ends bitwise equal to an uninterrupted run."""
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import sqlite3
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from hope_models import disk
+from hope_models.data.synthetic import generate_dataset
+from hope_models.durable import file_sha256
+from hope_models.train import checkpoint as ckpt
+from hope_models.train.contract import OUTCOME_EXIT_CODES, ControlCommand
+from hope_models.train.loop import TrainConfig, train
+from test_train_loop_standin import factory
+
+STEPS, EVERY, HIDDEN = 60, 20, 2048  # HIDDEN: a checkpoint of ~0.5 MB, so the ballast can be sized well
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("diskds")
+    generate_dataset(root / "ds", 1500, obs_dim=6, act_dim=2, episode_seconds=(3, 9), seed=1)
+    return root
+
+
+@pytest.fixture
+def small_fs(tmp_path) -> Path:
+    """A real 8 MB tmpfs, unmounted afterwards."""
+    mnt = tmp_path / "sd"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root / CAP_SYS_ADMIN): {done.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def cfg_for(ds: Path, run_dir: Path) -> TrainConfig:
+    return TrainConfig(component="fast_loop", data=str(ds / "ds"), run_dir=str(run_dir), steps=STEPS, seed=3,
+                       batch_size=16, lr=3e-3, threads=1, checkpoint_every_steps=EVERY, log_every=5, keep_last=2,
+                       cache_dir=str(ds / "cache"), thermal_zone=None, vcgencmd=None, control_interval_s=0.0)
+
+
+def dir_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+class FillDisk:
+    """At step `at`, fill the filesystem with a ballast file so that only half of one checkpoint
+    still fits: the metrics lines go on, the next checkpoint cannot be written."""
+
+    def __init__(self, run_dir: Path, ballast: Path, at: int):
+        self.run_dir, self.ballast, self.at, self.done = run_dir, ballast, at, False
+
+    def poll(self, step: int) -> ControlCommand:
+        if step >= self.at and not self.done:
+            self.done = True
+            one_ckpt = dir_bytes(ckpt.list_step_dirs(self.run_dir)[0][1])
+            free = shutil.disk_usage(self.ballast.parent).free
+            fd = os.open(self.ballast, os.O_WRONLY | os.O_CREAT, 0o600)
+            try:
+                os.posix_fallocate(fd, 0, free - one_ckpt // 2)
+            finally:
+                os.close(fd)
+        return ControlCommand()
+
+
+def final_weights_sha(run_dir: Path) -> str:
+    return file_sha256(ckpt.list_step_dirs(run_dir)[0][1] / ckpt.MODEL_FILE)
+
+
+def test_full_disk_pauses_keeps_the_checkpoint_and_resumes_bitwise(ds, tmp_path, small_fs):
+    ref = train(cfg_for(ds, tmp_path / "ref"), component_factory=factory(hidden=HIDDEN))
+    assert ref.outcome == "completed"
+
+    run_dir, ballast = small_fs / "run", small_fs / "ballast"
+    events: list[tuple[str, dict]] = []
+    r = train(cfg_for(ds, run_dir), FillDisk(run_dir, ballast, at=EVERY + 5), lambda k, p: events.append((k, p)),
+              component_factory=factory(hidden=HIDDEN))
+    assert r.outcome == "paused_disk" and r.exit_code == OUTCOME_EXIT_CODES["paused_disk"] == 6
+    assert r.steps == EVERY and r.checkpoint.endswith(f"{EVERY:08d}")  # resumes from the last one written
+    assert str(run_dir) in r.message and "MB free" in r.message and "no space left" in r.message
+    logs = [p["message"] for k, p in events if k == "log"]
+    assert not any("Traceback" in m for m in logs), logs
+    # the previous checkpoint is intact (its manifest's hashes check) and no temp dir is left behind
+    loaded = ckpt.load_latest(run_dir)
+    assert loaded is not None and loaded.step == EVERY
+    assert not [p for p in ckpt.checkpoints_dir(run_dir).iterdir() if p.name.startswith(".")]
+
+    ballast.unlink()  # space is freed
+    r2 = train(cfg_for(ds, run_dir), component_factory=factory(hidden=HIDDEN))
+    assert r2.outcome == "completed" and r2.resumed_from == EVERY and r2.steps == STEPS
+    assert final_weights_sha(run_dir) == final_weights_sha(tmp_path / "ref")
+
+
+def test_still_full_at_start_pauses_again_without_a_traceback(ds, small_fs):
+    """A job started on a card with no room at all (its run dir cannot even take the metrics)."""
+    ballast = small_fs / "ballast"
+    fd = os.open(ballast, os.O_WRONLY | os.O_CREAT, 0o600)
+    try:
+        os.posix_fallocate(fd, 0, shutil.disk_usage(small_fs).free)
+    finally:
+        os.close(fd)
+    r = train(cfg_for(ds, small_fs / "run"), component_factory=factory(hidden=HIDDEN))
+    assert r.outcome == "paused_disk" and r.steps == 0 and r.checkpoint is None
+    assert str(small_fs / "run") in r.message and "MB free" in r.message
+
+
+def test_is_disk_full_knows_enospc_edquot_and_sqlite_full():
+    assert disk.is_disk_full(OSError(errno.ENOSPC, "No space left on device"))
+    assert disk.is_disk_full(OSError(errno.EDQUOT, "Disk quota exceeded"))
+    assert disk.is_disk_full(sqlite3.OperationalError("database or disk is full"))
+    try:
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError as inner:
+            raise RuntimeError("wrapped") from inner
+    except RuntimeError as outer:
+        assert disk.is_disk_full(outer)
+    assert not disk.is_disk_full(OSError(errno.EACCES, "Permission denied"))
+    assert not disk.is_disk_full(ValueError("bad"))
+
+
+def test_floor_default_is_checkpoint_times_keep_plus_two_plus_margin():
+    assert disk.dispatch_floor_mb(10.0, 3) == 10.0 * 5 + 200.0
+    assert disk.dispatch_floor_mb(10.0, 3, setting_mb=1234) == 1234.0
