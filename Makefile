@@ -98,8 +98,11 @@ clean:
 INSTALL_VENV ?= /opt/hope-trainer/venv
 INSTALL_PYTHON ?= $(PYTHON)
 WHEEL ?=
-# recursive (=): evaluated only when a target uses it
-LOCK_TAG = $(if $(filter aarch64 arm64,$(shell uname -m)),pi-aarch64,$(shell uname -m))-py$(shell $(INSTALL_PYTHON) -c 'import sys; print("%d%d" % sys.version_info[:2])')
+# recursive (=): evaluated only when a target uses it. The Python is the venv's when it exists (a
+# venv left from an older OS release keeps its Python), else the one that will create it.
+INSTALL_PY_TAG = $(shell p="$(INSTALL_VENV)/bin/python"; [ -x "$$p" ] || p="$(INSTALL_PYTHON)"; \
+  "$$p" -c 'import sys; print("py%d%d" % sys.version_info[:2])')
+LOCK_TAG = $(if $(filter aarch64 arm64,$(shell uname -m)),pi-aarch64,$(shell uname -m))-$(INSTALL_PY_TAG)
 LOCK ?= requirements/$(LOCK_TAG).txt
 VENDOR_JS = $(wildcard webapp/static/vendor/*.js)
 install: gl-deps
