@@ -10,6 +10,7 @@ It matches file names against the tags pip accepts for `--platform manylinux_2_2
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -99,6 +100,7 @@ def _accepted_tags(python: tuple[int, int]) -> set:
     return tags
 
 
+@functools.lru_cache(maxsize=None)  # both aarch64 locks share most names: one fetch each
 def _pypi_files(name: str) -> list[dict]:
     request = urllib.request.Request(f"{PYPI_SIMPLE}/{name}/",
                                      headers={"Accept": "application/vnd.pypi.simple.v1+json"})
@@ -190,3 +192,23 @@ def test_make_install_uses_the_lock_and_no_dev_tools():
     assert not re.search(r"\bnpm\s+(ci|install|run)\b|build_assets", proc.stdout), proc.stdout
     for word in ("[dev", "playwright", "chromium", "pytest", ".venv/"):
         assert word not in proc.stdout, f"make install would run {word!r}:\n{proc.stdout}"
+
+
+def test_pip_agrees_with_the_tag_check(tmp_path):
+    """The tag set above is what pip itself accepts: pip downloads the locked crc32c (a small
+    compiled wheel) for cp313 manylinux_2_28_aarch64 and refuses labmaze (no such wheel)."""
+    version = read_lock("pi-aarch64-py313")["crc32c"][0]
+
+    def download(spec: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "pip", "download", "--isolated", "--index-url", PYPI_SIMPLE, "--quiet",
+             "--only-binary=:all:", "--no-deps", "--platform", "manylinux_2_28_aarch64",
+             "--python-version", "3.13", "-d", str(tmp_path), spec],
+            capture_output=True, text=True, timeout=120)
+
+    ok = download(f"crc32c=={version}")
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    [wheel] = tmp_path.glob("crc32c-*.whl")
+    assert parse_wheel_filename(wheel.name)[3] & _accepted_tags((3, 13)), wheel.name
+    refused = download("labmaze==1.0.6")
+    assert refused.returncode != 0 and "labmaze" in refused.stderr, refused.stderr[-2000:]
