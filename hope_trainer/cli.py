@@ -44,6 +44,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "rollback": ("daemon.cli.rollback", "serve the previously promoted model of a component again"),
     "infer": ("hope_trainer.commands.infer",
               "one tick of the promoted model: action, version, latency (serve, or --local)"),
+    "doctor": ("hope_trainer.commands.doctor", "what is wrong on this machine: one line per check, each with its fix"),
 }
 
 
