@@ -219,3 +219,27 @@ def test_default_disk_floor_follows_the_largest_checkpoint(tmp_path):
     assert floor == 3 * (3 + 2) + 200 and "3 MB" in how
     settings.disk_floor_mb = 50
     assert host.disk_floor_mb(settings) == (50.0, "disk_floor_mb")
+
+
+def test_services_failed_and_not_installed(tmp_path, monkeypatch):
+    fake = tmp_path / "systemctl"  # answers `systemctl show` as systemd does for each unit
+    fake.write_text('#!/bin/sh\ncase "$3" in\n hope-daemon.service) printf "LoadState=loaded\\nActiveState=failed\\n'
+                    'SubState=failed\\n";;\n hope-webapp.service) printf "LoadState=loaded\\nActiveState=active\\n'
+                    'SubState=running\\n";;\n *) printf "LoadState=not-found\\nActiveState=inactive\\nSubState=dead\\n";;'
+                    '\nesac\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setattr(state, "has_systemd", lambda: True)
+    got = {c.check: c for c in state.check_services(None)}
+    assert got["hope-daemon"].status == FAIL and "journalctl -u hope-daemon" in got["hope-daemon"].fix
+    assert got["hope-webapp"].status == OK and got["hope-worker"].status == SKIP
+
+
+def test_redis_that_does_not_answer_is_a_fail():
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on once this closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    got = state.check_broker(type("S", (), {"home": Path("/nonexistent"), "redis_url": f"redis://:pw@127.0.0.1:{port}/0"})())
+    assert got.status == FAIL and "PING" in got.detail and "pw" not in got.detail
