@@ -190,10 +190,15 @@ def secure_home(home: Path) -> None:
                 "changed to %04o", home, mode, mode & HOME_MODE)
 
 
-def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | None = None) -> Settings:
+def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | None = None, *,
+                  secure: bool = True) -> Settings:
+    """The settings of `home` ($HOPE_HOME, else the default), from config.toml and HOPE_*. With
+    `secure` (every service and command), the home is created 0700 or tightened first; `doctor`
+    passes secure=False, since it reports the home as it is and changes nothing."""
     env = dict(os.environ if env is None else env)
     home_path = Path(home or env.get("HOPE_HOME") or DEFAULT_HOME).expanduser()
-    secure_home(home_path)
+    if secure:
+        secure_home(home_path)
     values: dict = {}
     config_file = home_path / "config.toml"
     if config_file.exists():

@@ -28,22 +28,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_settings_readonly():
-    """(settings, a fail line or None). load_settings() secures $HOPE_HOME (creates it 0700, or
-    chmods a too-open one): the right thing for a service, but the doctor must report the home as
-    it is, so its securing step is switched off for this one call (the doctor is single-threaded)."""
+    """(settings, a fail line or None), read without securing $HOPE_HOME (no mkdir, no chmod):
+    the doctor reports the home as it is."""
     import hope_models.settings as settings_module
 
-    secure = settings_module.secure_home
-    settings_module.secure_home = lambda home: None
     try:
-        return settings_module.load_settings(), None
+        return settings_module.load_settings(secure=False), None
     except settings_module.SettingsError as exc:
         home = Path(os.environ.get("HOPE_HOME") or settings_module.DEFAULT_HOME).expanduser()
         return settings_module.Settings(home=home), Check(
             "settings", FAIL, f"{exc}; the checks below use the defaults",
             "fix config.toml or the HOPE_* variable it names")
-    finally:
-        settings_module.secure_home = secure
 
 
 def render(checks: list[Check], home: Path) -> str:
