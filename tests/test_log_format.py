@@ -90,23 +90,24 @@ def test_detection_and_priorities(tmp_path):
     assert JournalFormatter().format(record) == "<4>x: a\n<4>b"
 
 
-def test_daemon_config_error_is_an_error_on_the_journal(tmp_path):
-    """Exit 2 (RestartPreventExitStatus=2): its one line must be what `journalctl -p err` shows."""
+def test_config_error_is_an_error_on_the_journal(tmp_path):
+    """Exit 2 (RestartPreventExitStatus=2) of each unit's command: its one line must be what
+    `journalctl -p err` shows."""
     home = tmp_path / "home"
     home.mkdir(mode=0o700)
     (home / "config.toml").write_text("this is not toml =\n")
     err = tmp_path / "stderr.txt"
-    for journal in (True, False):
+    for command, journal in [(c, j) for c in ("daemon", "webapp", "worker") for j in (True, False)]:
         err.write_text("")
         env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_") and k != "JOURNAL_STREAM"}
         env["HOPE_HOME"] = str(home)
         env = journal_env(err, env) if journal else env
         with open(err, "ab") as out:
-            code = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "daemon"], stderr=out, env=env,
+            code = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), command], stderr=out, env=env,
                                   stdout=subprocess.DEVNULL, timeout=120).returncode
         text = err.read_text()
-        assert code == 2, text
-        assert text.startswith("<3>error: " if journal else "error: "), (journal, text)
+        assert code == 2, (command, text)
+        assert text.startswith("<3>error: " if journal else "error: "), (command, journal, text)
 
 
 def test_celery_worker_logs_in_the_journal_format(tmp_path):
