@@ -18,6 +18,8 @@ level is back to 0, and a memory-paused run is requeued once the host has its me
 again (not sooner than memory_retry_s after it paused, and not again when the last automatic
 requeue got no step further: a job that hits its own limit at once must not spin; it then waits
 for a user's resume). Runs paused on other hosts' queues wait for a user's resume.
+A local run does not start while the free space under $HOPE_HOME is below its floor, and a
+disk-paused run is requeued once it is above again (disk_guard.py); the run says so in `waiting`.
 
 How the job reports its run travels in the task: hope.train_run(run_id, attempt, report=...).
 A local queue's worker shares this host and writes the registry ("db"). Any other queue's worker
@@ -39,6 +41,7 @@ from typing import Any, Callable, Iterable
 
 from sqlalchemy import select
 
+from daemon.disk_guard import DiskGuard
 from registry import runs
 from registry.models import Run, utcnow
 
@@ -65,6 +68,7 @@ class Dispatcher:
         self.memory_retry_s = float(memory_retry_s)
         self._app = celery_app
         self._send = send  # tests may replace the broker; None = Celery send_task
+        self.disk = DiskGuard(registry, settings)  # the free-space floor (daemon/disk_guard.py)
 
     # -- sending ---------------------------------------------------------------------------
 
@@ -105,16 +109,20 @@ class Dispatcher:
             local = queue in self.local_queues
             if local and throttle_level >= 2:
                 continue  # too hot to start anything here; the run waits queued
-            d = self._dispatch_one(queue, throttle_level if local else 0)
+            d = self._dispatch_one(queue, throttle_level if local else 0, local)
             if d is not None:
                 sent.append(d)
         return sent
 
-    def _dispatch_one(self, queue: str, level: int) -> Dispatched | None:
+    def _dispatch_one(self, queue: str, level: int, local: bool = True) -> Dispatched | None:
         task_id = str(uuid.uuid4())
         with self.registry.session() as s:
             run = runs.next_dispatchable(s, queue)
             if run is None:
+                return None
+            why = self.disk.refusal(s, run) if local else None  # a remote job writes its own disk
+            if why is not None:
+                self.disk.hold(s, run, why)  # stays queued, first in line, saying why
                 return None
             runs.mark_dispatched(s, run, task_id, throttle_level=level)
             d = Dispatched(run.id, queue, task_id, run.attempt)
@@ -162,10 +170,10 @@ class Dispatcher:
         """Thermal-paused runs once the level is 0; memory-paused ones once their budget is free."""
         with self.registry.session(readonly=True) as s:
             paused = s.scalars(select(Run).where(Run.state == "paused", Run.queue.in_(self.local_queues),
-                                                 Run.pause_reason.in_(("thermal", "memory")))).all()
+                                                 Run.pause_reason.in_(("thermal", "memory", "disk")))).all()
             candidates, stuck = [], []
             for r in paused:
-                if not self._ready(r, throttle_level, mem_available_mb):
+                if not self._ready(r, throttle_level, mem_available_mb, s):
                     continue
                 if r.pause_reason == "memory":
                     requeued_at, said = self._memory_marks(s, r)
@@ -181,10 +189,12 @@ class Dispatcher:
         for run_id in candidates:
             with self.registry.session() as s:
                 run = runs.get_run(s, run_id)
-                if run.state != "paused" or not self._ready(run, throttle_level, mem_available_mb):
+                if run.state != "paused" or not self._ready(run, throttle_level, mem_available_mb, s):
                     continue
                 if run.pause_reason == "thermal":
                     msg = "cooled down (throttle level 0); resumes from its last checkpoint"
+                elif run.pause_reason == "disk":
+                    msg = "disk space is back above the floor; resumes from its last checkpoint"
                 else:
                     msg = (f"{mem_available_mb:.0f} MB available again (budget {self._budget_mb(run):.0f} MB); "
                            "resumes from its last checkpoint")
@@ -216,9 +226,11 @@ class Dispatcher:
     def _budget_mb(self, run: Run) -> float:
         return float((run.config or {}).get("memory_budget_mb") or self.settings.memory_budget_mb)
 
-    def _ready(self, run: Run, level: int, mem_available_mb: float | None) -> bool:
+    def _ready(self, run: Run, level: int, mem_available_mb: float | None, s: Any) -> bool:
         if run.pause_reason == "thermal":
             return level == 0
+        if run.pause_reason == "disk":  # the dispatch floor is checked again when it starts
+            return self.disk.refusal(s, run) is None
         if run.pause_reason == "memory":
             paused_for = utcnow() - (run.updated_at or utcnow())
             return (mem_available_mb is not None and mem_available_mb >= self._budget_mb(run)

@@ -11,11 +11,12 @@ Each tick, in this order:
    pushed as `system.throttle` directly;
 2. remote reports: what the jobs of workers on other machines reported through Redis is applied
    to the registry (remote.py), before anything judges their heartbeats;
-3. paused runs the daemon paused (thermal, memory) are requeued when the host allows;
+3. paused runs the daemon paused (thermal, memory, disk) are requeued when the host allows;
 4. reconcile: runs whose worker child is gone are interrupted and requeued (reconcile.py);
 5. dispatch: the next queued run on every idle queue (dispatch.py), none on a hot host;
 6. remote control: the control state of every running remote run is published to Redis;
-7. events: new run_events rows to the sink; `system.stats` every stats_every_s;
+7. retention: old runs' dirs pruned once a run has finished (disk_guard.py, settings.keep_runs);
+   events: new run_events rows to the sink; `system.stats` every stats_every_s;
 8. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
 
 Which runs are remote: with remote_reports=True (`run_trainer.py daemon`) and a Redis URL, those
@@ -178,6 +179,7 @@ class Daemon:
         if self.remote is not None:
             self.remote_step(self.remote.publish_running)
         self.autopromoter.tick()  # returns at once; one promote child at a time
+        self.dispatcher.disk.maybe_prune()  # retention, once a run has finished (daemon/disk_guard.py)
         self.tailer.poll()
         now = time.monotonic()
         if self._stats_at is None or now - self._stats_at >= self.stats_every_s:

@@ -108,7 +108,10 @@ class Run(Base):
 
     def waiting_text(self) -> str | None:
         """Why a starting run (sent, not claimed by any worker child) does not train yet, and
-        since when; None in every other state (registry/runs.py has the states)."""
+        since when; for a queued run the daemon holds back (too little disk space: daemon/disk_guard.py)
+        its reason; None in every other state (registry/runs.py has the states)."""
+        if self.state == "queued":
+            return self.error_message  # only the daemon's hold sets it on a queued run
         if self.state != "starting":
             return None
         since = f" since {self.dispatched_at:%Y-%m-%d %H:%M:%S} UTC" if self.dispatched_at is not None else ""
@@ -135,7 +138,7 @@ class Run(Base):
             "sequence_index": self.sequence_index,
             "loss": self.loss,
             "steps_per_s": self.steps_per_s,
-            "error": self.error_message,
+            "error": self.error_message if self.state != "queued" else None,
             "last_checkpoint": self.last_checkpoint,
             "run_dir": self.run_dir,
             "dataset_fingerprint": self.dataset_fingerprint,

@@ -135,6 +135,8 @@ def transition(s: Session, run: Run, new: str, *, reason: str | None = None, mes
             run.queued_at = now
         run.desired_state = "run"
         run.requested_reason = None
+    if old == "queued" and new != "queued":
+        run.error_message = None  # the daemon's hold reason (Run.waiting_text) was the queued run's
     if new in TERMINAL:
         run.finished_at = now
         if new in ("failed", "cancelled") and message:

@@ -3,7 +3,10 @@
 and once space is freed the same run dir resumes and ends bitwise equal to an uninterrupted run."""
 from __future__ import annotations
 
+import argparse
 import errno
+import hashlib
+import json
 import os
 import shutil
 import sqlite3
@@ -14,13 +17,13 @@ import pytest
 
 from hope_models import disk
 from hope_models.data.synthetic import generate_dataset
-from hope_models.durable import file_sha256
 from hope_models.train import checkpoint as ckpt
 from hope_models.train.contract import OUTCOME_EXIT_CODES, ControlCommand
 from hope_models.train.loop import TrainConfig, train
 from test_train_loop_standin import factory
 
-STEPS, EVERY, HIDDEN = 60, 20, 2048  # HIDDEN: a checkpoint of ~0.5 MB, so the ballast can be sized well
+STEPS, EVERY, HIDDEN = 60, 20, 16
+PAGE = 4096
 
 
 @pytest.fixture(scope="module")
@@ -50,13 +53,9 @@ def cfg_for(ds: Path, run_dir: Path) -> TrainConfig:
                        cache_dir=str(ds / "cache"), thermal_zone=None, vcgencmd=None, control_interval_s=0.0)
 
 
-def dir_bytes(path: Path) -> int:
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-
-
 class FillDisk:
-    """At step `at`, fill the filesystem with a ballast file so that only half of one checkpoint
-    still fits: the metrics lines go on, the next checkpoint cannot be written."""
+    """At step `at`, fill the filesystem with a ballast file that leaves 3 pages: a few metrics lines
+    still fit, the next checkpoint (5 files, tmpfs gives each at least a page) does not."""
 
     def __init__(self, run_dir: Path, ballast: Path, at: int):
         self.run_dir, self.ballast, self.at, self.done = run_dir, ballast, at, False
@@ -64,18 +63,19 @@ class FillDisk:
     def poll(self, step: int) -> ControlCommand:
         if step >= self.at and not self.done:
             self.done = True
-            one_ckpt = dir_bytes(ckpt.list_step_dirs(self.run_dir)[0][1])
-            free = shutil.disk_usage(self.ballast.parent).free
-            fd = os.open(self.ballast, os.O_WRONLY | os.O_CREAT, 0o600)
-            try:
-                os.posix_fallocate(fd, 0, free - one_ckpt // 2)
-            finally:
-                os.close(fd)
+            assert len(list(ckpt.list_step_dirs(self.run_dir)[0][1].iterdir())) >= 5
+            fill(self.ballast.parent, leave_bytes=3 * PAGE)
         return ControlCommand()
 
 
 def final_weights_sha(run_dir: Path) -> str:
-    return file_sha256(ckpt.list_step_dirs(run_dir)[0][1] / ckpt.MODEL_FILE)
+    """sha256 over the final weights' names, dtypes, shapes and bytes. Not the file's: safetensors
+    writes its __metadata__ map in no fixed order, so equal weights can make different files."""
+    digest = hashlib.sha256()
+    for name, t in sorted(ckpt.load_latest(run_dir).model.items()):
+        digest.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        digest.update(t.contiguous().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def test_full_disk_pauses_keeps_the_checkpoint_and_resumes_bitwise(ds, tmp_path, small_fs):
@@ -104,12 +104,7 @@ def test_full_disk_pauses_keeps_the_checkpoint_and_resumes_bitwise(ds, tmp_path,
 
 def test_still_full_at_start_pauses_again_without_a_traceback(ds, small_fs):
     """A job started on a card with no room at all (its run dir cannot even take the metrics)."""
-    ballast = small_fs / "ballast"
-    fd = os.open(ballast, os.O_WRONLY | os.O_CREAT, 0o600)
-    try:
-        os.posix_fallocate(fd, 0, shutil.disk_usage(small_fs).free)
-    finally:
-        os.close(fd)
+    fill(small_fs)
     r = train(cfg_for(ds, small_fs / "run"), component_factory=factory(hidden=HIDDEN))
     assert r.outcome == "paused_disk" and r.steps == 0 and r.checkpoint is None
     assert str(small_fs / "run") in r.message and "MB free" in r.message
@@ -133,3 +128,40 @@ def test_is_disk_full_knows_enospc_edquot_and_sqlite_full():
 def test_floor_default_is_checkpoint_times_keep_plus_two_plus_margin():
     assert disk.dispatch_floor_mb(10.0, 3) == 10.0 * 5 + 200.0
     assert disk.dispatch_floor_mb(10.0, 3, setting_mb=1234) == 1234.0
+
+
+def fill(fs: Path, leave_bytes: int = 0) -> Path:
+    """A ballast file taking all but `leave_bytes` of the filesystem's free space."""
+    ballast = fs / "ballast"
+    fd = os.open(ballast, os.O_WRONLY | os.O_CREAT, 0o600)
+    try:
+        os.posix_fallocate(fd, 0, shutil.disk_usage(fs).free - leave_bytes)
+    finally:
+        os.close(fd)
+    return ballast
+
+
+def test_an_ingest_that_fills_the_disk_rejects_nothing_and_goes_on_after(tmp_path, small_fs, capsys):
+    from hope_models.cli import ingest as ingest_cli
+    from hope_models.rlds.ingest import MANIFEST, IngestDiskFull, ingest_paths
+    from test_rlds_ingest import single_json, steps_10hz
+
+    src, ds = tmp_path / "src", small_fs / "ds"
+    single_json(src / "a" / "first.json", "first", steps_10hz(50))
+    assert ingest_paths([src / "a"], ds)["summary"]["written"] == 1
+    for i, name in enumerate(("second", "third")):  # other content: not duplicates of the first
+        single_json(src / "b" / f"{name}.json", name, steps_10hz(50, command=[0.3 + i, 0.4]))
+    ballast = fill(small_fs)
+    with pytest.raises(IngestDiskFull) as info:
+        ingest_paths([src / "b"], ds)
+    assert str(ds) in str(info.value) and "MB free" in str(info.value)
+    manifest = json.loads((ds / MANIFEST).read_text())  # the committed manifest is intact
+    assert [e["episode_id"] for e in manifest["episodes"]] == ["first"] and manifest["rejected"] == []
+    assert ingest_cli.run(argparse.Namespace(sources=[str(src / "b")], into=str(ds), json=False)) == 6
+    assert "no space left" in capsys.readouterr().err
+
+    ballast.unlink()
+    again = ingest_paths([src / "b"], ds)
+    assert again["summary"]["written"] == 2 and again["summary"]["ok"]
+    manifest = json.loads((ds / MANIFEST).read_text())
+    assert sorted(e["episode_id"] for e in manifest["episodes"]) == ["first", "second", "third"]

@@ -3,7 +3,8 @@
 Episodes are validated with the train profile first; rejected ones are listed in
 <DATASET_DIR>/manifest.json and not written. Re-running with the same input changes nothing.
 Exit 0 when nothing was rejected, 1 when something was (the rest is still ingested) or the dataset
-dir cannot be used, 2 for a usage error such as a missing source.
+dir cannot be used, 2 for a usage error such as a missing source, 6 when the disk filled up (what
+was written is kept; free space and re-run: it goes on where it stopped).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import json
 import sys
 
 from hope_models.cli.validate import missing_paths, print_entry, reader_options
-from hope_models.rlds.ingest import IngestError, ingest_paths
+from hope_models.rlds.ingest import IngestDiskFull, IngestError, ingest_paths
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,6 +31,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         result = ingest_paths(args.sources, args.into, **options)
+    except IngestDiskFull as exc:  # the exit code of a training job paused for disk (contract.py)
+        print(f"ingest: {exc}", file=sys.stderr)
+        return 6
     except IngestError as exc:
         print(f"ingest: {exc}", file=sys.stderr)
         return 1

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
+from ..disk import full_message, is_disk_full
 from ..durable import atomic_write
 from .episode import Episode
 from .validation_report import exception_entry, read_reports, report_entries, unique_paths
@@ -27,6 +28,11 @@ MANIFEST_FORMAT = "hope-rlds-dataset"
 
 class IngestError(Exception):
     """The dataset dir cannot be ingested into (e.g. its manifest is not ours or is corrupt)."""
+
+
+class IngestDiskFull(IngestError):
+    """A write hit ENOSPC/EDQUOT: no episode is rejected for it; what was written is in the
+    manifest (when that still fits) and a re-run after freeing space goes on from there."""
 
 
 @dataclass
@@ -176,7 +182,12 @@ def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathL
                     continue
                 try:
                     results.append(_ingest_episode(ep, entry, dataset, manifest))
-                except (OSError, ValueError, TypeError) as exc:  # unwritable content or disk
+                except OSError as exc:
+                    if is_disk_full(exc):  # the card, not the episode: stop, keep what is done
+                        _save_what_fits(dataset, manifest)
+                        raise IngestDiskFull(full_message(exc, dataset, f"ingest of {ep.source}")) from None
+                    results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
+                except (ValueError, TypeError) as exc:  # unwritable content
                     results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id),
                                                      manifest))
     manifest_written = write_manifest(dataset, manifest)
@@ -185,6 +196,14 @@ def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathL
     summary["ok"] = summary["rejected"] == 0
     summary["manifest_written"] = manifest_written
     return {"dataset": str(dataset), "episodes": results, "summary": summary}
+
+
+def _save_what_fits(dataset: Path, manifest: Manifest) -> None:
+    try:
+        write_manifest(dataset, manifest)
+    except OSError as exc:  # atomic: the previous manifest stays; a re-run ingests those episodes again
+        if not is_disk_full(exc):
+            raise
 
 
 def _record_unwritten(entry: dict[str, Any], manifest: Manifest) -> dict[str, Any]:

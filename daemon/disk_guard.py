@@ -1,0 +1,146 @@
+"""The daemon's side of a full disk: the free-space floor before dispatch, and retention.
+
+Floor. A job on a local queue writes under $HOPE_HOME; the daemon does not start one while the
+free space there is below the floor (settings.disk_floor_mb, or by default the job's checkpoint
+size x (keep_last + 2) + 200 MB, hope_models/disk.py). The run stays queued, and its `waiting`
+text (Run.waiting_text) says why: the text is kept in the queued run's error_message, which a
+queued run has no other use for (run_states.transition clears it when the run leaves queued). A
+run paused for disk (outcome paused_disk) is requeued once the free space is above its floor.
+
+The checkpoint size comes from disk, torch-free and exact where it can be: the newest checkpoint
+in the run's own dir (a resumed job writes the same size again), else the newest checkpoint of the
+last run of the same component that has one, else 0 (the 200 MB margin alone, a first run).
+
+Retention (settings.keep_runs, 0 = keep all): after a run finishes (the daemon's tick sees the
+number of finished runs change) the run dirs of finished runs are deleted, except the newest
+keep_runs finished ones, those of models that were ever promoted (served now or a rollback
+target), the VQ-VAE runs those and the unfinished runs read codes from, and any run dir holding a
+file named PINNED (`touch <run_dir>/PINNED`). Only dirs under $HOPE_HOME/runs are ever deleted;
+the run rows stay (with a log event saying the dir was pruned).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, or_, select
+
+from hope_models import disk
+from hope_models.train.checkpoint import list_step_dirs
+from hope_models.train.config import TrainConfig
+from registry import runs
+from registry.models import Model, Run
+
+log = logging.getLogger(__name__)
+
+PIN_FILE = "PINNED"
+MB = 1024 * 1024
+
+
+def _dir_mb(path: Path) -> float:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / MB
+
+
+def newest_checkpoint_mb(run_dir: str | os.PathLike) -> float | None:
+    try:
+        steps = list_step_dirs(run_dir)
+        return _dir_mb(steps[0][1]) if steps else None
+    except OSError:
+        return None
+
+
+class DiskGuard:
+    def __init__(self, registry: Any, settings: Any):
+        self.registry, self.settings = registry, settings
+        self._finished_seen: int | None = None
+
+    # -- the floor ---------------------------------------------------------------------------
+
+    def checkpoint_mb(self, s: Any, run: Run) -> float:
+        own = newest_checkpoint_mb(run.run_dir)
+        if own is not None:
+            return own
+        for other in s.scalars(select(Run).where(Run.component == run.component, Run.id != run.id,
+                                                 Run.last_checkpoint.is_not(None))
+                               .order_by(Run.updated_at.desc()).limit(5)):
+            size = newest_checkpoint_mb(other.run_dir)
+            if size is not None:
+                return size
+        return 0.0
+
+    def floor_mb(self, s: Any, run: Run) -> float:
+        keep = int((run.config or {}).get("keep_last") or TrainConfig.keep_last)
+        return disk.dispatch_floor_mb(self.checkpoint_mb(s, run), keep, self.settings.disk_floor_mb)
+
+    def refusal(self, s: Any, run: Run) -> str | None:
+        """Why `run` must not start on this host now (too little free space), or None."""
+        free = disk.free_mb(self.settings.home)
+        floor = self.floor_mb(s, run)
+        if free is None or free >= floor:
+            return None
+        how = ("disk_floor_mb" if self.settings.disk_floor_mb > 0
+               else "its checkpoint size x (keep_last + 2) + 200 MB; set disk_floor_mb to override")
+        return (f"waiting for disk space: {free:.0f} MB free under {self.settings.home}, below the floor of "
+                f"{floor:.0f} MB ({how}); free some space (or lower keep_runs) and it starts")
+
+    def hold(self, s: Any, run: Run, why: str) -> None:
+        """Keep `run` queued with `why` as its waiting text; logged on the run once per reason."""
+        if run.error_message != why:
+            first = run.error_message is None
+            run.error_message = why
+            if first:
+                runs.add_event(s, run.id, "log", {"level": "warning", "message": why})
+                log.warning("run %s: %s", run.id, why)
+
+    # -- retention ---------------------------------------------------------------------------
+
+    def maybe_prune(self) -> list[str]:
+        """prune() when the number of finished runs changed since the last call (cheap otherwise)."""
+        with self.registry.session(readonly=True) as s:
+            n = s.scalar(select(func.count()).select_from(Run).where(Run.state.in_(runs.TERMINAL)))
+        if n == self._finished_seen:
+            return []
+        self._finished_seen = n
+        return self.prune()
+
+    def _kept(self, s: Any, finished: list[Run]) -> set[str]:
+        keep_n = int(self.settings.keep_runs)
+        kept = {r.id for r in finished[:keep_n]}
+        kept |= set(s.scalars(select(Model.run_id).where(Model.run_id.is_not(None), or_(
+            Model.promoted_at.is_not(None), Model.demoted_at.is_not(None)))))
+        unfinished = s.scalars(select(Run).where(Run.state.not_in(runs.TERMINAL))).all()
+        readers = [r for r in [*finished, *unfinished] if r.id in kept or r.state not in runs.TERMINAL]
+        kept |= {str((r.config or {}).get("vqvae_run")) for r in readers if (r.config or {}).get("vqvae_run")}
+        return kept
+
+    def prune(self) -> list[str]:
+        """Delete the run dirs retention does not keep (see the module doc); the run ids pruned."""
+        if int(self.settings.keep_runs) <= 0:
+            return []
+        root = Path(self.settings.runs_dir).resolve()
+        with self.registry.session(readonly=True) as s:
+            finished = s.scalars(select(Run).where(Run.state.in_(runs.TERMINAL))
+                                 .order_by(Run.finished_at.desc(), Run.created_at.desc())).all()
+            kept = self._kept(s, finished)
+            doomed = [(r.id, Path(r.run_dir)) for r in finished if r.id not in kept]
+        pruned = []
+        for run_id, run_dir in doomed:
+            target = run_dir.resolve()
+            if not target.is_dir() or target.parent != root or (target / PIN_FILE).exists():
+                continue  # gone already, not ours to delete (outside $HOPE_HOME/runs), or pinned
+            trash = root / f".pruned-{target.name}-{os.urandom(3).hex()}"
+            os.rename(target, trash)  # out of sight at once; a crash mid-delete leaves only a dot dir
+            shutil.rmtree(trash, ignore_errors=True)
+            with self.registry.session() as s:
+                runs.add_event(s, run_id, "log", {"level": "info", "message": f"run dir {run_dir} pruned by retention "
+                                                  f"(keep_runs={self.settings.keep_runs}; pin a run with "
+                                                  f"`touch <run_dir>/{PIN_FILE}`)"})
+            log.info("retention: pruned run dir %s of run %s", run_dir, run_id)
+            pruned.append(run_id)
+        return pruned
+
+
+__all__ = ["PIN_FILE", "DiskGuard", "newest_checkpoint_mb"]
