@@ -154,3 +154,27 @@ def test_a_full_database_fails_the_tick_not_the_daemon(home, broker, monkeypatch
         assert d.safe_tick() is True
     finally:
         d.stop()
+
+
+def test_a_job_whose_write_hits_enospc_pauses_its_run_for_disk(home, tiny_dataset, monkeypatch):
+    """The worker's side: an ENOSPC out of the trainer (here before its loop could catch it) is a
+    paused run with reason disk and the path in its message, not a failed run with a traceback."""
+    import errno
+
+    from workers import job as job_mod
+
+    rid = home.enqueue(tiny_dataset)
+    with home.registry.session() as s:
+        runs.mark_dispatched(s, runs.get_run(s, rid), "task-1")
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device", str(home.path / "runs" / "x" / "metrics.jsonl"))
+
+    monkeypatch.setattr(job_mod, "train", full)
+    out = job_mod.run_job(home.settings, rid, 1, task_id="task-1", report="db", host="host", pid=4343)
+    assert out["outcome"] == "paused_disk" and out["state"] == "paused"
+    run = home.run(rid)
+    assert (run["state"], run["pause_reason"]) == ("paused", "disk")
+    logs = [e["payload"]["message"] for e in home.events(rid, ["log"])]
+    assert any("metrics.jsonl" in m and "MB free" in m for m in logs)
+    assert not any("Traceback" in m for m in logs)
