@@ -69,10 +69,12 @@ class FillDisk:
 
 
 def final_weights_sha(run_dir: Path) -> str:
-    """sha256 over the final weights' names, dtypes, shapes and bytes. Not the file's: safetensors
-    writes its __metadata__ map in no fixed order, so equal weights can make different files."""
+    """sha256 over the final weights' names, dtypes, shapes and bytes, and the file's own sha256
+    (equal weights make equal files: test_train_checkpoint.test_equal_weights_make_equal_files)."""
     digest = hashlib.sha256()
-    for name, t in sorted(ckpt.load_latest(run_dir).model.items()):
+    last = ckpt.load_latest(run_dir)
+    digest.update(hashlib.sha256((last.path / ckpt.MODEL_FILE).read_bytes()).digest())
+    for name, t in sorted(last.model.items()):
         digest.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
         digest.update(t.contiguous().numpy().tobytes())
     return digest.hexdigest()

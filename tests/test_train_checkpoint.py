@@ -250,3 +250,19 @@ def test_kill_during_checkpoint_writes_never_leave_a_bad_newest(tmp_path):
         pointed = (run / "checkpoints" / (run / "checkpoints" / "last").read_text().strip())
         assert ckpt.verify(pointed) is None
     assert mid_write >= 1, "no kill landed inside a checkpoint write; the test exercised nothing"
+
+
+def test_equal_weights_make_equal_files(tmp_path):
+    """A checkpoint's bytes depend only on what it holds: the same weights saved twice (or by two
+    identical runs) hash the same, so their version names match too."""
+    import hashlib
+
+    import torch
+
+    state = {"w": torch.arange(12, dtype=torch.float32).reshape(3, 4), "b": torch.ones(4)}
+    digests = set()
+    for i in range(12):
+        path = ckpt.save_checkpoint(tmp_path / f"r{i}", 7, model_state=state, config={"component": "x"},
+                                    state_tensors={"t": torch.zeros(2)}, state={"k": 1})
+        digests.add(hashlib.sha256((path / ckpt.MODEL_FILE).read_bytes()).hexdigest())
+    assert len(digests) == 1

@@ -112,7 +112,9 @@ def save_checkpoint(run_dir: str | Path, step: int, *, model_state: dict[str, An
     ckdir = checkpoints_dir(run_dir)
     ckdir.mkdir(parents=True, exist_ok=True)
     name = step_dir_name(step)
-    meta = {"format": CHECKPOINT_FORMAT, "step": str(step)}
+    # One key: safetensors writes its metadata map in hash order, so two keys would make equal
+    # weights into different files (and different version names); the step is in config.json.
+    meta = {"format": CHECKPOINT_FORMAT}
     files = {
         MODEL_FILE: _safetensors_bytes(model_state, meta),
         CONFIG_FILE: _json_bytes({**config, "checkpoint": {"format": CHECKPOINT_FORMAT, "step": step}}),
