@@ -23,6 +23,8 @@ from sqlalchemy import create_engine, event, inspect
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from hope_models.durable import fsync_path
+
 DB_FILENAME = "hope.db"
 BUSY_TIMEOUT_MS = 30_000
 # Session option read by the "begin" listener: how a transaction starts.
@@ -102,6 +104,8 @@ def _run_alembic(engine_or_path: Engine | Path | str, action: str, revision: str
     engine = make_engine(engine_or_path) if own else engine_or_path
     try:
         with _migrate_lock(_engine_path(engine)):
+            if action == "upgrade":
+                backup_before_upgrade(engine, revision)
             # One transaction for the whole migration: SQLite has transactional DDL, so a crash
             # mid-migration leaves the previous revision intact.
             with engine.begin() as connection:
@@ -109,6 +113,36 @@ def _run_alembic(engine_or_path: Engine | Path | str, action: str, revision: str
     finally:
         if own:
             engine.dispose()
+
+
+def backup_before_upgrade(engine: Engine, revision: str = "head") -> Path | None:
+    """Copy an existing registry that `revision` would change to `hope.db.before-<to>-from-<from>`
+    (SQLite's online backup: consistent even with a reader open) before it is migrated, so an
+    upgrade that goes wrong can be undone by hand. Nothing for a new registry or one already there."""
+    from alembic.script import ScriptDirectory
+
+    current = current_revision(engine)
+    if current is None:
+        return None
+    with engine.connect() as connection:
+        script = ScriptDirectory.from_config(_alembic_config(connection))
+    target = script.get_current_head() if revision == "head" else script.get_revision(revision).revision
+    if target == current:
+        return None
+    db_file = _engine_path(engine)
+    dest = db_file.with_name(f"{db_file.name}.before-{target}-from-{current}")
+    tmp = dest.with_name(dest.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    src, dst = sqlite3.connect(db_file), sqlite3.connect(tmp)
+    try:
+        src.backup(dst)
+    finally:
+        dst.close()
+        src.close()
+    fsync_path(tmp)
+    tmp.replace(dest)
+    fsync_path(dest.parent)
+    return dest
 
 
 def migrate(engine_or_path: Engine | Path | str, revision: str = "head") -> None:

@@ -244,3 +244,35 @@ def test_0003_unclaimed_running_runs_become_starting_and_back(engine):
         assert c.exec_driver_sql("SELECT count(*) FROM run_events").scalar() == 1
     migrate(engine)
     assert diffs(engine, Base.metadata) == []
+
+
+def test_an_upgrade_backs_the_registry_up_first(tmp_path):
+    """Before an existing registry is migrated, a copy of it as it was is kept beside it; a new
+    registry, or one already at head, gets none."""
+    import sqlite3
+
+    db = tmp_path / "hope.db"
+    eng = make_engine(db)
+    try:
+        migrate(eng)
+        assert sorted(p.name for p in tmp_path.glob("hope.db.before-*")) == []  # new: nothing to keep
+        script = ScriptDirectory(str(Path(migrations.__file__).parent))
+        older = script.get_revision(head()).down_revision
+        downgrade(eng, older)
+        with eng.begin() as c:
+            c.exec_driver_sql("INSERT INTO runs (id, component, state, queue, priority, total_steps, step, attempt, "
+                              "max_attempts, run_dir, config, created_at, updated_at) VALUES ('r-old', 'vqvae', "
+                              "'queued', 'pi', 0, 5, 0, 0, 3, '/r', '{}', '2026-01-01', '2026-01-01')")
+        migrate(eng)
+        backups = sorted(tmp_path.glob("hope.db.before-*"))
+        assert [p.name for p in backups] == [f"hope.db.before-{head()}-from-{older}"]
+        kept = sqlite3.connect(backups[0])
+        try:  # the copy is the registry as it was: the old revision, with its rows
+            assert kept.execute("SELECT version_num FROM alembic_version").fetchone()[0] == older
+            assert kept.execute("SELECT id FROM runs").fetchall() == [("r-old",)]
+        finally:
+            kept.close()
+        migrate(eng)  # at head: no second copy
+        assert len(list(tmp_path.glob("hope.db.before-*"))) == 1
+    finally:
+        eng.dispose()
