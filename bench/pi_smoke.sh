@@ -54,9 +54,9 @@ timed() {     # timed NAME COMMAND...: run, print and record its wall time; stop
   if [ "$rc" != 0 ]; then summary; die "$name failed (exit $rc)"; fi
 }
 summary() {
-  printf '\n%-44s %9s %5s\n' "step (arm64 under qemu-user, QEMU_CPU=$QEMU_CPU_MODEL)" "seconds" "exit"
+  printf '\n%-52s %9s %5s\n' "step (arm64 under qemu-user, QEMU_CPU=$QEMU_CPU_MODEL)" "seconds" "exit"
   local s; for s in "${STEPS[@]}"; do
-    IFS='|' read -r n t r <<<"$s"; printf '%-44s %9s %5s\n' "$n" "$t" "$r"
+    IFS='|' read -r n t r <<<"$s"; printf '%-52s %9s %5s\n' "$n" "$t" "$r"
   done
 }
 
