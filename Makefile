@@ -90,9 +90,9 @@ clean:
 
 # The robot's install: runtime + [sim] from the lock of this machine's arch and Python (exact pins,
 # sha256 of every file, --no-deps: nothing unpinned), then the project itself without deps. No
-# pytest/playwright/fakeredis, no chromium, no npm: the Robot Editor's vendored JS comes prebuilt,
-# either in the checkout's webapp/static/vendor/ or in a wheel from `make dist` on a dev machine
-# (WHEEL=dist/hope_seed_trainer-....whl). Its own venv, so the developer .venv is never touched.
+# pytest/playwright/fakeredis, no chromium, no npm: the Robot Editor's vendored JS is committed in
+# webapp/static/vendor/ (or comes in a wheel from `make dist`: WHEEL=dist/hope_seed_trainer-....whl).
+# Its own venv, so the developer .venv is never touched.
 #   sudo make install                                    # /opt/hope-trainer/venv
 #   make install INSTALL_VENV=/tmp/hope/venv WHEEL=dist/hope_seed_trainer-0.1.0-py3-none-any.whl
 INSTALL_VENV ?= /opt/hope-trainer/venv

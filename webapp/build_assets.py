@@ -5,8 +5,10 @@
 No CDN: a robot is often offline, so the pages load only files this server has. npm installs the
 pinned versions (package.json / package-lock.json at the repo root); this script copies the one
 prebuilt browser file each package ships, so there is no bundler and no build step beyond a copy.
-webapp/static/vendor/ is generated (gitignored); webapp/pages.py names the same files and the page
-says what to run when one is missing.
+The copies in webapp/static/vendor/ are committed, so a clean checkout (the robot's `make install`)
+needs no npm; `make assets` refreshes them from the pinned packages and tests/test_vendor_assets.py
+checks they are the bytes npm installs. webapp/pages.py names the same files and the page says
+what to run when one is missing.
 """
 from __future__ import annotations
 
