@@ -9,7 +9,9 @@ run paused for disk (outcome paused_disk) is requeued once the free space is abo
 
 The checkpoint size comes from disk, torch-free and exact where it can be: the newest checkpoint
 in the run's own dir (a resumed job writes the same size again), else the newest checkpoint of the
-last run of the same component that has one, else 0 (the 200 MB margin alone, a first run).
+last run of the same component that has one, else an estimate from the run's configuration (the
+weights and AdamW's two moments of the model it describes: estimate.checkpoint_mb_from_config, as
+the door's pre-flight resolves it), else 0 (the 200 MB margin alone).
 
 Retention (settings.keep_runs, 0 = keep all): after a run finishes (the daemon's tick sees the
 number of finished runs change) the run dirs of finished runs are deleted, except the newest
@@ -40,6 +42,31 @@ PIN_FILE = "PINNED"
 MB = 1024 * 1024
 
 
+def _estimated_checkpoint_mb(run: Run) -> float:
+    """The checkpoint size the run's configuration describes (0 when it cannot be told: the floor
+    is then the margin alone, and the job's own ENOSPC handling still stands)."""
+    from hope_models.data.dataset_spec import probe_dataset_spec
+    from hope_models.train.estimate import checkpoint_mb_from_config
+    from hope_models.train.model_config import resolve
+
+    cfg = run.config or {}
+    try:
+        spec = probe_dataset_spec(cfg["data"])
+        if spec is None or run.component != "vqvae" and cfg.get("vqvae_dir") is None and \
+                cfg.get("vqvae_run") is not None:
+            return 0.0  # too large to probe here, or codes from a VQ-VAE not trained yet
+        vq = None
+        if run.component != "vqvae" and cfg.get("vqvae_dir"):
+            from hope_models.train.checkpoint import resolve_checkpoint_dir
+            from hope_models.train.model_config import read_vqvae_config
+            vq = read_vqvae_config(resolve_checkpoint_dir(cfg["vqvae_dir"]))
+        resolved = resolve(run.component, spec, dict(cfg.get("model_config") or {}), vq)
+        return checkpoint_mb_from_config(resolved, spec.obs_dim, spec.act_dim)
+    except Exception as exc:  # a run the door checked; anything odd here only loses the estimate
+        log.info("run %s: no checkpoint size estimate (%s: %s)", run.id, type(exc).__name__, exc)
+        return 0.0
+
+
 def _dir_mb(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / MB
 
@@ -56,6 +83,7 @@ class DiskGuard:
     def __init__(self, registry: Any, settings: Any):
         self.registry, self.settings = registry, settings
         self._finished_seen: int | None = None
+        self._estimated: dict[str, float] = {}
 
     # -- the floor ---------------------------------------------------------------------------
 
@@ -69,7 +97,9 @@ class DiskGuard:
             size = newest_checkpoint_mb(other.run_dir)
             if size is not None:
                 return size
-        return 0.0
+        if run.id not in self._estimated:  # probing the dataset reads files: once per run
+            self._estimated[run.id] = _estimated_checkpoint_mb(run)
+        return self._estimated[run.id]
 
     def floor_mb(self, s: Any, run: Run) -> float:
         keep = int((run.config or {}).get("keep_last") or TrainConfig.keep_last)

@@ -75,6 +75,28 @@ def test_default_floor_is_the_checkpoint_size_times_keep_plus_two_plus_200(home,
     assert [d.run_id for d in dispatcher.dispatch(0)] == [rid]
 
 
+def test_a_first_run_floor_comes_from_its_configuration_and_matches_a_real_checkpoint(home, tiny_dataset,
+                                                                                     tmp_path):
+    """No checkpoint anywhere yet: the size is estimated from the model the run describes, and it
+    is the size its real checkpoint then has on disk (within 20 %)."""
+    from daemon.disk_guard import newest_checkpoint_mb
+    from hope_models.train.loop import TrainConfig, train
+
+    model_config = {"d_model": 192, "d_state": 32}
+    rid = home.enqueue(tiny_dataset, keep_last=3, model_config=model_config)
+    guard = DiskGuard(home.registry, home.settings)
+    with home.registry.session(readonly=True) as s:
+        run = runs.get_run(s, rid)
+        estimate = guard.checkpoint_mb(s, run)
+        assert guard.floor_mb(s, run) == pytest.approx(estimate * 5 + 200.0)
+    res = train(TrainConfig(component="fast_loop", data=str(tiny_dataset), run_dir=str(tmp_path / "r"), steps=2,
+                            batch_size=4, model_config=model_config, cache_dir=str(home.settings.cache_dir),
+                            thermal_zone=None, vcgencmd=None))
+    assert res.outcome == "completed"
+    real = newest_checkpoint_mb(tmp_path / "r")
+    assert estimate > 0.5 and real == pytest.approx(estimate, rel=0.2), (estimate, real)
+
+
 def test_a_disk_paused_run_is_requeued_when_space_is_back(home, tiny_dataset, dispatcher, monkeypatch):
     rid = home.enqueue(tiny_dataset)
     assert [d.run_id for d in dispatcher.dispatch(0)] == [rid]

@@ -199,6 +199,13 @@ def estimate_from_config(resolved: Any, batch_size: int, obs_dim: int, act_dim: 
                      loader_chunk=loader_chunk)
 
 
+def checkpoint_mb_from_config(resolved: Any, obs_dim: int, act_dim: int) -> float:
+    """What a checkpoint of the model `resolved` describes takes on disk, in MB: its weights (all
+    of them, frozen ones too) and AdamW's moments of the trainable ones (the JSON files are small)."""
+    est = estimate_from_config(resolved, 1, obs_dim, act_dim, cache_mb=0.0, runtime_mb=0.0)
+    return est.breakdown["params"] + est.breakdown["optimizer"]
+
+
 def _estimate(component_name: str, layers: list[Layer], batch_size: int, window_k: int, obs_dim: int,
               act_dim: int, frames: bool, *, horizons: int, cache_mb: float | None, runtime_mb: float | None,
               loader_chunk: int, custom_kept: float | None = None) -> MemoryEstimate:
