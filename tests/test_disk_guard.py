@@ -4,30 +4,18 @@ retention of old run dirs, and a tick whose registry write hits "database or dis
 leaving the daemon serving."""
 from __future__ import annotations
 
-import os
 import sqlite3
 from pathlib import Path
 
 import pytest
 
-from daemon.dispatch import Dispatcher
 from hope_models.train import checkpoint as ckpt
 from daemon.disk_guard import PIN_FILE, DiskGuard
 from daemon.service import Daemon
 from daemon_fixtures import Home, home, tiny_dataset  # noqa: F401
 from registry import runs
 from registry.models import Model, utcnow
-from test_daemon_service import Broker, claim, finish
-
-
-@pytest.fixture
-def broker():
-    return Broker()
-
-
-@pytest.fixture
-def dispatcher(home, broker):
-    return Dispatcher(home.registry, home.settings, send=broker, local_queues=("pi",), memory_retry_s=0)
+from test_daemon_service import broker, claim, dispatcher, finish  # noqa: F401 (fixtures)
 
 
 def fake_checkpoint(run_dir: Path, step: int, mb: int) -> None:
