@@ -59,6 +59,17 @@ class Settings:
     # finished runs keep their run dirs (0 = keep all; promoted and pinned runs are always kept)
     disk_floor_mb: int = 0
     keep_runs: int = 20
+    # the Continuon app's episodes (webapp/api/handoff.py, webapp/api/episodes.py): the dataset they
+    # are ingested into (relative: under datasets_dir) and the largest request body one may send
+    inbox_dataset: str = "inbox"
+    upload_max_mb: int = 512
+    # continuous learning (daemon/continuous.py): when at least auto_train_min_new_episodes new
+    # trainable episodes reached the inbox and the robot is idle, cool and has memory and disk to
+    # spare, queue a chain of auto_train_components on it (auto_train_steps each; 0 = TrainConfig's default)
+    auto_train: bool = False
+    auto_train_min_new_episodes: int = 20
+    auto_train_components: list[str] = field(default_factory=lambda: ["vqvae", "fast_loop", "mid_loop"])
+    auto_train_steps: int = 0
 
     @property
     def datasets_dir(self) -> Path:
@@ -71,6 +82,11 @@ class Settings:
     @property
     def cache_dir(self) -> Path:
         return self.home / "cache"
+
+    @property
+    def inbox_dir(self) -> Path:
+        """Where handed-off and uploaded episodes are ingested (an absolute inbox_dataset as is)."""
+        return self.datasets_dir / self.inbox_dataset  # an absolute right-hand side wins
 
 
 # env var -> settings field; environment wins over config.toml
@@ -93,6 +109,12 @@ _ENV = {
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
     "HOPE_DISK_FLOOR_MB": "disk_floor_mb",
     "HOPE_KEEP_RUNS": "keep_runs",
+    "HOPE_INBOX": "inbox_dataset",
+    "HOPE_UPLOAD_MAX_MB": "upload_max_mb",
+    "HOPE_AUTO_TRAIN": "auto_train",
+    "HOPE_AUTO_TRAIN_MIN_NEW_EPISODES": "auto_train_min_new_episodes",
+    "HOPE_AUTO_TRAIN_COMPONENTS": "auto_train_components",
+    "HOPE_AUTO_TRAIN_STEPS": "auto_train_steps",
 }
 # the promotion gate's part of _ENV: the daemon passes these to the gate it spawns
 GATE_ENV = {var: name for var, name in _ENV.items() if name.startswith("gate_")}
@@ -100,10 +122,11 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
-            "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0}
+            "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
+            "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
-_WORD_LISTS = {"allowed_hosts"}
+_WORD_LISTS = {"allowed_hosts", "auto_train_components"}
 
 
 def _coerce(name: str, value, where: str, from_env: bool = False):
