@@ -1,7 +1,8 @@
 """Find the episodes under a path and read each with the reader for its layout.
 
 One SourceReport per episode source: an episode dir, a single-JSON file, a steps-only JSONL, a
-TFRecord (any name with `.tfrecord`; gzip is detected by the reader from the bytes) or an MCAP.
+TFRecord (any name with `.tfrecord`; gzip is detected by the reader from the bytes), an MCAP or
+ContinuonCloud's `.npz` (read with its `.npz.json` sidecar, which is never an episode itself).
 Directories are walked recursively in name order. Manifests and metadata files are never
 episodes; hidden entries (`.git`, the ingest writer's `.tmp-*` dirs) and half-written
 `*.partial`/`*.tmp` files are passed over; other files (`.npy`, `.wav`, `.md`, ...) are ignored.
@@ -19,6 +20,7 @@ from .json_text import (DEFAULT_MAX_FILE_BYTES, DEFAULT_MAX_LINE_BYTES, ReadLimi
                         read_bytes)
 from .read_episode_dir import LEGACY_STEPS_FILE, METADATA_FILE, read_episode_dir, step_files
 from .read_mcap import read_mcap
+from .read_npz import NPZ_SUFFIX, SIDECAR_SUFFIX, read_npz
 from .read_single_json import read_single_json
 from .read_steps_jsonl import read_steps_jsonl
 from .read_tfrecord import GZIP_MAGIC, read_tfrecord, valid_record_at
@@ -28,7 +30,7 @@ Reader = Callable[[Path, ReadLimits], SourceReport]
 # Files that describe episodes or datasets but are not episodes themselves.
 NOT_EPISODES = {METADATA_FILE, "upload_manifest.json", "manifest.json", "dataset.json", "dataset_manifest.json",
                 "feature_spec.json", "features.json", "ingest_report.json", "validation.json"}
-NOT_EPISODE_SUFFIXES = (".validation.json", "_manifest.json", ".manifest.json")
+NOT_EPISODE_SUFFIXES = (".validation.json", "_manifest.json", ".manifest.json", SIDECAR_SUFFIX)
 UNFINISHED_SUFFIXES = (".partial", ".tmp")
 EPISODE_DIR_PARTS = {METADATA_FILE, "steps", LEGACY_STEPS_FILE, "blobs"}  # consumed by the dir reader
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -38,6 +40,7 @@ READERS: dict[str, Reader] = {
     "jsonl": read_steps_jsonl,
     "tfrecord": read_tfrecord,
     "mcap": read_mcap,
+    "npz": read_npz,
 }
 
 
@@ -52,6 +55,8 @@ def kind_from_name(name: str) -> str | None:
         return None
     if lower.endswith(".mcap"):
         return "mcap"
+    if lower.endswith(NPZ_SUFFIX):
+        return "npz"
     if ".tfrecord" in lower:  # x.tfrecord, x.tfrecord.gz, x.tfrecords, x.tfrecord-00000-of-00004
         return "tfrecord"
     if lower.endswith(".jsonl"):
@@ -137,6 +142,10 @@ def _iter_one(p: Path, limits: ReadLimits) -> Iterator[SourceReport]:
         # Naming an episode's metadata file means the episode.
         yield _safely(read_episode_dir, p.parent, limits)
         return
+    if p.name.endswith(SIDECAR_SUFFIX) and p.with_name(p.name[:-len(".json")]).is_file():
+        # Naming an npz's sidecar means the npz.
+        yield _safely(read_npz, p.with_name(p.name[:-len(".json")]), limits)
+        return
     if is_manifest(p.name):
         yield SourceReport(source=str(p), skipped=True, skip_reason="a manifest, not an episode",
                            problems=[Problem(WARNING, str(p), "manifest/metadata file is not an episode; skipped")])
@@ -145,7 +154,7 @@ def _iter_one(p: Path, limits: ReadLimits) -> Iterator[SourceReport]:
     if kind is None:
         yield SourceReport(source=str(p), problems=[Problem(
             ERROR, str(p), "not a recognised episode file (expected an episode dir, .json, .jsonl, "
-                           "TFRecord or .mcap)")])
+                           "TFRecord, .mcap or .npz)")])
         return
     yield _safely(READERS[kind], p, limits)
 
