@@ -5,7 +5,16 @@ the dataset manifest with their reasons. The manifest (<dataset>/manifest.json) 
 episode's content hash, which is what makes ingest idempotent: the same input finds its hash and
 writes nothing, and a different episode whose id is taken gets the deterministic suffix
 `-<first 8 hex of its content hash>`. The manifest holds no timestamps, so a re-run with the same
-input leaves it byte-identical (and untouched on disk).
+input leaves it byte-identical (and untouched on disk). Keys other callers add to an episode's
+record (the inbox's `trainable`, `tags`, ...) are kept when the manifest is rewritten.
+
+Content hashes are key-order independent (write_episode_dir.py); a record written before that
+holds the legacy hash, so an episode not found by its hash is looked for by its legacy one and
+its record moves to the new hash (`hash_version` 2), with nothing written twice.
+
+`ingest_reports(..., confined=True)` is for episodes that came over the network: their blob URIs
+are followed only inside their own dir (write_episode_dir.confine_blobs); `content_ids` names
+each episode `<prefix><first 16 hex of its content hash>` (episodes that carry no id of their own).
 """
 from __future__ import annotations
 
@@ -17,13 +26,15 @@ from typing import Any, Iterable
 
 from ..disk import full_message, is_disk_full
 from ..durable import atomic_write
-from .episode import Episode
+from .episode import Episode, SourceReport
+from .json_text import json_dumps
 from .validation_report import exception_entry, read_reports, report_entries, unique_paths
-from .write_episode_dir import (PreparedEpisode, prepare_episode, remove_stale_tmp_dirs,
+from .write_episode_dir import (PreparedEpisode, confine_blobs, prepare_episode, remove_stale_tmp_dirs,
                                 safe_episode_id, write_prepared)
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "hope-rlds-dataset"
+HASH_VERSION = 2  # content_sha256 over sorted keys; records without it hold the legacy hash
 
 
 class IngestError(Exception):
@@ -43,9 +54,27 @@ class Manifest:
 
     def __post_init__(self) -> None:
         self._by_hash = {e["content_sha256"]: eid for eid, e in self.episodes.items()}
+        self._legacy = {e["content_sha256"]: eid for eid, e in self.episodes.items()
+                        if e.get("hash_version") != HASH_VERSION}
 
     def id_of(self, content_sha256: str) -> str | None:
         return self._by_hash.get(content_sha256)
+
+    def id_of_prepared(self, prepared: PreparedEpisode) -> str | None:
+        """The id this content is recorded under, by its hash or (a record from before sorted
+        keys) by its legacy hash; a legacy record found is moved to the new hash."""
+        known = self.id_of(prepared.content_sha256)
+        if known is not None or not self._legacy:
+            return known
+        legacy = prepared.legacy_content_sha256()
+        episode_id = self._legacy.pop(legacy, None) if legacy else None
+        if episode_id is None:
+            return None
+        record = self.episodes[episode_id]
+        self._by_hash.pop(record["content_sha256"], None)
+        record.update(content_sha256=prepared.content_sha256, hash_version=HASH_VERSION)
+        self._by_hash.setdefault(prepared.content_sha256, episode_id)
+        return episode_id
 
     def add(self, record: dict[str, Any]) -> None:
         self.episodes[record["episode_id"]] = record
@@ -68,7 +97,7 @@ class Manifest:
         }
 
     def text(self) -> str:
-        return json.dumps(self.to_json(), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+        return json_dumps(self.to_json(), indent=2, sort_keys=True) + "\n"
 
 
 def load_manifest(dataset_dir: Path) -> Manifest:
@@ -113,7 +142,7 @@ def _holds(existing_dir: Path, prepared: PreparedEpisode) -> bool:
 def _place(ep: Episode, prepared: PreparedEpisode, dataset_dir: Path,
            manifest: Manifest) -> tuple[str, bool]:
     """The id this episode gets and whether it still has to be written."""
-    known = manifest.id_of(prepared.content_sha256)
+    known = manifest.id_of_prepared(prepared)
     if known is not None:
         return known, False
     base = safe_episode_id(ep.episode_id)
@@ -130,8 +159,11 @@ def _place(ep: Episode, prepared: PreparedEpisode, dataset_dir: Path,
 
 
 def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
-                    manifest: Manifest) -> dict[str, Any]:
+                    manifest: Manifest, content_ids: str | None = None) -> dict[str, Any]:
     prepared = prepare_episode(ep)
+    if content_ids is not None:
+        ep.episode_id = prepared.episode_id = f"{content_ids}{prepared.content_sha256[:16]}"
+        ep.metadata["episode_id"] = prepared.metadata["episode_id"] = ep.episode_id
     episode_id, needs_write = _place(ep, prepared, dataset_dir, manifest)
     if needs_write:
         write_prepared(prepared, dataset_dir, episode_id)
@@ -143,7 +175,8 @@ def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
         action = "unchanged" if original_id == ep.episode_id else "duplicate"
     if episode_id not in manifest.episodes:
         record = {"episode_id": episode_id, "source": ep.source, "steps": len(ep.steps),
-                  "content_sha256": prepared.content_sha256, "imagined": ep.is_imagined}
+                  "content_sha256": prepared.content_sha256, "hash_version": HASH_VERSION,
+                  "imagined": ep.is_imagined}
         if episode_id != ep.episode_id:
             record["source_episode_id"] = ep.episode_id
         manifest.add(record)
@@ -152,8 +185,8 @@ def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
     return dict(entry, episode_id=episode_id, action=action)
 
 
-def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathLike,
-                 **reader_options: Any) -> dict[str, Any]:
+def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathLike, *,
+                 confined: bool = False, **reader_options: Any) -> dict[str, Any]:
     """Ingests every episode under `paths` into `dataset_dir`; returns what happened to each.
 
     Raises FileNotFoundError for a missing input path and IngestError for an unusable dataset dir."""
@@ -161,35 +194,45 @@ def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathL
     for source in sources:
         if not source.exists():
             raise FileNotFoundError(f"{source}: no such file or directory")
+    reports = (report for source in sources for report in read_reports(source, **reader_options))
+    return ingest_reports(reports, dataset_dir, confined=confined)
+
+
+def open_dataset(dataset_dir: str | os.PathLike) -> tuple[Path, Manifest]:
     dataset = Path(os.path.abspath(dataset_dir))
     if dataset.exists() and not dataset.is_dir():
         raise IngestError(f"{dataset}: exists and is not a directory")
     dataset.mkdir(parents=True, exist_ok=True)
     remove_stale_tmp_dirs(dataset)
-    manifest = load_manifest(dataset)
+    return dataset, load_manifest(dataset)
 
+
+def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLike, *,
+                   confined: bool = False, content_ids: str | None = None) -> dict[str, Any]:
+    """`ingest_paths` for reports already read (or built in memory, like the app's handoff)."""
+    dataset, manifest = open_dataset(dataset_dir)
     results: list[dict[str, Any]] = []
-    for source in sources:
-        for report in read_reports(source, **reader_options):
-            entries = report_entries(report, "train")
-            if not report.episodes:
-                for entry in entries:
-                    results.append(_record_unwritten(entry, manifest))
+    for report in reports:
+        if confined:
+            for ep in report.episodes:
+                confine_blobs(ep)  # before validation: it must not look at outside files either
+        entries = report_entries(report, "train")
+        if not report.episodes:
+            results.extend(_record_unwritten(entry, manifest) for entry in entries)
+            continue
+        for ep, entry in zip(report.episodes, entries):
+            if entry["status"] == "rejected":
+                results.append(_record_unwritten(entry, manifest))
                 continue
-            for ep, entry in zip(report.episodes, entries):
-                if entry["status"] == "rejected":
-                    results.append(_record_unwritten(entry, manifest))
-                    continue
-                try:
-                    results.append(_ingest_episode(ep, entry, dataset, manifest))
-                except OSError as exc:
-                    if is_disk_full(exc):  # the card, not the episode: stop, keep what is done
-                        _save_what_fits(dataset, manifest)
-                        raise IngestDiskFull(full_message(exc, dataset, f"ingest of {ep.source}")) from None
-                    results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
-                except (ValueError, TypeError) as exc:  # unwritable content
-                    results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id),
-                                                     manifest))
+            try:
+                results.append(_ingest_episode(ep, entry, dataset, manifest, content_ids))
+            except OSError as exc:
+                if is_disk_full(exc):  # the card, not the episode: stop, keep what is done
+                    _save_what_fits(dataset, manifest)
+                    raise IngestDiskFull(full_message(exc, dataset, f"ingest of {ep.source}")) from None
+                results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
+            except (ValueError, TypeError) as exc:  # unwritable content
+                results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
     manifest_written = write_manifest(dataset, manifest)
     summary = {action: sum(1 for r in results if r["action"] == action)
                for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}

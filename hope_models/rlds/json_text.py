@@ -1,15 +1,22 @@
-"""Reading JSON and JSONL text the way Continuon producers actually write it.
+r"""Reading JSON and JSONL text the way Continuon producers actually write it.
 
 Producers write UTF-8 with or without a BOM, CRLF or LF line ends, blank lines between steps,
 bare `NaN`/`Infinity` tokens (Python's json module emits them) and epoch-nanosecond integers
 above 2^53. Python's json parser already maps the bare tokens to float nan/inf and keeps
 integers exact, so the work here is decoding, line splitting, size guards and turning every
 failure into a Problem that names the file and line instead of raising.
+
+Writing goes through `json_dumps` too: Dart strings may hold unpaired UTF-16 surrogates (Dart's
+jsonEncode writes them as `\udXXX`, so json.loads hands back a str with a lone surrogate), which
+UTF-8 cannot encode. They are kept, escaped as `\udXXX` in the JSON text, so every file we write
+stays valid UTF-8 and reads back to the same str; `escape_surrogates` does the same for plain
+text fields (a TFRecord string feature, a log line).
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +33,31 @@ class ReadLimits:
 
     max_file_bytes: int = DEFAULT_MAX_FILE_BYTES
     max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
+
+
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _escaped(match: re.Match) -> str:
+    return f"\\u{ord(match.group()):04x}"
+
+
+def escape_surrogates(text: str) -> str:
+    r"""`text` with every (necessarily unpaired) surrogate written as the six characters `\udXXX`."""
+    return _SURROGATE.sub(_escaped, text) if _SURROGATE.search(text) else text
+
+
+def json_dumps(obj: Any, **kwargs: Any) -> str:
+    r"""json.dumps with ensure_ascii=False (unless given) whose result always encodes as UTF-8.
+
+    json.dumps leaves a lone surrogate in the output as the raw code point; inside JSON text it can
+    only sit in a string, where the escape `\udXXX` is exactly what a JSON reader turns back into it."""
+    kwargs.setdefault("ensure_ascii", False)
+    return escape_surrogates(json.dumps(obj, **kwargs))
+
+
+def json_bytes(obj: Any, **kwargs: Any) -> bytes:
+    return json_dumps(obj, **kwargs).encode("utf-8")
 
 
 class TextReadError(Exception):

@@ -4,9 +4,15 @@ The dir is built under a temporary name in the dataset dir and renamed into plac
 (or a crash) never sees half an episode. Relative blob files the steps reference are copied into
 `blobs/` and their URIs rewritten to `blobs/<path>`; URIs with a scheme stay opaque.
 
-The content hash covers what is written (metadata but its id, steps, blob bytes), so the same
-input always hashes the same and ingest can tell "already here" from "a different episode with
-the same id".
+The content hash covers what is written (metadata but its id, steps, blob bytes) with every
+object's keys sorted, so the same input always hashes the same whatever order a producer wrote
+its keys in, and ingest can tell "already here" from "a different episode with the same id".
+`legacy_content_sha256` is the hash as it was computed before keys were sorted: manifests written
+then still hold it.
+
+Blobs of an episode that came over the network are confined (`confine_blobs`): only relative URIs
+inside the episode's own blob root are followed; absolute paths and `file://` URIs are opaque text,
+never opened, so a client cannot make the trainer read (or copy) a file of its choosing.
 """
 from __future__ import annotations
 
@@ -24,12 +30,14 @@ from typing import Any, Iterator
 
 from ..durable import file_sha256, fsync_path
 from .episode import SCHEMA_VERSION, Episode
+from .json_text import json_dumps
 
 STEPS_FILE = "steps/000000.jsonl"
 BLOBS_DIR = "blobs"
 TMP_PREFIX = ".tmp-"
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+:")  # two letters at least: not a drive letter
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_CONFINED = "_hope_blobs_confined"  # an attribute set on an Episode (its own dataclass has no such field)
 
 
 # -- blob references ----------------------------------------------------------------------------
@@ -62,7 +70,21 @@ def _uri_fields(value: Any, path: str) -> Iterator[tuple[str, str]]:
                 yield from _uri_fields(sub, f"{path}[{i}]")
 
 
-def _resolve(uri: str, blob_root: str | None) -> tuple[str, Path | None, str | None]:
+def confine_blobs(ep: Episode) -> Episode:
+    """Marks `ep` as untrusted: validation, preparation and writing follow only relative blob URIs
+    inside its blob root from now on."""
+    setattr(ep, _CONFINED, True)
+    return ep
+
+
+def blobs_confined(ep: Episode) -> bool:
+    return bool(getattr(ep, _CONFINED, False))
+
+
+def _resolve(uri: str, blob_root: str | None,
+             confined: bool = False) -> tuple[str, Path | None, str | None]:
+    if confined and (uri.startswith("file:") or os.path.isabs(uri) or uri.startswith("\\")):
+        return "opaque", None, None  # not even stat()ed: whether it exists is no one's business
     if uri.startswith("file://"):
         local = Path(uri[len("file://"):])
         return ("ok" if local.is_file() else "missing"), local, None
@@ -88,6 +110,7 @@ def blob_refs(ep: Episode) -> list[BlobRef]:
     """Every blob URI in the steps, checked once per distinct URI (at its first step)."""
     refs: list[BlobRef] = []
     seen: set[str] = set()
+    confined = blobs_confined(ep)
     for i, step in enumerate(ep.steps):
         for part, value in (("observation", step.observation), ("action", step.action),
                             ("step_metadata", step.step_metadata)):
@@ -95,7 +118,7 @@ def blob_refs(ep: Episode) -> list[BlobRef]:
                 if uri in seen:
                     continue
                 seen.add(uri)
-                status, path, rel = _resolve(uri, ep.blob_root)
+                status, path, rel = _resolve(uri, ep.blob_root, confined)
                 refs.append(BlobRef(i, field_path, uri, status, path, rel))
     return refs
 
@@ -110,9 +133,6 @@ def _rewrite_uris(value: Any, mapping: dict[str, str]) -> Any:
 
 
 # -- the content as written ---------------------------------------------------------------------
-
-
-
 
 def canonical_metadata(ep: Episode, episode_id: str | None = None) -> dict[str, Any]:
     meta = copy.deepcopy(ep.metadata)
@@ -142,19 +162,40 @@ class PreparedEpisode:
 
     def metadata_text(self, episode_id: str | None = None) -> str:
         meta = dict(self.metadata, episode_id=episode_id or self.episode_id)
-        return json.dumps(meta, indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+        return json_dumps(meta, indent=2, allow_nan=False) + "\n"
 
     def steps_text(self) -> str:
-        # Serialised once: it is both hashed and written, and large episodes take a while.
+        # Serialised once, keys sorted: it is both hashed and written, and large episodes take a while.
         if self._steps_text is None:
             self._steps_text = "".join(
-                json.dumps(s, ensure_ascii=False, allow_nan=False, separators=(",", ":")) + "\n"
+                json_dumps(s, allow_nan=False, separators=(",", ":"), sort_keys=True) + "\n"
                 for s in self.steps)
         return self._steps_text
 
+    def legacy_content_sha256(self) -> str | None:
+        """The hash before keys were sorted (None for content that hash could not cover: a lone
+        surrogate did not encode then, so no manifest can hold such an episode under it)."""
+        try:
+            digest = hashlib.sha256()
+            digest.update(json.dumps(self._anonymous(), indent=2, ensure_ascii=False,
+                                     allow_nan=False).encode("utf-8"))
+            for s in self.steps:
+                digest.update((json.dumps(s, ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+                               + "\n").encode("utf-8"))
+            digest.update(json.dumps(self.blob_sha256, sort_keys=True).encode("utf-8"))
+        except UnicodeEncodeError:
+            return None
+        return digest.hexdigest()
+
+    def _anonymous(self) -> dict[str, Any]:
+        # The id is left out of the hash: it names the content, and an episode written under a
+        # suffixed id (or re-ingested from a dataset dir) must still be recognised as the same.
+        return {k: v for k, v in self.metadata.items() if k != "episode_id"}
+
 
 def prepare_episode(ep: Episode, as_id: str | None = None) -> PreparedEpisode:
-    """`as_id` is the id the written metadata will carry (default: the episode's own)."""
+    """`as_id` is the id the written metadata will carry (default: the episode's own). The blobs
+    of a confined episode (`confine_blobs`) are only looked for inside its blob root."""
     episode_id = as_id or ep.episode_id
     blobs: dict[str, Path] = {}
     mapping: dict[str, str] = {}
@@ -174,11 +215,8 @@ def prepare_episode(ep: Episode, as_id: str | None = None) -> PreparedEpisode:
         steps.append(obj)
     prepared = PreparedEpisode(episode_id, canonical_metadata(ep, episode_id), steps, blobs)
     prepared.blob_sha256 = {name: file_sha256(path) for name, path in sorted(blobs.items())}
-    # The id is left out of the hash: it names the content, and an episode written under a
-    # suffixed id (or re-ingested from a dataset dir) must still be recognised as the same.
     digest = hashlib.sha256()
-    anonymous = {k: v for k, v in prepared.metadata.items() if k != "episode_id"}
-    digest.update(json.dumps(anonymous, indent=2, ensure_ascii=False, allow_nan=False).encode("utf-8"))
+    digest.update(json_dumps(prepared._anonymous(), indent=2, allow_nan=False, sort_keys=True).encode("utf-8"))
     digest.update(prepared.steps_text().encode("utf-8"))
     digest.update(json.dumps(prepared.blob_sha256, sort_keys=True).encode("utf-8"))
     prepared.content_sha256 = digest.hexdigest()
@@ -193,8 +231,8 @@ def safe_episode_id(episode_id: str) -> str:
     if _SAFE_ID.match(episode_id) and episode_id not in (".", ".."):
         return episode_id
     cleaned = re.sub(r"[^A-Za-z0-9._-]", "_", episode_id).lstrip("._-")[:100] or "episode"
-    return f"{cleaned}-{hashlib.sha256(episode_id.encode('utf-8')).hexdigest()[:8]}"
-
+    raw = episode_id.encode("utf-8", "surrogatepass")  # a lone surrogate still names one id
+    return f"{cleaned}-{hashlib.sha256(raw).hexdigest()[:8]}"
 
 
 
