@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hope_models.data.cache import load_or_build
 from hope_models.data.export_npz import NpzTooLarge, episode_spec, export_npz_paths, write_cloud_npz
 from hope_models.data.extract import group_matrix
 from hope_models.data.features import FeatureSpec
@@ -114,6 +115,12 @@ def test_sim_reacher_round_trip(tmp_path: Path):
     # the same episode exported twice is the same bytes
     again, _ = export_one(recorded.path, tmp_path / "again")
     assert again.read_bytes() == npz.read_bytes()
+    # the dataset pipeline compiles the npz dir like any other dataset, to the exported arrays
+    cache, _ = load_or_build(npz.parent, tmp_path / "cache")
+    assert [f.path for f in cache.spec.all_fields()] == [f.path for f in spec.all_fields()]
+    with np.load(npz, allow_pickle=False) as data:
+        np.testing.assert_array_equal(cache.obs, data["observations"])
+        np.testing.assert_array_equal(cache.act, data["actions"])
 
 
 def hand_episode(path: Path, drop_at: int | None = None) -> Path:
