@@ -5,7 +5,7 @@ and printed by `serve`. HTTP requests send `Authorization: Bearer <token>`; Sock
 it as `auth={"token": ...}` (or `?token=` on the connection URL, for clients that cannot set auth).
 
 Default deny: every route under /api/ needs the token unless its view is marked `@public`
-(only /api/health). Comparisons are constant-time.
+(/api/health, and /api/ping, which the Continuon app calls without one). Comparisons are constant-time.
 """
 from __future__ import annotations
 
