@@ -120,15 +120,25 @@ def blob_refs(ep: Episode) -> list[BlobRef]:
                 seen.add(uri)
                 status, path, rel = _resolve(uri, ep.blob_root, confined)
                 refs.append(BlobRef(i, field_path, uri, status, path, rel))
+    # Files handed in beside the steps (the app's assets) are part of the episode even when no
+    # step names them; they are listed in metadata.assets with the `uri` they are stored under.
+    assets = ep.metadata.get("assets")
+    for i, asset in enumerate(assets if isinstance(assets, list) else []):
+        uri = asset.get("uri") if isinstance(asset, dict) else None
+        if isinstance(uri, str) and uri and uri not in seen:
+            seen.add(uri)
+            status, path, rel = _resolve(uri, ep.blob_root, confined)
+            refs.append(BlobRef(0, f"metadata.assets[{i}].uri", uri, status, path, rel))
     return refs
 
 
-def _rewrite_uris(value: Any, mapping: dict[str, str]) -> Any:
+def rewrite_uris(value: Any, mapping: dict[str, str]) -> Any:
+    """`value` with every URI field (`uri`, `*_uri`) found in `mapping` replaced."""
     if isinstance(value, dict):
         return {k: (mapping.get(v, v) if isinstance(v, str) and _is_uri_key(str(k))
-                    else _rewrite_uris(v, mapping)) for k, v in value.items()}
+                    else rewrite_uris(v, mapping)) for k, v in value.items()}
     if isinstance(value, list):
-        return [_rewrite_uris(v, mapping) for v in value]
+        return [rewrite_uris(v, mapping) for v in value]
     return value
 
 
@@ -211,7 +221,7 @@ def prepare_episode(ep: Episode, as_id: str | None = None) -> PreparedEpisode:
         obj = step.to_json_obj(i)
         if mapping:
             for part in ("observation", "action", "step_metadata"):
-                obj[part] = _rewrite_uris(obj[part], mapping)
+                obj[part] = rewrite_uris(obj[part], mapping)
         steps.append(obj)
     prepared = PreparedEpisode(episode_id, canonical_metadata(ep, episode_id), steps, blobs)
     prepared.blob_sha256 = {name: file_sha256(path) for name, path in sorted(blobs.items())}
