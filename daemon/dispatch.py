@@ -20,6 +20,8 @@ requeue got no step further: a job that hits its own limit at once must not spin
 for a user's resume). Runs paused on other hosts' queues wait for a user's resume.
 A local run does not start while the free space under $HOPE_HOME is below its floor, and a
 disk-paused run is requeued once it is above again (disk_guard.py); the run says so in `waiting`.
+Nor while learning is paused from the app (registry/learning.py): every local queue is held, runs
+queued by hand included, and the first run in line says so in `waiting` until the resume.
 
 How the job reports its run travels in the task: hope.train_run(run_id, attempt, report=...).
 A local queue's worker shares this host and writes the registry ("db"). Any other queue's worker
@@ -42,7 +44,7 @@ from typing import Any, Callable, Iterable
 from sqlalchemy import select
 
 from daemon.disk_guard import DiskGuard
-from registry import runs
+from registry import learning, runs
 from registry.models import Run, utcnow
 
 log = logging.getLogger(__name__)
@@ -105,14 +107,29 @@ class Dispatcher:
     def dispatch(self, throttle_level: int = 0) -> list[Dispatched]:
         """Start the next run on every idle queue; returns what was sent."""
         sent: list[Dispatched] = []
-        for queue in self.waiting_queues():
+        queues = self.waiting_queues()
+        held = bool(queues) and self._learning_paused()
+        for queue in queues:
             local = queue in self.local_queues
+            if local and held:
+                self._hold_for_pause(queue)
+                continue
             if local and throttle_level >= 2:
                 continue  # too hot to start anything here; the run waits queued
             d = self._dispatch_one(queue, throttle_level if local else 0, local)
             if d is not None:
                 sent.append(d)
         return sent
+
+    def _learning_paused(self) -> bool:
+        with self.registry.session(readonly=True) as s:
+            return learning.is_paused(s)
+
+    def _hold_for_pause(self, queue: str) -> None:
+        with self.registry.session() as s:
+            run = runs.next_dispatchable(s, queue)
+            if run is not None:
+                self.disk.hold(s, run, learning.PAUSE_HOLD)
 
     def _dispatch_one(self, queue: str, level: int, local: bool = True) -> Dispatched | None:
         task_id = str(uuid.uuid4())

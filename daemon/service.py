@@ -13,7 +13,9 @@ Each tick, in this order:
    to the registry (remote.py), before anything judges their heartbeats;
 3. paused runs the daemon paused (thermal, memory, disk) are requeued when the host allows;
 4. reconcile: runs whose worker child is gone are interrupted and requeued (reconcile.py);
-5. dispatch: the next queued run on every idle queue (dispatch.py), none on a hot host;
+5. continuous learning: the phase, and a chain queued on the inbox when enough new episodes came
+   and the host is idle (continuous.py); then dispatch: the next queued run on every idle queue
+   (dispatch.py), none on a hot host, none on a local queue while the app paused learning;
 6. remote control: the control state of every running remote run is published to Redis;
 7. retention: old runs' dirs pruned once a run has finished (disk_guard.py, settings.keep_runs);
    events: new run_events rows to the sink; `system.stats` every stats_every_s;
@@ -37,6 +39,7 @@ from sqlalchemy import select
 
 from registry import runs
 from daemon.autopromote import AutoPromoter
+from daemon.continuous import ContinuousLearning
 from daemon.dispatch import Dispatcher
 from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, NullSink
 from registry.models import Run
@@ -80,6 +83,7 @@ class Daemon:
         self.tailer: EventTailer | None = None
         self.remote: RemoteReports | None = None
         self.autopromoter: AutoPromoter | None = None
+        self.learning: ContinuousLearning | None = None
         self._remote_failures = 0
         self.last_sample: dict[str, Any] | None = None
         self._stats_at: float | None = None
@@ -102,6 +106,9 @@ class Daemon:
                                      claim_timeout_s=self.claim_timeout_s, resend=self.dispatcher.resend)
         self.tailer = EventTailer(self.registry, self.sink)
         self.autopromoter = AutoPromoter(self.settings, self.registry)
+        self.learning = ContinuousLearning(self.settings, self.registry, local_queues=self.local_queues,
+                                           disk_guard=self.dispatcher.disk, autopromoter=self.autopromoter)
+        self.learning.start()
         if self.remote_reports:
             client = self._redis_client
             if client is None:
@@ -175,6 +182,7 @@ class Daemon:
             self.remote_step(self.remote.poll)
         self.dispatcher.requeue_paused(self.policy.level, sample.get("mem_available_mb"))
         self.reconciler.reconcile()
+        self.learning.tick(sample, self.policy.level)
         self.dispatcher.dispatch(self.policy.level)
         if self.remote is not None:
             self.remote_step(self.remote.publish_running)

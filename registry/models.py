@@ -1,4 +1,5 @@
-"""The registry's tables: runs, their events, and trained models (candidates and promotions).
+"""The registry's tables: runs, their events, trained models (candidates and promotions), and the
+continuous-learning state (one row: paused from the app, the daemon's phase, the last auto run).
 
 Times are timezone-aware UTC datetimes in Python. SQLite has no datetime type, so they are stored
 as naive UTC text ("YYYY-MM-DD HH:MM:SS.ffffff", SQLAlchemy's format), which sorts in time order.
@@ -11,7 +12,7 @@ import secrets
 from datetime import datetime, timezone
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, MetaData, String, Text, text
+from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Index, Integer, MetaData, String, Text, text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
@@ -224,3 +225,33 @@ class Model(Base):
             "previous_model_id": self.previous_model_id,
             "created_at": iso(self.created_at),
         }
+
+
+class LearningState(Base):
+    """The one row (id 1) of continuous learning that the daemon and the webapp share (they may be
+    two processes): whether the app paused learning and which runs that pause paused, the daemon's
+    last decision (phase), and the last auto run with the episodes it was started for
+    (registry/learning.py reads and writes it; daemon/continuous.py decides)."""
+
+    __tablename__ = "learning_state"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    paused: Mapped[bool] = mapped_column(Boolean, default=False, server_default="0")
+    paused_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # the runs this pause paused (a resume resumes exactly those)
+    paused_runs: Mapped[list[str] | None] = mapped_column(JSON(none_as_null=True))
+    # the queues the daemon treats as local (its worker shares this host), written at its start
+    local_queues: Mapped[list[str] | None] = mapped_column(JSON(none_as_null=True))
+    phase: Mapped[str] = mapped_column(String(32), default="idle", server_default="idle")
+    phase_detail: Mapped[str | None] = mapped_column(Text)
+    phase_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    decision: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    # per component, the ids of the inbox episodes the last auto run of it was queued for
+    watermark: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    last_auto_sequence_id: Mapped[str | None] = mapped_column(String(64))
+    last_auto_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    last_auto_reason: Mapped[str | None] = mapped_column(Text)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
+
+    def __repr__(self) -> str:
+        return f"<LearningState paused={self.paused} phase={self.phase!r}>"

@@ -22,7 +22,7 @@ from registry.models import Base
 from hope_models.settings import load_settings
 
 REPO = Path(__file__).resolve().parents[1]
-TABLES = {"runs", "run_events", "models"}
+TABLES = {"runs", "run_events", "models", "learning_state"}
 
 
 def head() -> str:
@@ -276,3 +276,29 @@ def test_an_upgrade_backs_the_registry_up_first(tmp_path):
         assert len(list(tmp_path.glob("hope.db.before-*"))) == 1
     finally:
         eng.dispose()
+
+
+def test_0004_learning_state_up_and_down(engine):
+    """0004 adds the continuous-learning row (pause, phase, watermark), which must survive a restart:
+    what one process writes another reads, and a downgrade drops only that table."""
+    from registry import learning
+    from sqlalchemy.orm import Session
+
+    migrate(engine, "0003")
+    with engine.begin() as c:
+        c.exec_driver_sql("INSERT INTO runs (id, component, config, state, total_steps, run_dir, created_at, updated_at) "
+                          "VALUES ('r1', 'fast_loop', '{}', 'queued', 5, '/r', '2026-01-01', '2026-01-01')")
+    assert "learning_state" not in tables(engine)
+    migrate(engine, "0004")
+    with Session(engine) as s, s.begin():
+        learning.pause(s)
+        learning.record_auto_run(s, "s-1", "auto-train: because", {"fast_loop": ["ep-a", "ep-b"]})
+    with Session(engine) as s:  # another session (process) reads what the first wrote
+        assert learning.is_paused(s) and learning.watermark(s) == {"fast_loop": {"ep-a", "ep-b"}}
+        assert learning.read(s).last_auto_reason == "auto-train: because"
+    downgrade(engine, "0003")
+    assert "learning_state" not in tables(engine)
+    with engine.begin() as c:
+        assert c.exec_driver_sql("SELECT id, state FROM runs").all() == [("r1", "queued")]
+    migrate(engine)
+    assert diffs(engine, Base.metadata) == []
