@@ -15,6 +15,10 @@
    random policy (`eval-reflex --checkpoint promoted`, a child process);
 6. prints the summary table, writes it as JSON to $HOPE_HOME/demo/summary.json, prints the Robot
    Editor URL and token, and keeps serving until Ctrl-C (`--exit`: stops after the summary).
+   While it serves, continuous learning is on (auto_train, daemon/continuous.py): episodes the
+   Continuon app hands off land in the inbox, and once auto_train_min_new_episodes new ones came a
+   chain trains on them by itself. Until the summary it is off, whatever the settings say: the
+   demo's own data is not in the inbox, and an auto chain must not change what the demo measures.
 
 Exit 0 when every run completed, the fast_loop was promoted and served, and its mean return is at
 least --target-return (900); 1 otherwise, saying what fell short; 2 when it cannot start (port taken,
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         say("note: auto_promote is off in the settings; the demo turns it on for this process (it gates each run)")
         settings.auto_promote = True
     setup_logging(settings.home, console_level=logging.WARNING)
+    settings.auto_train = False  # the daemon reads it each tick: nothing starts by itself before the summary
     demo = Demo(settings, args)
 
     def on_signal(signum, _frame):
@@ -138,6 +143,10 @@ def run(args: argparse.Namespace) -> int:
         if args.exit:
             demo.stop()
             return code
+        settings.auto_train = True  # continuous learning while it serves (see the module doc)
+        say(f"continuous learning is on: episodes the Continuon app hands off go to {settings.inbox_dir}; "
+            f"after {settings.auto_train_min_new_episodes} new trainable ones, "
+            f"{','.join(settings.auto_train_components)} train on them by itself (GET /api/learning/status)")
         say("serving until Ctrl-C (runs, models, live progress of new runs, inference and the reflex view)")
         while not demo.shutdown.is_set():
             demo.shutdown.wait(0.5)
