@@ -7,7 +7,9 @@ gets a 500, so a 500 is a bug to fix.
 
 The body size limit (app.config["MAX_CONTENT_LENGTH"]) is checked from the Content-Length header
 before anything else runs, so a 20 MB upload is refused without reading it (or asking for the
-token first); a chunked body without a length is cut at the limit while it is read.
+token first); a chunked body without a length is cut at the limit while it is read. A view marked
+`large_body` (webapp/uploads.py: episode uploads, the app's handoff) gets settings.upload_max_mb
+instead, checked the same way and set as that request's own limit.
 """
 from __future__ import annotations
 
@@ -17,6 +19,9 @@ from flask import Flask, current_app, jsonify, request
 from werkzeug.exceptions import HTTPException, MethodNotAllowed, NotFound, RequestEntityTooLarge
 
 log = logging.getLogger(__name__)
+
+
+LARGE_BODY_ATTR = "hope_large_body"  # set on a view by webapp.uploads.large_body
 
 
 class ApiError(Exception):
@@ -35,7 +40,7 @@ def error_response(message: str, status: int, **extra):
 
 
 def _too_large_message() -> str:
-    limit = current_app.config.get("MAX_CONTENT_LENGTH")
+    limit = request.max_content_length
     size = request.content_length
     got = f"{size} bytes" if size is not None else "more"
     return f"request body too large: {got}; the limit is {limit} bytes"
@@ -46,6 +51,10 @@ def install(app: Flask) -> None:
     def _body_size_first():
         # Before the token check and before any view reads the body.
         limit = app.config.get("MAX_CONTENT_LENGTH")
+        view = app.view_functions.get(request.endpoint) if request.endpoint else None
+        if view is not None and getattr(view, LARGE_BODY_ATTR, False):
+            limit = int(current_app.extensions["hope"].settings.upload_max_mb) << 20
+            request.max_content_length = limit  # a chunked body is cut here too, while it is read
         if limit is not None and request.content_length is not None and request.content_length > limit:
             return error_response(_too_large_message(), 413)
         return None

@@ -1,0 +1,188 @@
+"""Request bodies larger than the app-wide 1 MiB: episodes and their media coming in.
+
+    @bp.post("/api/episodes/upload")
+    @large_body
+    def upload():
+        with received(settings) as got:       # after the token check (a before_request)
+            got.fields["manifest"], got.files, got.body ...
+
+`large_body` marks a view whose body may be up to `settings.upload_max_mb` MiB; errors.py checks
+the declared Content-Length against that limit before the token check and before anything is
+read, and sets it as the request's own limit, so a chunked body (no length) is cut there too.
+
+`received` streams the body to files under `$HOPE_HOME/tmp/upload-<random>/` (not /tmp: on Pi OS
+that is RAM, and an upload may be hundreds of MB): a multipart body part by part (`.fields` the
+form fields, text; `.files` (field, filename as sent, path, size) of the file parts, stored under
+names of our own), any other body whole as `.body`. The size limit is counted while reading, a
+body with more than MAX_PARTS parts or a field larger than MAX_FIELD_BYTES is refused, and the
+directory is removed when the block ends, whatever happens in it. The filename a client sends is
+only reported, never used as a path.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO, Callable, Iterator
+
+from flask import request
+from werkzeug.exceptions import RequestEntityTooLarge
+from werkzeug.sansio.multipart import Data, Epilogue, Field, File, MultipartDecoder, NeedData
+
+from webapp.errors import LARGE_BODY_ATTR, ApiError
+
+MAX_PARTS = 1000  # a handoff sends a few per step; far more is a client gone wrong (or hostile)
+MAX_FIELD_BYTES = 64 << 20  # a form field is held in memory: the manifest of a long episode fits
+CHUNK = 1 << 16
+TMP_DIR = "tmp"
+
+
+def large_body(view: Callable) -> Callable:
+    """Mark a view as taking bodies up to settings.upload_max_mb (errors.py reads the mark)."""
+    setattr(view, LARGE_BODY_ATTR, True)
+    return view
+
+
+def upload_limit(settings: Any) -> int:
+    return int(settings.upload_max_mb) << 20
+
+
+@dataclass
+class Received:
+    dir: Path
+    fields: dict[str, str] = field(default_factory=dict)
+    files: list[tuple[str, str, Path, int]] = field(default_factory=list)  # (field, filename, path, size)
+    body: Path | None = None
+    size: int = 0  # bytes of body read
+
+
+class _Counter:
+    """Reads the request body in chunks, refusing it once past the limit."""
+
+    def __init__(self, stream: BinaryIO, limit: int):
+        self.stream, self.limit, self.read_bytes = stream, limit, 0
+
+    def read(self) -> bytes:
+        try:
+            chunk = self.stream.read(CHUNK)
+        except RequestEntityTooLarge:
+            chunk = b""
+            self.read_bytes = self.limit + 1
+        self.read_bytes += len(chunk)
+        if self.read_bytes > self.limit:
+            raise ApiError(f"request body too large: more than {self.limit} bytes; the limit for this "
+                           f"endpoint is {self.limit} bytes (upload_max_mb)", 413)
+        return chunk
+
+
+def _read_raw(got: Received, body: _Counter) -> None:
+    got.body = got.dir / "body"
+    with open(got.body, "wb") as out:
+        while chunk := body.read():
+            out.write(chunk)
+    got.size = body.read_bytes
+
+
+class _Parts:
+    """Where the multipart events go: the current part's name, and its file or its bytes."""
+
+    def __init__(self, got: Received, max_parts: int):
+        self.got, self.max_parts, self.count = got, max_parts, 0
+        self.name: str | None = None
+        self.filename: str | None = None
+        self.out: BinaryIO | None = None
+        self.path: Path | None = None
+        self.buf = bytearray()
+
+    def start(self, event: Field | File) -> None:
+        self.count += 1
+        if self.count > self.max_parts:
+            raise ApiError(f"multipart body: more than {self.max_parts} parts", 400)
+        self.name = event.name
+        if isinstance(event, File):
+            self.filename = event.filename or ""
+            self.path = self.got.dir / f"part-{self.count:05d}"
+            self.out = open(self.path, "wb")
+        else:
+            self.filename, self.out, self.path = None, None, None
+            self.buf = bytearray()
+
+    def data(self, event: Data) -> None:
+        if self.name is None:
+            raise ApiError("multipart body: data before any part header", 400)
+        if self.out is not None:
+            self.out.write(event.data)
+        else:
+            self.buf += event.data
+            if len(self.buf) > MAX_FIELD_BYTES:
+                raise ApiError(f"{self.name}: form field larger than {MAX_FIELD_BYTES} bytes", 413)
+        if not event.more_data:
+            self.end()
+
+    def end(self) -> None:
+        if self.out is not None:
+            self.out.close()
+            self.got.files.append((self.name or "", self.filename or "", self.path, self.path.stat().st_size))
+        else:
+            try:
+                self.got.fields[self.name or ""] = bytes(self.buf).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise ApiError(f"{self.name}: form field is not UTF-8 text (byte {exc.start})", 400) from None
+        self.name, self.out = None, None
+
+    def close(self) -> None:
+        if self.out is not None:
+            self.out.close()
+
+
+def _read_multipart(got: Received, body: _Counter, max_parts: int) -> None:
+    boundary = request.mimetype_params.get("boundary")
+    if not boundary:
+        raise ApiError("multipart/form-data body without a boundary parameter", 400)
+    decoder = MultipartDecoder(boundary.encode("latin-1"), max_form_memory_size=MAX_FIELD_BYTES)
+    parts = _Parts(got, max_parts)
+    try:
+        while True:
+            chunk = body.read()
+            decoder.receive_data(chunk or None)
+            try:
+                event = decoder.next_event()
+                while not isinstance(event, (NeedData, Epilogue)):
+                    if isinstance(event, (Field, File)):
+                        parts.start(event)
+                    elif isinstance(event, Data):
+                        parts.data(event)
+                    event = decoder.next_event()
+            except ValueError as exc:  # werkzeug's parse errors
+                raise ApiError(f"multipart body: {exc}", 400) from None
+            if isinstance(event, Epilogue):
+                break
+            if not chunk:
+                raise ApiError("multipart body ends before its closing boundary", 400)
+    except RequestEntityTooLarge:
+        raise ApiError(f"multipart body: a part larger than {MAX_FIELD_BYTES} bytes held in memory", 413) from None
+    finally:
+        parts.close()
+    got.size = body.read_bytes
+
+
+@contextmanager
+def received(settings: Any, *, max_parts: int = MAX_PARTS) -> Iterator[Received]:
+    """The current request's body on disk (see the module doc); removed on exit."""
+    root = Path(settings.home) / TMP_DIR
+    root.mkdir(mode=0o700, parents=True, exist_ok=True)
+    got = Received(Path(tempfile.mkdtemp(prefix="upload-", dir=root)))
+    try:
+        body = _Counter(request.stream, upload_limit(settings))
+        if request.mimetype == "multipart/form-data":
+            _read_multipart(got, body, max_parts)
+        else:
+            _read_raw(got, body)
+        yield got
+    finally:
+        shutil.rmtree(got.dir, ignore_errors=True)
+
+
+__all__ = ["MAX_PARTS", "Received", "large_body", "received", "upload_limit"]
