@@ -28,6 +28,7 @@ measured yet is None (the API answers null), never a 0 that looks like a measure
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
@@ -40,9 +41,11 @@ from sqlalchemy import func, or_, select
 
 from registry.models import Model, Run
 
+log = logging.getLogger(__name__)
+
 RESULT_FILE = "result.json"
 MAX_RESULT_BYTES = 1 << 20
-MAX_MANIFEST_BYTES = 64 << 20
+MAX_MANIFEST_BYTES = 16 << 20  # ~50k episodes; a bigger JSON would cost the Pi more memory than the count is worth
 TAIL_BYTES = 64 << 10
 STABLE_WINDOW = 5
 NON_FINITE = re.compile(r"loss is (nan|-?inf)|gradient norm is (nan|-?inf)|non-finite", re.IGNORECASE)
@@ -196,8 +199,9 @@ def _manifest_hashes(dataset: Path) -> frozenset[str]:
         return hit[1]
     try:
         manifest = read_json_object(path, max_bytes=MAX_MANIFEST_BYTES)
-    except (OSError, CheckpointError):
-        return frozenset()
+    except (OSError, CheckpointError) as exc:  # logged once per version of the file (it is cached below)
+        log.warning("total_episodes: %s is not counted: %s", dataset, exc)
+        manifest = {}
     episodes = manifest.get("episodes") if manifest.get("format") == "hope-rlds-dataset" else None
     hashes = frozenset(str(e.get("content_sha256")) for e in episodes if isinstance(e, dict)
                        and e.get("content_sha256")) if isinstance(episodes, list) else frozenset()
@@ -260,7 +264,8 @@ def parameter_changes(s) -> dict[str, float]:
         if not cached:
             try:
                 value = relative_change(old.checkpoint_path, new.checkpoint_path)
-            except (OSError, ValueError, RuntimeError):  # a checkpoint gone or damaged: not measured, not cached
+            except (OSError, ValueError, RuntimeError) as exc:  # a checkpoint gone or damaged: not measured, not cached
+                log.warning("parameter change of %s: not measured: %s", new.component, exc)
                 continue
             with _lock:
                 if len(_change_cache) >= CACHE_MAX:
