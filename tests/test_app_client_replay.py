@@ -240,12 +240,15 @@ def test_episode_handoff_stores_the_record_and_its_assets(served, app):
     assert sorted(episodes) == sorted(k for k in before if k.count(os.sep) == 0)
 
 
-@pytest.mark.parametrize("case", ["malformed manifest", "asset without local_uri", "oversized part"])
+@pytest.mark.parametrize("case", ["malformed manifest", "manifest not a record", "asset without local_uri",
+                                  "oversized part"])
 def test_a_bad_handoff_is_a_4xx_with_a_message_and_writes_nothing(served, app, case):
     record, assets = app_record()
     manifest, files = dart_json(record), [("device_mic_1732395000123.wav", b"RIFF" + b"\0" * 100)]
     if case == "malformed manifest":
         manifest = manifest[: len(manifest) // 2]
+    elif case == "manifest not a record":
+        manifest = dart_json({"metadata": "kitchen", "steps": {"observation": 1}})
     elif case == "asset without local_uri":
         files = [("not_in_the_manifest.wav", b"RIFF" + b"\0" * 100)]
     else:
