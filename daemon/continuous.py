@@ -46,7 +46,7 @@ from hope_models import disk
 from hope_models.data.inbox import InboxError
 from hope_models.train.contract import NEEDS_VQVAE
 from registry import learning, runs
-from registry.models import Model, Run
+from registry.models import LearningState, Model, Run
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +111,8 @@ class ContinuousLearning:
         self.free_mb, self.clock = free_mb, clock
         self._written: tuple[str, str | None, float] | None = None
         self._refused: tuple | None = None  # (inbox state, message) of a chain that could not be queued
+        self._marks: tuple[str | None, dict[str, set[str]]] | None = None  # (last auto sequence, watermark)
+        self._failures = 0
         self.last: Decision | None = None
 
     def start(self) -> None:
@@ -120,7 +122,17 @@ class ContinuousLearning:
     # -- the tick -----------------------------------------------------------------------------
 
     def tick(self, sample: dict[str, Any], throttle_level: int = 0) -> Decision:
-        decision = self._busy() or self._decide(sample or {}, throttle_level)
+        """Never raises for a fault of its own: the rest of the daemon's tick (dispatch above all)
+        must go on; the fault is the phase's detail and in the log (once per streak)."""
+        try:
+            decision = self._busy() or self._decide(sample or {}, throttle_level)
+            self._failures = 0
+        except Exception as exc:  # noqa: BLE001
+            self._failures += 1
+            if self._failures == 1 or self._failures % 100 == 0:
+                log.exception("continuous learning failed (%d in a row)", self._failures)
+            decision = Decision("idle", f"continuous learning failed: {type(exc).__name__}: {exc} (see the daemon's "
+                                "log); retried every tick")
         self._write(decision)
         self.last = decision
         return decision
@@ -176,8 +188,7 @@ class ContinuousLearning:
             return Decision("idle", "auto_train is off")
         components = list(self.settings.auto_train_components)
         minimum = int(self.settings.auto_train_min_new_episodes)
-        with self.registry.session(readonly=True) as s:
-            marks = learning.watermark(s)
+        marks = self._watermark()
         try:
             trainable = self.inbox.trainable(components)
         except InboxError as exc:  # said in the phase; everything else in the daemon goes on
@@ -196,11 +207,20 @@ class ContinuousLearning:
         if held is not None:
             held.data.update(data)
             return held
-        stamp = (self.inbox._stamp, tuple(sorted((c, len(v)) for c, v in marks.items())))
+        stamp = (self.inbox._stamp, self._marks[0] if self._marks else None)
         if self._refused is not None and self._refused[0] == stamp:
             return Decision("idle", f"the last auto chain could not be queued: {self._refused[1]}; waiting for the "
                             "inbox to change", data)
         return self._start(ready, new, trainable, sample, data, stamp)
+
+    def _watermark(self) -> dict[str, set[str]]:
+        """The registry's watermark, read again only when a new auto run was recorded (it can hold
+        thousands of ids; the daemon ticks twice a second)."""
+        with self.registry.session(readonly=True) as s:
+            seq = s.scalar(select(LearningState.last_auto_sequence_id).where(LearningState.id == learning.ROW_ID))
+            if self._marks is None or self._marks[0] != seq:
+                self._marks = (seq, learning.watermark(s))
+        return self._marks[1]
 
     def _host_condition(self, sample: dict[str, Any], level: int) -> Decision | None:
         temp, soft = sample.get("temp_c"), float(self.settings.thermal_soft_c)

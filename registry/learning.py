@@ -176,7 +176,7 @@ def current_phase(s: Session) -> tuple[str, str | None, Run | None]:
         return "paused", f"paused from the app; {held} run(s) paused by it, the local queues held", None
     active = active_runs(s, local_queues(s))
     if active:
-        run = active[0]
+        run = next((r for r in active if r.state == "running"), active[0])
         return f"training {run.component}", f"run {run.id} step {run.step}/{run.total_steps}", run
     if state is None:
         return "idle", None, None

@@ -171,6 +171,37 @@ def test_only_components_with_enough_new_episodes_are_queued(home, episode_dirs)
     assert d.data["new_episodes"] == {"vqvae": MIN_NEW, "fast_loop": 0, "mid_loop": 0}
 
 
+def test_a_chain_the_door_refuses_is_said_and_not_retried_until_the_inbox_changes(home, episode_dirs, caplog):
+    home.settings.memory_budget_mb = 8  # no model fits: the door (run_request.preflight) refuses the chain
+    hand_off(home, episode_dirs[:MIN_NEW])
+    p = policy(home)
+    d = p.tick(COOL)
+    assert d.phase == "idle" and d.detail.startswith("the last auto chain could not be queued:") and not chains(home)
+    assert "memory" in d.detail
+    for _ in range(3):
+        assert p.tick(COOL).detail.endswith("waiting for the inbox to change")
+    assert sum("could not queue" in r.getMessage() for r in caplog.records) == 1
+    assert status(home)["phase_detail"].startswith("the last auto chain could not be queued")
+    home.settings.memory_budget_mb = 3072
+    assert p.tick(COOL).phase == "idle" and not chains(home)  # same inbox: not retried
+    hand_off(home, episode_dirs[MIN_NEW:MIN_NEW + 1])
+    assert p.tick(COOL).sequence_id is not None
+
+
+def test_an_unreadable_inbox_is_said_and_dispatch_goes_on(home, episode_dirs):
+    sent = []
+    home.settings.inbox_dir.mkdir(parents=True)
+    (home.settings.inbox_dir / "manifest.json").write_text('{"format": "something else"}')
+    rid = home.enqueue(episode_dirs[0].parent, steps=10, queue="gpu")
+    daemon = Daemon(home.settings, registry=home.registry, monitor=FakeMonitor(), send=lambda *a: sent.append(a))
+    daemon.start()
+    daemon.tick()
+    st = status(home)
+    assert st["phase"] == "idle" and st["phase_detail"].startswith("the inbox cannot be read:"), st
+    assert [a[0] for a in sent] == [rid]
+    daemon.stop()
+
+
 def _manifest(home: Home) -> list[dict]:
     import json
 
