@@ -13,7 +13,6 @@ from __future__ import annotations
 import gzip
 import hashlib
 import io
-import json
 import os
 import tarfile
 import time
@@ -22,6 +21,7 @@ from typing import Any, Iterable
 
 from ..durable import atomic_open
 from .episode import Episode
+from .json_text import json_bytes
 from .validate import derive_action_source, robot_type
 from .validation_report import exception_entry, read_reports, report_entries, unique_paths
 from .write_episode_dir import prepare_episode, safe_episode_id
@@ -89,8 +89,7 @@ def export_episode(ep: Episode, out_dir: str | os.PathLike, created_ns: int | No
     episode_id = safe_episode_id(episode_id or ep.episode_id)
     prepared = prepare_episode(ep, as_id=episode_id)
     metadata = cloud_metadata(ep, prepared.metadata)
-    episode_json = json.dumps({"metadata": metadata, "steps": prepared.steps}, indent=2,
-                              ensure_ascii=False, allow_nan=False).encode("utf-8") + b"\n"
+    episode_json = json_bytes({"metadata": metadata, "steps": prepared.steps}, indent=2, allow_nan=False) + b"\n"
     checksums = {EPISODE_FILE: hashlib.sha256(episode_json).hexdigest()}
     checksums.update(prepared.blob_sha256)
     total_size = len(episode_json) + sum(p.stat().st_size for p in prepared.blobs.values())
@@ -107,7 +106,7 @@ def export_episode(ep: Episode, out_dir: str | os.PathLike, created_ns: int | No
         "total_size_bytes": total_size,
         "version": PACKAGE_VERSION,
     }
-    manifest_json = json.dumps(manifest, indent=2).encode("utf-8") + b"\n"
+    manifest_json = json_bytes(manifest, indent=2) + b"\n"
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

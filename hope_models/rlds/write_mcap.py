@@ -20,6 +20,7 @@ from mcap.writer import CompressionType, Writer
 
 from ..durable import atomic_open
 from .episode import Episode
+from .json_text import json_bytes
 
 METADATA_TOPIC = "/episode/metadata"
 STEPS_TOPIC = "/episode/steps"
@@ -58,7 +59,8 @@ STEP_SCHEMA = {
 def _dumps(obj: object) -> bytes:
     # allow_nan: a NaN that reached an export must survive the round trip so validation can
     # name it; Foxglove shows such a message as unparseable, which is the honest outcome.
-    return json.dumps(obj, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    # json_bytes: a lone surrogate (a Dart string's) is kept as its \udXXX escape.
+    return json_bytes(obj, separators=(",", ":"))
 
 
 def write_episode_mcap(episode: Episode, path: str | os.PathLike) -> Path:

@@ -2,7 +2,8 @@
 
 `episode_to_examples` produces the feature set of the Continuon JSON->TFRecord converter
 (JSON text in bytes features plus a float32 copy of the command), with `timestamp_ns` added
-as an int64 feature so the clock survives the trip.
+as an int64 feature so the clock survives the trip. The JSON is ASCII (lone surrogates escaped);
+a plain-text feature keeps a lone surrogate as the text `\\udXXX` (json_text.escape_surrogates).
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from .episode import Episode
+from .json_text import escape_surrogates
 from .read_tfrecord import masked_crc
 from .tf_example import FLOAT, Feature, encode_example
 
@@ -47,7 +49,7 @@ def episode_to_examples(ep: Episode) -> list[dict[str, Any]]:
     examples = []
     for i, step in enumerate(ep.steps):
         features: dict[str, Any] = {
-            "episode_id": ep.episode_id,
+            "episode_id": escape_surrogates(ep.episode_id),  # a bytes feature holds UTF-8
             "step_index": i,
             "reward": float(step.reward),
             "is_terminal": int(step.is_terminal),
