@@ -256,3 +256,77 @@ def test_ingesting_the_samples_twice_changes_nothing(samples_dir: Path, tmp_path
     for entry in report["episodes"]:
         lost_warning = any("metadata.provenance.steps_lost: 1 step(s)" in w for w in entry["warnings"])
         assert lost_warning == (entry["episode_id"] in recovered), entry
+
+
+# -- key order, and manifests written before hashes sorted keys -----------------------------------
+
+def test_key_order_and_camel_case_do_not_make_another_episode(tmp_path: Path):
+    first = single_json(tmp_path / "a" / "run.json", "run", steps_10hz(4))
+    doc = json.loads(first.read_text())
+
+    def shuffled(obj):  # every object's keys reversed; step keys camelCased where they have a '_'
+        if isinstance(obj, dict):
+            return {k: shuffled(v) for k, v in reversed(list(obj.items()))}
+        return [shuffled(v) for v in obj] if isinstance(obj, list) else obj
+
+    other = shuffled(doc)
+    for step in other["steps"]:
+        step["isTerminal"] = step.pop("is_terminal")
+        step["observation"]["robotState"] = step["observation"].pop("robot_state")
+    second = tmp_path / "b" / "run.json"
+    second.parent.mkdir()
+    second.write_text(json.dumps(other))
+    ds = tmp_path / "ds"
+    result = ingest_paths([first, second], ds)
+    assert [e["action"] for e in result["episodes"]] == ["written", "unchanged"]
+    assert sorted(p.name for p in ds.iterdir() if p.is_dir()) == ["run"]
+
+
+def legacy_hash(ep) -> str:
+    """The content hash as ingest computed it before keys were sorted (the old code, verbatim)."""
+    prepared = prepare_episode(ep)
+    digest = hashlib.sha256()
+    anonymous = {k: v for k, v in prepared.metadata.items() if k != "episode_id"}
+    digest.update(json.dumps(anonymous, indent=2, ensure_ascii=False, allow_nan=False).encode("utf-8"))
+    digest.update("".join(json.dumps(s, ensure_ascii=False, allow_nan=False, separators=(",", ":")) + "\n"
+                          for s in prepared.steps).encode("utf-8"))
+    digest.update(json.dumps(prepared.blob_sha256, sort_keys=True).encode("utf-8"))
+    return digest.hexdigest()
+
+
+def test_a_manifest_with_legacy_hashes_still_finds_its_episodes(tmp_path: Path):
+    from hope_models.rlds.discover import read_path
+
+    first = single_json(tmp_path / "a" / "run.json", "run", steps_10hz(3))
+    second = single_json(tmp_path / "b" / "run.json", "run", steps_10hz(3, command=[0.5, 0.5]))
+    ds = tmp_path / "ds"
+    ingest_paths([first, second], ds)
+    manifest = json.loads((ds / MANIFEST).read_text())
+    new = {}
+    for record in manifest["episodes"]:  # as an earlier version wrote it
+        (ep,) = read_path(record["source"])[0].episodes
+        new[record["episode_id"]] = record["content_sha256"]
+        record["content_sha256"] = legacy_hash(ep)
+        assert record.pop("hash_version") == 2 and record["content_sha256"] != new[record["episode_id"]]
+    (ds / MANIFEST).write_text(json.dumps(manifest))
+    dirs = sorted(p.name for p in ds.iterdir() if p.is_dir())
+
+    again = ingest_paths([second, first], ds)
+    assert [e["action"] for e in again["episodes"]] == ["unchanged", "unchanged"]
+    assert sorted(p.name for p in ds.iterdir() if p.is_dir()) == dirs  # no -<hash> copy
+    upgraded = {r["episode_id"]: r for r in json.loads((ds / MANIFEST).read_text())["episodes"]}
+    assert {k: (r["content_sha256"], r["hash_version"]) for k, r in upgraded.items()} == \
+        {k: (h, 2) for k, h in new.items()}
+
+
+def test_extra_record_keys_survive_a_rewrite_of_the_manifest(tmp_path: Path):
+    first = single_json(tmp_path / "a" / "run.json", "run", steps_10hz(3))
+    ds = tmp_path / "ds"
+    ingest_paths([first], ds)
+    manifest = json.loads((ds / MANIFEST).read_text())
+    manifest["episodes"][0].update(tags=["kept"], trainable=["vqvae"])
+    (ds / MANIFEST).write_text(json.dumps(manifest))
+    second = single_json(tmp_path / "b" / "other.json", "other", steps_10hz(3, command=[0.5, 0.5]))
+    assert ingest_paths([second, first], ds)["summary"]["written"] == 1
+    records = {r["episode_id"]: r for r in json.loads((ds / MANIFEST).read_text())["episodes"]}
+    assert records["run"]["tags"] == ["kept"] and records["run"]["trainable"] == ["vqvae"]
