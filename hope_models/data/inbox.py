@@ -6,9 +6,10 @@ once, the manifest the record of every episode), with three differences:
 * everything entering it is untrusted: blob URIs are followed only inside the episode's own dir
   (rlds/write_episode_dir.confine_blobs), so an absolute or `file://` URI is kept as text and no
   file of the trainer's is ever read for it;
-* every change happens under an exclusive flock on `<inbox>/.lock`: a handoff, an upload, a tag
-  and the `ingest` command may run at once in different processes, and each one reads the
-  manifest, changes it and writes it back whole;
+* every change happens under an exclusive flock on the inbox dir (rlds/ingest.dataset_lock, the
+  one every ingest takes, the `ingest` command's too): a handoff, an upload, a tag and `ingest`
+  may run at once in different processes, and each one reads the manifest, changes it and writes
+  it back whole;
 * each episode's manifest record also says what it can train (`trainable`, `not_trainable`:
   data/trainable.py), its `tags`, its `origin` (who brought it: "app:episode_handoff",
   "upload", "cli:ingest", ...) and its `warnings` (the first WARNINGS_KEPT validation warnings).
@@ -20,7 +21,6 @@ a dataset dir that is not ours, 507 a full disk (what was written is kept).
 """
 from __future__ import annotations
 
-import fcntl
 import os
 import shutil
 import uuid
@@ -30,11 +30,10 @@ from typing import Any, Iterable, Iterator
 
 from hope_models.data.trainable import COMPONENTS, trainable
 from hope_models.rlds.app_record import AppRecordError, episode_from_record
-from hope_models.rlds.ingest import (IngestDiskFull, IngestError, Manifest, ingest_paths, ingest_reports,
-                                     load_manifest, write_manifest)
+from hope_models.rlds.ingest import (IngestDiskFull, IngestError, Manifest, dataset_lock, ingest_paths,
+                                     ingest_reports, load_manifest, write_manifest)
 from hope_models.rlds.read_episode_dir import read_episode_dir
 
-LOCK_FILE = ".lock"
 STAGE_PREFIX = ".stage-"
 MAX_TAG_CHARS = 64
 WARNINGS_KEPT = 20
@@ -51,18 +50,13 @@ class InboxError(Exception):
 
 @contextmanager
 def inbox_lock(inbox_dir: str | os.PathLike) -> Iterator[Path]:
-    """The inbox dir (created), held exclusively until the block ends (the kernel drops the lock
-    if the holder dies)."""
-    inbox = Path(os.path.abspath(inbox_dir))
-    if inbox.exists() and not inbox.is_dir():
-        raise InboxError(f"{inbox}: exists and is not a directory", 409)
-    inbox.mkdir(parents=True, exist_ok=True)
-    fd = os.open(inbox / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+    """The inbox dir (created), held exclusively (rlds/ingest.dataset_lock: the same lock the
+    `ingest` command takes) until the block ends."""
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield inbox
-    finally:
-        os.close(fd)
+        with dataset_lock(inbox_dir) as inbox:
+            yield inbox
+    except IngestError as exc:
+        raise InboxError(str(exc), 409) from None
 
 
 def check_tag(tag: Any, field: str = "tag") -> str:
@@ -134,7 +128,7 @@ def ingest_into_inbox(paths: Iterable[str | os.PathLike], inbox_dir: str | os.Pa
     manifest record) gains trainable, not_trainable, tags and origin."""
     tags = [check_tag(t, f"tags[{i}]") for i, t in enumerate(tags)]
     with inbox_lock(inbox_dir) as inbox:
-        result = _ingest_errors(ingest_paths, list(paths), inbox, confined=True, **reader_options)
+        result = _ingest_errors(ingest_paths, list(paths), inbox, confined=True, locked=True, **reader_options)
         return _finish(inbox, result, tags, origin)
 
 
@@ -162,7 +156,8 @@ def ingest_record(record: dict[str, Any], assets: list[dict[str, Any]], files: d
                 report = episode_from_record(record, assets, files, stage, origin=origin)
             except AppRecordError as exc:
                 raise InboxError(str(exc), 400) from None
-            result = _ingest_errors(ingest_reports, [report], inbox, confined=True, content_ids=APP_IDS)
+            result = _ingest_errors(ingest_reports, [report], inbox, confined=True, content_ids=APP_IDS,
+                                    locked=True)
             result = _finish(inbox, result, [], origin)
         finally:
             shutil.rmtree(stage, ignore_errors=True)

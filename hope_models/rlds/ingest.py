@@ -12,17 +12,24 @@ Content hashes are key-order independent (write_episode_dir.py); a record writte
 holds the legacy hash, so an episode not found by its hash is looked for by its legacy one and
 its record moves to the new hash (`hash_version` 2), with nothing written twice.
 
+Every ingest holds an exclusive flock on the dataset dir itself while it reads, writes and
+rewrites the manifest (`dataset_lock`), so two ingests into one dataset from different processes
+(the command line, the app's handoff, an upload) never lose each other's records. The dir, not a
+lock file in it: a dataset holds its episodes and its manifest and nothing else.
+
 `ingest_reports(..., confined=True)` is for episodes that came over the network: their blob URIs
 are followed only inside their own dir (write_episode_dir.confine_blobs); `content_ids` names
 each episode `<prefix><first 16 hex of its content hash>` (episodes that carry no id of their own).
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 from ..disk import full_message, is_disk_full
 from ..durable import atomic_write
@@ -186,7 +193,7 @@ def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
 
 
 def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathLike, *,
-                 confined: bool = False, **reader_options: Any) -> dict[str, Any]:
+                 confined: bool = False, locked: bool = False, **reader_options: Any) -> dict[str, Any]:
     """Ingests every episode under `paths` into `dataset_dir`; returns what happened to each.
 
     Raises FileNotFoundError for a missing input path and IngestError for an unusable dataset dir."""
@@ -195,22 +202,36 @@ def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathL
         if not source.exists():
             raise FileNotFoundError(f"{source}: no such file or directory")
     reports = (report for source in sources for report in read_reports(source, **reader_options))
-    return ingest_reports(reports, dataset_dir, confined=confined)
+    return ingest_reports(reports, dataset_dir, confined=confined, locked=locked)
 
 
-def open_dataset(dataset_dir: str | os.PathLike) -> tuple[Path, Manifest]:
+@contextmanager
+def dataset_lock(dataset_dir: str | os.PathLike) -> Iterator[Path]:
+    """The dataset dir (created), held exclusively until the block ends; the kernel drops the lock
+    when its holder dies. Not re-entrant: a holder calls ingest_reports(..., locked=True)."""
     dataset = Path(os.path.abspath(dataset_dir))
     if dataset.exists() and not dataset.is_dir():
         raise IngestError(f"{dataset}: exists and is not a directory")
     dataset.mkdir(parents=True, exist_ok=True)
-    remove_stale_tmp_dirs(dataset)
-    return dataset, load_manifest(dataset)
+    fd = os.open(dataset, os.O_RDONLY | os.O_DIRECTORY)  # flock(2) locks a directory as well as a file
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield dataset
+    finally:
+        os.close(fd)
 
 
 def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLike, *,
-                   confined: bool = False, content_ids: str | None = None) -> dict[str, Any]:
-    """`ingest_paths` for reports already read (or built in memory, like the app's handoff)."""
-    dataset, manifest = open_dataset(dataset_dir)
+                   confined: bool = False, content_ids: str | None = None,
+                   locked: bool = False) -> dict[str, Any]:
+    """`ingest_paths` for reports already read (or built in memory, like the app's handoff).
+    `locked`: the caller holds dataset_lock already."""
+    if not locked:
+        with dataset_lock(dataset_dir) as dataset:
+            return ingest_reports(reports, dataset, confined=confined, content_ids=content_ids, locked=True)
+    dataset = Path(os.path.abspath(dataset_dir))
+    remove_stale_tmp_dirs(dataset)
+    manifest = load_manifest(dataset)
     results: list[dict[str, Any]] = []
     for report in reports:
         if confined:
