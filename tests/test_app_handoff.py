@@ -66,23 +66,28 @@ def dart_json(obj) -> str:
     return json.dumps(obj)
 
 
-@pytest.fixture
-def client(tmp_path):
+def make_client(home: Path, upload_max_mb: int):
     from hope_models.settings import load_settings
     from registry.db import Registry
     from webapp import create_app
     from webapp.auth import load_or_create_token
 
-    settings = load_settings(env={"HOPE_HOME": str(tmp_path / "home"), "HOPE_THERMAL_ZONE": "",
-                                  "HOPE_VCGENCMD": "", "HOPE_UPLOAD_MAX_MB": "1"})
+    settings = load_settings(env={"HOPE_HOME": str(home), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": "",
+                                  "HOPE_UPLOAD_MAX_MB": str(upload_max_mb)})
     token = load_or_create_token(settings)
     registry = Registry.open(settings)
     app, _ = create_app(settings, token=token, registry=registry)
     c = app.test_client()
     c.settings, c.token = settings, token
+    c.close = lambda: (app.extensions["hope"].close(), registry.close())
+    return c
+
+
+@pytest.fixture
+def client(tmp_path):
+    c = make_client(tmp_path / "home", 1)
     yield c
-    app.extensions["hope"].close()
-    registry.close()
+    c.close()
 
 
 def handoff(client, manifest, assets=ASSETS, files=(("asset", "frame_0.jpg", FRAME), ("asset", "mic_0.wav", WAV)),
@@ -209,6 +214,7 @@ def test_oversized_bodies_are_413_and_write_nothing(client):
     big = [("asset", "frame_0.jpg", b"\0" * (1 << 20) + b"more")]  # HOPE_UPLOAD_MAX_MB=1
     r = handoff(client, record(), files=big)
     assert r.status_code == 413
+    assert "the limit is 1048576 bytes" in r.get_json()["error"]  # from Content-Length, before reading
     body, ctype = multipart({"manifest": dart_json(record()), "assets": dart_json(ASSETS)}, big)
 
     # chunked: no Content-Length, the server says the stream ends (wsgi.input_terminated)
@@ -225,3 +231,54 @@ def test_the_token_is_checked_before_the_body(client):
     assert r.status_code == 401
     assert not client.settings.inbox_dir.exists()
     assert not (Path(client.settings.home) / "tmp").exists() or not os.listdir(Path(client.settings.home) / "tmp")
+
+
+def test_bodies_above_the_app_wide_mib_up_to_upload_max_mb_are_taken(tmp_path):
+    client = make_client(tmp_path / "home", 3)
+    try:
+        frame = os.urandom(2 << 20)  # 2 MiB: twice the limit of every other endpoint
+        r = handoff(client, record(), files=[("asset", "frame_0.jpg", frame)])
+        assert r.status_code == 200, r.get_json()
+        body = r.get_json()
+        assert (Path(client.settings.home) / body["remote_uris"][f"{PHONE}/frame_0.jpg"]).read_bytes() == frame
+        assert f"{PHONE}/mic_0.wav" not in body["remote_uris"]  # not sent: missing on the phone
+        big = client.post("/api/brain/infer", data=b"{" + b" " * (2 << 20) + b"}", content_type="application/json",
+                          headers={"authorization": f"Bearer {client.token}"})
+        assert big.status_code == 413  # the others keep 1 MiB
+    finally:
+        client.close()
+
+
+def test_an_asset_no_step_names_is_stored_beside_the_episode(client):
+    assets = ASSETS + [{"local_uri": f"{PHONE}/extra.png", "sensor": "screenshot", "frame_id": "x",
+                        "captured_at_ms": 5, "status": "queued"}]
+    r = handoff(client, record(), assets=assets, files=[("asset", "extra.png", b"\x89PNG extra")])
+    assert r.status_code == 200, r.get_json()
+    body = r.get_json()
+    assert list(body["remote_uris"]) == [f"{PHONE}/extra.png"]
+    assert (Path(client.settings.home) / body["remote_uris"][f"{PHONE}/extra.png"]).read_bytes() == b"\x89PNG extra"
+    meta = json.loads((client.settings.inbox_dir / body["episode_id"] / "metadata.json").read_text())
+    listed = {a["local_uri"]: a for a in meta["assets"]}
+    assert listed[f"{PHONE}/extra.png"]["uri"] == "blobs/assets/extra.png"
+    assert "uri" not in listed[f"{PHONE}/mic_0.wav"] and "status" not in listed[f"{PHONE}/mic_0.wav"]
+
+
+def test_too_many_parts_are_refused(client):
+    from webapp.uploads import MAX_PARTS
+
+    files = [("asset", f"f{i}.jpg", b"x") for i in range(MAX_PARTS + 1)]
+    r = handoff(client, record(), files=files)
+    assert r.status_code == 400 and f"more than {MAX_PARTS} parts" in r.get_json()["error"]
+    assert inbox_files(client) == []
+
+
+def test_a_rejected_episode_is_a_422_with_its_reasons_and_listed(client):
+    from hope_models.data.inbox import list_inbox
+
+    rec = record()
+    rec["steps"][2]["action"]["command"] = [float("nan")]
+    r = handoff(client, rec, files=[])
+    assert r.status_code == 422, r.get_json()
+    assert "not a finite number" in r.get_json()["error"]
+    (entry,) = list_inbox(client.settings.inbox_dir)
+    assert entry["status"] == "rejected" and entry["errors"]

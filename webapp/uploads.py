@@ -34,7 +34,7 @@ from werkzeug.sansio.multipart import Data, Epilogue, Field, File, MultipartDeco
 from webapp.errors import LARGE_BODY_ATTR, ApiError
 
 MAX_PARTS = 1000  # a handoff sends a few per step; far more is a client gone wrong (or hostile)
-MAX_FIELD_BYTES = 64 << 20  # a form field is held in memory: the manifest of a long episode fits
+MAX_FIELD_BYTES = 16 << 20  # a form field is held in memory (and parsed): a long episode's manifest fits
 CHUNK = 1 << 16
 TMP_DIR = "tmp"
 

@@ -170,7 +170,8 @@ def episode_from_record(record: Any, assets: Any, files: dict[str, Path], stage:
     stored = _place_files(assets, files, stage)
     source = "app:" + hashlib.sha256(json_dumps([record, assets], sort_keys=True).encode("utf-8")).hexdigest()[:16]
     report = SourceReport(source=source)
-    ep = Episode(episode_id="app-pending", metadata={}, steps=[], source=source, layout=LAYOUT,
+    # Until ingest names it by its content: what a rejected record is listed under.
+    ep = Episode(episode_id="app-" + source[len("app:"):], metadata={}, steps=[], source=source, layout=LAYOUT,
                  blob_root=str(stage))
     raw_md = dict(record["metadata"])
     for key in ("task_classification", "source_context"):
