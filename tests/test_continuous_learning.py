@@ -171,6 +171,34 @@ def test_only_components_with_enough_new_episodes_are_queued(home, episode_dirs)
     assert d.data["new_episodes"] == {"vqvae": MIN_NEW, "fast_loop": 0, "mid_loop": 0}
 
 
+def test_a_gate_at_work_holds_the_start_back(home, episode_dirs):
+    hand_off(home, episode_dirs[:MIN_NEW])
+    rid = home.enqueue(episode_dirs[0].parent, component="vqvae", steps=10)
+    with home.registry.session() as s:
+        runs.get_run(s, rid).state = "completed"
+    gate = type("Gate", (), {"current_run": rid})()  # what AutoPromoter exposes while its child gates
+    p = policy(home, autopromoter=gate)
+    d = p.tick(COOL)
+    assert d.phase == "gating vqvae" and rid in d.detail and not chains(home)
+    gate.current_run = None
+    assert p.tick(COOL).sequence_id is not None
+
+
+def test_a_mid_loop_without_a_served_vqvae_gets_one_in_its_chain(home, episode_dirs):
+    hand_off(home, episode_dirs[:MIN_NEW])
+    home.settings.auto_train_components = ["vqvae"]
+    p = policy(home)
+    assert p.tick(COOL).sequence_id is not None  # the vqvae's watermark now holds every episode
+    complete_all(home)
+    home.settings.auto_train_components = ["vqvae", "mid_loop"]
+    d = p.tick(COOL)  # only the mid_loop has new episodes; no VQ-VAE is served (none was gated)
+    assert d.data["new_episodes"] == {"vqvae": 0, "mid_loop": MIN_NEW}
+    second = chains(home)[d.sequence_id]
+    assert [m["component"] for m in second] == ["vqvae", "mid_loop"]
+    assert second[1]["config"]["vqvae_run"] == second[0]["id"]
+    assert "vqvae added: no VQ-VAE is served" in d.detail
+
+
 def test_a_chain_the_door_refuses_is_said_and_not_retried_until_the_inbox_changes(home, episode_dirs, caplog):
     home.settings.memory_budget_mb = 8  # no model fits: the door (run_request.preflight) refuses the chain
     hand_off(home, episode_dirs[:MIN_NEW])
