@@ -125,7 +125,7 @@ class ContinuousLearning:
         """Never raises for a fault of its own: the rest of the daemon's tick (dispatch above all)
         must go on; the fault is the phase's detail and in the log (once per streak)."""
         try:
-            decision = self._busy() or self._decide(sample or {}, throttle_level)
+            decision = self._busy(throttle_level) or self._decide(sample or {}, throttle_level)
             self._failures = 0
         except Exception as exc:  # noqa: BLE001
             self._failures += 1
@@ -137,7 +137,7 @@ class ContinuousLearning:
         self.last = decision
         return decision
 
-    def _busy(self) -> Decision | None:
+    def _busy(self, level: int = 0) -> Decision | None:
         """The phases the registry alone decides: paused, a local run training or waiting."""
         with self.registry.session(readonly=True) as s:
             state = learning.read(s)
@@ -148,13 +148,13 @@ class ContinuousLearning:
             unheld = [r.id for r in local if r.state in runs.ACTIVE and
                       not (r.state == "running" and r.desired_state != "run")]
             if not paused:
-                return self._local_phase(local)
+                return self._local_phase(local, level)
         if unheld:
             with self.registry.session() as s:
                 learning.hold_active(s, self.local_queues)
         return Decision("paused", "paused from the app; the local queues are held")
 
-    def _local_phase(self, local: list[Run]) -> Decision | None:
+    def _local_phase(self, local: list[Run], level: int) -> Decision | None:
         active = [r for r in local if r.state in runs.ACTIVE]
         if active:
             return Decision(f"training {active[0].component}", f"run {active[0].id}")
@@ -168,6 +168,8 @@ class ContinuousLearning:
             run = queued[0]
             if run.error_message:  # the dispatcher's hold (disk floor)
                 return Decision("waiting for disk", run.error_message)
+            if level >= 2:  # dispatch starts nothing here on a hot host
+                return Decision("waiting to cool", f"run {run.id} ({run.component}) is queued; throttle level {level}")
             return Decision(f"starting {run.component}", f"run {run.id} is queued")
         return None
 

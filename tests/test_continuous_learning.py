@@ -110,6 +110,7 @@ def test_each_condition_holds_the_start_back_and_says_so(home, episode_dirs):
     # a run queued by hand on the local queue: not idle
     other = home.enqueue(episode_dirs[0].parent, steps=10)
     assert p.tick(COOL).phase == "starting fast_loop" and set(chains(home)) == set()
+    assert p.tick(COOL, 2).phase == "waiting to cool"  # dispatch starts nothing on a hot host
     with home.registry.session() as s:  # the host paused it (thermal): still not idle
         run = runs.get_run(s, other)
         run.state, run.pause_reason = "paused", "thermal"
