@@ -223,3 +223,16 @@ def test_frames_count_only_when_training_can_read_them(tmp_path: Path):
     (ep,) = read_path(episode_file(ep_dir / "episode.json", "ep", jpg))[0].episodes
     can, cannot = trainable(ep)
     assert can == [] and "jpg file" in cannot["vqvae"]
+
+
+def test_episodes_a_plain_ingest_put_in_the_inbox_still_get_a_verdict(tmp_path: Path):
+    from hope_models.rlds.ingest import ingest_paths
+
+    inbox = tmp_path / "inbox"
+    ingest_paths([episode_file(tmp_path / "src" / "ep.json", "ep", steps(40))], inbox)  # the command line's way
+    (entry,) = list_inbox(inbox)
+    assert entry["trainable"] == ["vqvae", "fast_loop", "mid_loop"] and entry["origin"] is None
+    other = episode_file(tmp_path / "src" / "other.json", "other", steps(3))
+    ingest_into_inbox([other], inbox, origin="upload")
+    assert manifest(inbox)["episodes"][0]["episode_id"] == "ep"
+    assert "trainable" not in manifest(inbox)["episodes"][0]  # only what this ingest brought is annotated

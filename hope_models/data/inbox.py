@@ -88,11 +88,8 @@ def _annotate(inbox: Path, manifest: Manifest, entry: dict[str, Any], tags: list
         record = manifest.episodes.get(entry["episode_id"])
         if record is None:  # pragma: no cover - ingest records every episode it places
             return entry
-        if "trainable" in record:  # a known episode: its verdict does not change
-            can, cannot = record["trainable"], record["not_trainable"]
-        else:
-            eps = read_episode_dir(inbox / entry["episode_id"]).episodes
-            can, cannot = trainable(eps[0]) if eps else ([], {c: "unreadable" for c in COMPONENTS})
+        verdict = _with_verdict(inbox, record)  # a known episode's verdict does not change
+        can, cannot = verdict["trainable"], verdict["not_trainable"]
     if record is not None:
         record["trainable"], record["not_trainable"] = can, cannot
         record["tags"] = _merge_tags(record.get("tags"), tags)
@@ -185,13 +182,23 @@ def list_inbox(inbox_dir: str | os.PathLike) -> list[dict[str, Any]]:
         manifest = load_manifest(inbox)
     except IngestError as exc:
         raise InboxError(str(exc), 409) from None
-    out = [_entry(r) for _, r in sorted(manifest.episodes.items())]
+    out = [_entry(_with_verdict(inbox, r)) for _, r in sorted(manifest.episodes.items())]
     for _, r in sorted(manifest.rejected.items()):
         out.append({"episode_id": r.get("episode_id"), "steps": 0, "status": "rejected",
                     "errors": list(r.get("reasons", [])), "warnings": [], "trainable": [],
                     "not_trainable": {c: "the episode was rejected" for c in COMPONENTS},
                     "tags": list(r.get("tags", [])), "source": r.get("source"), "origin": r.get("origin")})
     return out
+
+
+def _with_verdict(inbox: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """A record written by a plain ingest (the command line into the inbox dir) has no verdict yet:
+    it is worked out here, for this answer (stored when an inbox ingest brings that episode again)."""
+    if "trainable" in record:
+        return record
+    eps = read_episode_dir(inbox / record["episode_id"]).episodes
+    can, cannot = trainable(eps[0]) if eps else ([], {c: "unreadable" for c in COMPONENTS})
+    return dict(record, trainable=can, not_trainable=cannot)
 
 
 def _entry(record: dict[str, Any]) -> dict[str, Any]:
