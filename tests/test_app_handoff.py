@@ -9,6 +9,7 @@ and oversized bodies that must write nothing.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -282,3 +283,40 @@ def test_a_rejected_episode_is_a_422_with_its_reasons_and_listed(client):
     assert "not a finite number" in r.get_json()["error"]
     (entry,) = list_inbox(client.settings.inbox_dir)
     assert entry["status"] == "rejected" and entry["errors"]
+
+
+def test_received_streams_a_raw_body_to_hope_home_and_removes_it(tmp_path):
+    """The other way received() reads (an upload that is not multipart), on a view of its own."""
+    from flask import current_app, jsonify
+
+    from webapp.uploads import large_body, received
+
+    client = make_client(tmp_path / "home", 1)
+    seen = {}
+
+    @large_body
+    def raw_view():
+        with received(current_app.extensions["hope"].settings) as got:
+            seen["path"] = got.body
+            seen["in_home"] = got.body.is_relative_to(Path(client.settings.home) / "tmp")
+            return jsonify({"size": got.size, "sha": hashlib.sha256(got.body.read_bytes()).hexdigest(),
+                            "fields": got.fields, "files": len(got.files)})
+
+    client.application.add_url_rule("/api/test_raw_upload", "test_raw_upload", raw_view, methods=["POST"])
+    try:
+        data = os.urandom(300_000)
+        r = client.post("/api/test_raw_upload", data=data, content_type="application/x-tar",
+                        headers={"authorization": f"Bearer {client.token}"})
+        assert r.status_code == 200, r.get_json()
+        assert r.get_json() == {"size": len(data), "sha": hashlib.sha256(data).hexdigest(), "fields": {}, "files": 0}
+        assert seen["in_home"] and not seen["path"].exists()  # under $HOPE_HOME/tmp, gone after
+        too_big = io.BytesIO(b"\0" * ((1 << 20) + 10))
+        r = client.post("/api/test_raw_upload", input_stream=too_big, content_type="application/x-tar",
+                        headers={"authorization": f"Bearer {client.token}", "Transfer-Encoding": "chunked"},
+                        environ_overrides={"wsgi.input_terminated": True})
+        assert r.status_code == 413 and "more than 1048576 bytes" in r.get_json()["error"]
+        assert list((Path(client.settings.home) / "tmp").iterdir()) == []
+        r = client.post("/api/test_raw_upload", data=data, content_type="application/x-tar")
+        assert r.status_code == 401  # the token before the body
+    finally:
+        client.close()
