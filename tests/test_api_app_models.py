@@ -171,3 +171,20 @@ def test_an_empty_registry_lists_no_models(api):
     assert r.status_code == 200 and r.get_json() == {"success": True, "models": []}
     assert api.get("/api/v1/models?history=0").status_code == 400
     assert "unknown query" in api.get("/api/v1/models?x=1").get_json()["error"]
+
+
+def test_ping_is_open_stable_and_names_no_path(api, tmp_path):
+    from hope_models.settings import load_settings
+
+    r = api.client.get("/api/ping")  # no token: the app's runDiagnostics sends none
+    assert r.status_code == 200
+    body = r.get_json()
+    assert body["status"] == "ok" and isinstance(body["device_id"], str) and body["device_id"].startswith("hope-")
+    assert api.client.get("/api/ping").get_json() == body
+    assert str(api.settings.home) not in r.get_data(as_text=True) and api.token not in r.get_data(as_text=True)
+    other = App(load_settings(env={"HOPE_HOME": str(tmp_path / "other"), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": ""}),
+                brain=False)
+    try:
+        assert other.client.get("/api/ping").get_json()["device_id"] != body["device_id"]
+    finally:
+        other.close()
