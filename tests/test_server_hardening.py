@@ -148,6 +148,47 @@ def test_a_body_that_never_arrives_is_cut_at_the_body_deadline(served):
     assert wait_until(lambda: s.server.open_connections == 0, 2)
 
 
+def _send_body_paced(port: int, token: str, total: int, chunk: int, every_s: float, give_up_s: float):
+    """POST a multipart body of `total` bytes to the handoff route, `chunk` bytes every `every_s`.
+    Returns (the status line or None when cut, seconds sent)."""
+    boundary = "pacedboundary"
+    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"manifest\"\r\n\r\n").encode()
+    tail = f"\r\n--{boundary}--\r\n".encode()
+    body = head + b"x" * (total - len(head) - len(tail)) + tail
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall((f"POST /api/training/episode_handoff HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                  f"authorization: Bearer {token}\r\nContent-Type: multipart/form-data; boundary={boundary}\r\n"
+                  f"Content-Length: {len(body)}\r\n\r\n").encode())
+    started = time.monotonic()
+    try:
+        for i in range(0, len(body), chunk):
+            sock.sendall(body[i:i + chunk])
+            time.sleep(every_s)
+            if time.monotonic() - started > give_up_s:
+                break
+        sock.settimeout(5)
+        reply = sock.recv(4096)
+    except (ConnectionResetError, BrokenPipeError, socket.timeout):
+        reply = b""
+    finally:
+        sock.close()
+    return (reply.split(b"\r\n", 1)[0].decode() if reply else None), time.monotonic() - started
+
+
+def test_a_body_that_keeps_arriving_earns_its_time_and_a_trickle_does_not(served):
+    from webapp.server import ConnectionLimits
+
+    s = served(limits=ConnectionLimits(body_timeout_s=0.5, min_body_rate=64 << 10))
+    # 400 kB at ~200 kB/s takes ~2 s, four times body_timeout_s: read to the end and answered
+    status, took = _send_body_paced(s.port, s.token, 400_000, 20_000, 0.1, give_up_s=10)
+    assert took > 1.5
+    assert status is not None and status.startswith("HTTP/1.1 4"), status  # the view read it: a bad manifest
+    # 100 bytes every 0.1 s earns nothing past the deadline
+    status, took = _send_body_paced(s.port, s.token, 400_000, 100, 0.1, give_up_s=5)
+    assert status is None, f"a trickling body was answered {status} instead of being cut"
+    assert took < 4.0
+
+
 def test_the_unread_rest_of_a_refused_body_is_not_waited_for(served):
     # the answer goes out before the body was read; the server then drains for 2 s at most
     s = served()

@@ -10,7 +10,9 @@ process runs out of threads or descriptors. Here every connection lives under li
        v  one thread per connection (as Werkzeug)
     headers  -- all of the request line and headers within `header_timeout_s`
        |
-    body     -- the declared body read within `body_timeout_s` (or until the answer starts)
+    body     -- the declared body read within `body_timeout_s` (or until the answer starts), plus one
+       |        second for every `min_body_rate` bytes received: a large upload that keeps arriving
+       |        at a walking pace (64 KiB/s) earns its time, a trickle is cut at body_timeout_s
        |
     app      -- no deadline: a long-poll GET waits for events, a view runs
        |        every socket read/write may stall at most `io_timeout_s`
@@ -50,6 +52,7 @@ class ConnectionLimits:
     io_timeout_s: float = 30.0
     ws_idle_timeout_s: float = 60.0  # > Engine.IO ping interval + ping timeout (25 + 20 s)
     drain_timeout_s: float = 2.0  # after the answer: reading what is left of an unread request body
+    min_body_rate: int = 64 << 10  # bytes/s a body must average to be given time past body_timeout_s
 
     @classmethod
     def from_settings(cls, settings) -> "ConnectionLimits":
@@ -107,7 +110,7 @@ class GuardedRequestHandler(WSGIRequestHandler):
                 self.connection.settimeout(limits.ws_idle_timeout_s)
             elif _has_body(environ):
                 conn.enter("body", time.monotonic() + limits.body_timeout_s)
-                environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ)
+                environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ, limits)
             else:
                 conn.enter("app", None)
         return environ
@@ -219,26 +222,58 @@ def _has_body(environ) -> bool:
         return False
 
 
-class _BodyReader:
-    """wsgi.input that ends the connection's body deadline once the declared body is read."""
+_PIECE = 64 << 10
 
-    def __init__(self, raw, conn: _Connection, environ):
+
+class _BodyReader:
+    """wsgi.input that moves the connection's body deadline on as bytes arrive (at min_body_rate)
+    and ends it once the declared body is read."""
+
+    def __init__(self, raw, conn: _Connection, environ, limits: ConnectionLimits):
         self._raw = raw
         self._conn = conn
+        self._start = time.monotonic()
+        self._timeout_s = limits.body_timeout_s
+        self._rate = max(1, limits.min_body_rate)
+        self._received = 0
         try:
             self._left = int(environ.get("CONTENT_LENGTH") or -1)
         except ValueError:
             self._left = -1
 
     def _consumed(self, data: bytes) -> bytes:
+        self._received += len(data)
         if self._left >= 0:
             self._left -= len(data)
-        if self._conn.phase == "body" and (not data or self._left == 0):
-            self._conn.enter("app", None)
+        if self._conn.phase == "body":
+            if not data or self._left == 0:
+                self._conn.enter("app", None)
+            else:
+                self._conn.deadline = self._start + self._timeout_s + self._received / self._rate
         return data
 
-    def read(self, *args):
-        return self._consumed(self._raw.read(*args))
+    def read(self, size: int | None = -1):
+        # In pieces, so the deadline moves on while a large read is still filling: one blocking
+        # read of megabytes would otherwise be cut at body_timeout_s however fast it arrives.
+        if size is not None and 0 <= size <= _PIECE:
+            return self._consumed(self._raw.read(size))
+        parts = []
+        want = None if size is None or size < 0 else size
+        while want is None or want > 0:
+            piece = self._consumed(self._raw.read(_PIECE if want is None else min(_PIECE, want)))
+            if not piece:
+                break
+            parts.append(piece)
+            if want is not None:
+                want -= len(piece)
+        return b"".join(parts)
+
+    def readinto(self, buffer) -> int:
+        # werkzeug's LimitedStream reads through readinto when the stream has one: a short read
+        # (at most a piece) is allowed, and keeps the deadline moving
+        data = self.read(min(len(buffer), _PIECE))
+        buffer[:len(data)] = data
+        return len(data)
 
     def readline(self, *args):
         return self._consumed(self._raw.readline(*args))
