@@ -18,7 +18,7 @@ PROG = "hope-trainer"
 COMMANDS: dict[str, tuple[str, str]] = {
     "validate": ("hope_models.cli.validate", "check RLDS episodes (train or cloud profile)"),
     "ingest": ("hope_models.cli.ingest", "copy episodes into a canonical dataset dir"),
-    "export": ("hope_models.cli.export", "write the Pi runtime's cloud upload package"),
+    "export": ("hope_models.cli.export", "write cloud upload files: the Pi runtime's package or ContinuonCloud's .npz"),
     "dataset": ("hope_models.cli.dataset", "build the feature spec and cache of a dataset and summarise it"),
     "train": ("hope_models.cli.train", "train one component (or a sequence) in the foreground, resumable"),
     "sim-demos": ("hope_models.cli.sim_demos", "record expert demonstrations in the dm_control reacher as RLDS"),
