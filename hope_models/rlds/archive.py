@@ -30,7 +30,11 @@ class ArchiveError(ValueError):
 
 
 def _member_path(tar_path: Path, member: tarfile.TarInfo) -> PurePosixPath:
-    name = member.name
+    return member_name_path(tar_path, member.name)
+
+
+def member_name_path(tar_path: Path | str, name: str) -> PurePosixPath:
+    """A member's name as a relative path, or ArchiveError (also the rules of rlds/zip_package.py)."""
     if not name or "\x00" in name:
         raise ArchiveError(f"{tar_path}: member {name!r}: empty or invalid name")
     if name.startswith("/") or name.startswith("\\") or re.match(r"^[A-Za-z]:", name):

@@ -1,6 +1,186 @@
-"""Episodes: upload of packages, the inbox, tags (the Robot Editor's Episodes page and the app's /api/v1/data calls)."""
+"""Episodes: package uploads, the inbox and its tags (the Robot Editor's Episodes page and the app's calls).
+
+    POST /api/episodes/upload     a package as the raw body (how the producers send it) or as
+                                  multipart file part(s) named `file` (a browser's drag-and-drop),
+                                  up to settings.upload_max_mb (webapp/uploads.py)
+    GET  /api/episodes            the Editor's table: {"episodes": [...], "inbox", "upload_max_mb"}
+    GET  /api/v1/data/episodes    the Continuon app's list: {"episodes": [...]}
+    POST /api/v1/data/tag         JSON {"episode_id", "tag"} -> {"success": true, "episode": {...}}
+
+The two package kinds (hope_models/rlds/upload_package.py tells them apart by their bytes): the
+Pi runtime's `<episode_id>.tar.gz` (checksums of its upload_manifest.json verified) and the XR
+app's zip of an episode dir, which it POSTs with `Content-Type: application/zip` and the headers
+X-Continuon-Tag-xr_mode / -control_role / -environment_id (also in its metadata.json, so not
+repeated as tags) and X-Continuon-Tag-list (comma-separated: each one becomes an inbox tag, as
+does each of a multipart `tags` field). Every package of a request is extracted under the
+request's own dir in $HOPE_HOME/tmp (removed after) before any is ingested, so one refused package
+(400 naming the member, 413 too large) means nothing is written at all. Accepted ones go into the
+inbox (hope_models/data/inbox.py: validated with the train profile, blobs confined to the episode's
+own dir, idempotent); the answer lists each episode's verdict: 200 {"packages": [{"name", "kind",
+"episodes": [{"episode_id", "action", "status", "errors", "warnings", "steps", "trainable",
+"not_trainable", "tags", "origin", "source"}]}], "summary"}. A package with no episode in it is a
+400. An episode validation rejects is listed (status "rejected", its errors) like the others.
+
+A list entry is hope_models/data/inbox.list_inbox's: {"episode_id", "steps", "status" (ok |
+warnings | rejected), "errors", "warnings", "trainable", "not_trainable" ({component: why}),
+"tags", "source", "origin"}.
+"""
 from __future__ import annotations
 
-from flask import Blueprint
+import logging
+import re
+from pathlib import Path
+from typing import Any
 
+from flask import Blueprint, current_app, jsonify, request
+
+from hope_models.data.inbox import InboxError, check_tag, ingest_into_inbox, list_inbox, tag_episode
+from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
+from webapp.api.validation import get_str, json_body, query_args
+from webapp.errors import ApiError
+from webapp.uploads import TMP_DIR, Received, large_body, received, upload_limit
+
+log = logging.getLogger(__name__)
 bp = Blueprint("episodes", __name__)
+
+FILE_PART = "file"
+TAG_LIST_HEADER = "X-Continuon-Tag-list"
+MAX_PACKAGES = 20  # one drop of a browser; more is a client gone wrong
+# ingest's verdicts in the words of the inbox's list (and of the app's handoff answer)
+STATUS = {"accepted": "ok", "accepted_with_warnings": "warnings"}
+UNPACK_FACTOR = 4  # what a package may hold uncompressed, in upload limits: bounds $HOPE_HOME/tmp
+
+
+def _split_tags(text: str, where: str) -> list[str]:
+    tags = []
+    for i, tag in enumerate(t.strip() for t in text.split(",")):
+        if tag:
+            try:
+                tags.append(check_tag(tag, f"{where}[{i}]"))
+            except InboxError as exc:
+                raise ApiError(exc.message, exc.status) from None
+    return tags
+
+
+def _packages(got: Received) -> list[tuple[str, Path]]:
+    """(label, path) of each package the request holds."""
+    if got.body is not None:
+        if got.size == 0:
+            raise ApiError("empty body: send the package as the body or as multipart part(s) named 'file'", 400)
+        return [("request body", got.body)]
+    stray = [field for field, *_ in got.files if field != FILE_PART]
+    if stray:
+        raise ApiError(f"file part {stray[0]!r}: unexpected; packages are sent as {FILE_PART!r} parts", 400)
+    if not got.files:
+        raise ApiError(f"no file part named {FILE_PART!r} in the multipart body", 400)
+    if len(got.files) > MAX_PACKAGES:
+        raise ApiError(f"{len(got.files)} packages in one upload; at most {MAX_PACKAGES}", 400)
+    return [(f"file {filename!r}" if filename else f"file part {i}", path)
+            for i, (_, filename, path, _) in enumerate(got.files)]
+
+
+def _extracted_at(settings: Any) -> re.Pattern:
+    """Where uploads are extracted ($HOPE_HOME/tmp/upload-*/package-N/): a path that means nothing
+    to a client (and is gone after the request), in the sources and messages ingest recorded."""
+    return re.compile(re.escape(str(Path(settings.home) / TMP_DIR)) + r"/upload-[^/]+/package-\d+/?")
+
+
+def _readable(value: Any, where: re.Pattern, label: str) -> Any:
+    if isinstance(value, str):
+        return where.sub(label, value)
+    if isinstance(value, list):
+        return [_readable(v, where, label) for v in value]
+    return value
+
+
+def _entry(entry: dict[str, Any], where: re.Pattern, label: str = "upload:") -> dict[str, Any]:
+    out = {k: _readable(entry.get(k), where, label) for k in ("source", "errors", "warnings")}
+    out["status"] = STATUS.get(entry["status"], entry["status"])
+    return dict(entry, **out)
+
+
+def _episode_answer(entry: dict[str, Any], where: re.Pattern, label: str) -> dict[str, Any]:
+    entry = _entry(entry, where, label + ":")
+    return {"episode_id": entry.get("episode_id"), "action": entry["action"], "status": entry["status"],
+            "errors": entry.get("errors") or [], "warnings": entry.get("warnings") or [],
+            "steps": entry.get("steps", 0), "trainable": entry.get("trainable", []),
+            "not_trainable": entry.get("not_trainable", {}), "tags": entry.get("tags", []),
+            "origin": entry.get("origin"), "source": entry.get("source")}
+
+
+def _ingest(settings: Any, got: Received, packages: list[tuple[str, Path]], tags: list[str]) -> list[dict]:
+    extracted = []
+    limit = UNPACK_FACTOR * upload_limit(settings)
+    for i, (label, path) in enumerate(packages):
+        dest = got.dir / f"package-{i}"
+        dest.mkdir()
+        try:
+            extracted.append((label, *extract_upload(path, dest, label=label, max_total_bytes=limit)))
+        except PackageError as exc:
+            raise ApiError(exc.message, exc.status) from None
+    out = []
+    for label, kind, where in extracted:
+        try:
+            result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}")
+        except InboxError as exc:
+            raise ApiError(exc.message, exc.status) from None
+        episodes = [_episode_answer(e, _extracted_at(settings), label) for e in result["episodes"]]
+        if not episodes:
+            raise ApiError(f"{label}: no episode in this {KINDS[kind]}", 400)
+        out.append({"name": label, "kind": kind, "episodes": episodes})
+    return out
+
+
+@bp.post("/api/episodes/upload")
+@large_body
+def upload():
+    hope = current_app.extensions["hope"]
+    settings = hope.settings
+    tags = _split_tags(request.headers.get(TAG_LIST_HEADER, ""), TAG_LIST_HEADER)  # before the body
+    with received(settings, max_parts=MAX_PACKAGES + 1) as got:
+        tags += [t for t in _split_tags(got.fields.get("tags", ""), "tags") if t not in tags]
+        packages = _ingest(settings, got, _packages(got), tags)
+    episodes = [e for p in packages for e in p["episodes"]]
+    summary = {action: sum(1 for e in episodes if e["action"] == action)
+               for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
+    log.info("upload: %s", ", ".join(f"{p['name']} ({p['kind']}): " + ", ".join(
+        f"{e['episode_id']} {e['action']}" for e in p["episodes"]) for p in packages))
+    if summary["written"]:
+        hope.wake_daemon()
+    return jsonify({"packages": packages, "summary": summary})
+
+
+def _inbox() -> list[dict[str, Any]]:
+    settings = current_app.extensions["hope"].settings
+    try:
+        entries = list_inbox(settings.inbox_dir)
+    except InboxError as exc:
+        raise ApiError(exc.message, exc.status) from None
+    return [_entry(e, _extracted_at(settings)) for e in entries]
+
+
+@bp.get("/api/episodes")
+def editor_list():
+    query_args()
+    settings = current_app.extensions["hope"].settings
+    return jsonify({"episodes": _inbox(), "inbox": str(settings.inbox_dir),
+                    "upload_max_mb": int(settings.upload_max_mb)})
+
+
+@bp.get("/api/v1/data/episodes")
+def app_list():
+    query_args()
+    return jsonify({"episodes": _inbox()})
+
+
+@bp.post("/api/v1/data/tag")
+def app_tag():
+    body = json_body(allowed=("episode_id", "tag"), required=("episode_id", "tag"))
+    episode_id = get_str(body, "episode_id")
+    tag = get_str(body, "tag")
+    settings = current_app.extensions["hope"].settings
+    try:
+        entry = tag_episode(settings.inbox_dir, episode_id, tag)
+    except InboxError as exc:
+        raise ApiError(exc.message, exc.status) from None
+    return jsonify({"success": True, "episode": _entry(entry, _extracted_at(settings))})
