@@ -62,7 +62,7 @@ def _count_members(fp: BinaryIO, label: str, max_members: int) -> None:
             break  # zipfile reports the corruption with its own words
         count += 1
         if count > max_members:
-            raise ZipPackageError(f"{label}: more than {max_members} members", 413)
+            raise ZipPackageError(f"{label}: more than {max_members} members")
         name_len, extra_len, comment_len = struct.unpack("<HHH", head[28:34])
         fp.seek(name_len + extra_len + comment_len, os.SEEK_CUR)
         left -= zipfile.sizeCentralDir + name_len + extra_len + comment_len
