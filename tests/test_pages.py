@@ -26,7 +26,7 @@ def client(tmp_path):
     registry.close()
 
 
-@pytest.mark.parametrize("path", ["/", "/jobs", "/system", "/models", "/inference"])
+@pytest.mark.parametrize("path", ["/", "/jobs", "/episodes", "/system", "/models", "/inference"])
 def test_every_page_is_the_editor_shell(client, path):
     r = client.get(path)  # no token: the shell holds no data
     assert r.status_code == 200
@@ -96,3 +96,13 @@ def test_build_assets_copies_and_names_a_missing_source(tmp_path):
     for name, src in build_assets.VENDOR_FILES.items():
         assert (tmp_path / "v" / name).read_text() == f"/* {src} */"
     assert build_assets.missing_vendor_files(tmp_path / "v") == []
+
+
+def test_the_episodes_page_is_in_the_shell_and_its_script_is_served(client):
+    html = client.get("/episodes").get_data(as_text=True)
+    for needle in ('id="page-episodes"', 'id="drop-zone"', 'id="upload-input"', 'id="episodes-table"',
+                   'href="#episodes"'):
+        assert needle in html, needle
+    r = client.get("/static/js/episodes.js")
+    assert r.status_code == 200 and "/api/episodes/upload" in r.get_data(as_text=True)
+    assert 'import * as episodes from "./episodes.js"' in client.get("/static/js/app.js").get_data(as_text=True)

@@ -1,7 +1,7 @@
 """The Robot Editor's pages: one HTML shell and our static JS/CSS (webapp/static/).
 
-    GET /                        the editor (login, then Jobs, System, Models, Inference via #hash)
-    GET /jobs, /system, ...      the same shell (a bookmarked or reloaded page lands where it was)
+    GET /                        the editor (login, then Jobs, Episodes, System, Models, Inference via #hash)
+    GET /jobs, /episodes, ...    the same shell (a bookmarked or reloaded page lands where it was)
 
 The pages themselves are open: they hold no data. Everything they show comes from /api/ with the
 bearer token the user typed at the login (kept in the browser's localStorage) and from Socket.IO
@@ -21,7 +21,7 @@ from webapp.build_assets import VENDOR_FILES, missing_vendor_files
 
 bp = Blueprint("pages", __name__)
 
-PAGES = ("jobs", "system", "models", "inference")
+PAGES = ("jobs", "episodes", "system", "models", "inference")
 # 'unsafe-inline' styles only: Chart.js sizes its canvas through style attributes.
 CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
        "connect-src 'self' ws: wss:; frame-ancestors 'none'; base-uri 'none'; form-action 'self'")
@@ -44,6 +44,6 @@ def index():
     return _shell("jobs")
 
 
-@bp.get("/<any(jobs, system, models, inference):page>")
+@bp.get("/<any(jobs, episodes, system, models, inference):page>")
 def page(page: str):
     return _shell(page)

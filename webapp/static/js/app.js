@@ -1,5 +1,5 @@
 // The Robot Editor's core: the token login, the API client, the Socket.IO connection and the
-// page switcher. Each page is a small module (jobs.js, system.js, models.js, inference.js) with
+// page switcher. Each page is a small module (jobs.js, episodes.js, system.js, models.js, inference.js) with
 //   init(ctx)    once, after login: wire its forms
 //   show()       each time it becomes visible: reload its state from the API (so a reload of the
 //                browser or a missed event never leaves it stale)
@@ -7,13 +7,14 @@
 // No framework and no build step: the vendor globals `io` and `Chart` come from
 // webapp/static/vendor/ (npm, copied at setup).
 import * as jobs from "./jobs.js";
+import * as episodes from "./episodes.js";
 import * as system from "./system.js";
 import * as models from "./models.js";
 import * as inference from "./inference.js";
 import { $, setText } from "./util.js";
 
 const TOKEN_KEY = "hope.token";
-const PAGES = { jobs, system, models, inference };
+const PAGES = { jobs, episodes, system, models, inference };
 const EVENTS = ["run.state", "run.progress", "run.log", "system.stats", "system.throttle",
                 "brain.reloaded", "sim.frame"];
 
