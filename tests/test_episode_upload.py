@@ -365,3 +365,16 @@ def test_the_apps_list_and_tag_calls(client, package):
         assert r.status_code == 400 and needle in r.get_json()["error"], (body, r.get_json())
     assert client.get("/api/v1/data/episodes").status_code == 401
     assert client.post("/api/v1/data/tag", json={"episode_id": "ep_00000_10hz", "tag": "x"}).status_code == 401
+
+
+def test_a_pi_package_with_a_blob_keeps_it_beside_the_episode(client, tmp_path):
+    from hope_models.rlds.export_cloud import export_episode
+    from test_rlds_export import CREATED_NS, episode_with_blob
+
+    package = export_episode(episode_with_blob(tmp_path), tmp_path / "out", created_ns=CREATED_NS)
+    r = upload(client, package.read_bytes())
+    assert r.status_code == 200, r.get_json()
+    ep = only_episode(r.get_json())
+    assert ep["episode_id"] == "ep1" and ep["action"] == "written", ep
+    stored = [p for p in (client.settings.inbox_dir / "ep1").rglob("*.npy")]
+    assert [p.read_bytes() for p in stored] == [b"\x93NUMPY fake frame"]
