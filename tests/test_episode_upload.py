@@ -254,6 +254,8 @@ BAD = {
                              400, "more than 10000 members"),
     "zip-too-large-uncompressed": (lambda p: zip_of([("blobs/a.bin", _low_entropy(5 << 20))]),
                                    413, "uncompressed, more than 4194304"),
+    "tar-too-large-uncompressed": (lambda p: tar_gz([tar_file("ep/blobs/a.bin", _low_entropy(5 << 20))]),
+                                   413, "more than 4194304 bytes uncompressed"),
     "not-a-package": (lambda p: b'{"metadata": {}, "steps": []}', 400, "not a package"),
 }
 

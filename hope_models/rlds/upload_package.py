@@ -6,27 +6,31 @@
     "xr"  the XR app's zip of an episode dir: rlds/zip_package.extract_zip.
 
 The kind comes from the magic bytes (gzip, a ustar header, a zip local header), never from the
-file name or the Content-Type a client chose. A gzip stream is inflated once, counting, before
-tarfile reads it: tarfile skips over member data by inflating it, so a small gzip of zeros would
-otherwise cost minutes of CPU before any size check; the stream must stay within MAX_RATIO of
-its compressed size and within the size limit. PackageError carries the HTTP status (400 unsafe
+file name or the Content-Type a client chose. A tar is first read once as a stream, counting,
+before archive.py's extraction reads it: tarfile skips over member data by inflating it, so a
+small gzip of zeros would otherwise cost minutes of CPU before any size check; the stream must
+stay within MAX_RATIO of its compressed size, and the members' declared sizes within the limit. PackageError carries the HTTP status (400 unsafe
 or corrupt, naming the member; 413 too large).
 """
 from __future__ import annotations
 
 import gzip
 import os
+import tarfile
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 from ..durable import file_sha256
-from .archive import ArchiveError, extract_package
+from .archive import MAX_MEMBERS, ArchiveError, extract_package
 from .zip_package import MAX_RATIO, ZipPackageError, extract_zip, ratio_limit
 
 GZIP_MAGIC = b"\x1f\x8b"
 ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header; an empty archive's end record
 USTAR_OFFSET, USTAR_MAGIC = 257, b"ustar"
-TAR_OVERHEAD = 1024  # a tar member's header and padding, at most, beyond its data
+# a tar stream holds, beyond its members' data, a 512-byte header and up to 511 bytes of padding per
+# member (at most archive.MAX_MEMBERS of them) and the end blocks
+TAR_OVERHEAD = MAX_MEMBERS * 1024 + (20 << 10)
 KINDS = {"pi": "the Pi runtime's upload package (tar.gz)", "xr": "the XR app's episode zip"}
 
 
@@ -48,21 +52,46 @@ def package_kind(path: str | os.PathLike, label: str) -> str:
                        f"app's episode zip (the first bytes are neither gzip, tar nor zip)")
 
 
-def check_gzip_inflation(path: Path, label: str, max_total_bytes: int) -> None:
-    """Inflates the gzip stream without keeping it; PackageError past either limit."""
-    by_ratio = ratio_limit(path.stat().st_size)
-    inflated = 0
-    try:
-        with gzip.open(path, "rb") as f:
-            while chunk := f.read(1 << 20):
-                inflated += len(chunk)
-                if inflated > max_total_bytes + TAR_OVERHEAD * 64:
-                    raise PackageError(f"{label}: inflates to more than {max_total_bytes} bytes", 413)
-                if inflated > by_ratio:
-                    raise PackageError(f"{label}: the gzip stream inflates more than {MAX_RATIO} times "
-                                       f"its size (a gzip bomb?)")
-    except (OSError, EOFError, zlib.error) as exc:
-        raise PackageError(f"{label}: corrupt gzip stream: {exc}") from None
+class _Inflation:
+    """The tar stream as tarfile reads it, counted: past the ratio or the size, PackageError."""
+
+    def __init__(self, source: BinaryIO, label: str, by_ratio: int | None, limit: int):
+        self.source, self.label, self.by_ratio, self.limit, self.inflated = source, label, by_ratio, limit, 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.source.read(size if size is not None and size > 0 else 1 << 20)
+        self.inflated += len(data)
+        if self.by_ratio is not None and self.inflated > self.by_ratio:
+            raise PackageError(f"{self.label}: the gzip stream inflates more than {MAX_RATIO} times its size "
+                               f"(a gzip bomb?)")
+        if self.inflated > self.limit:
+            raise PackageError(f"{self.label}: the tar stream is larger than {self.limit} bytes", 413)
+        return data
+
+
+def scan_tar(path: Path, label: str, max_total_bytes: int) -> None:
+    """One streaming pass over the tar (inflated as it is read, nothing kept): the members' declared
+    sizes against max_total_bytes (413), the inflated stream against MAX_RATIO and the size (a bomb
+    is refused after at most ratio_limit bytes of work, before tarfile's own random-access pass)."""
+    with open(path, "rb") as raw:
+        gzipped = raw.read(2) == GZIP_MAGIC
+        raw.seek(0)
+        source = gzip.GzipFile(fileobj=raw, mode="rb") if gzipped else raw
+        stream = _Inflation(source, label, ratio_limit(path.stat().st_size) if gzipped else None,
+                            max_total_bytes + TAR_OVERHEAD)
+        total = count = 0
+        try:
+            with tarfile.open(fileobj=stream, mode="r|") as tar:
+                for member in tar:
+                    count += 1
+                    if count > MAX_MEMBERS:
+                        raise PackageError(f"{label}: more than {MAX_MEMBERS} members")
+                    total += member.size if member.isfile() else 0
+                    if total > max_total_bytes:
+                        raise PackageError(f"{label}: member {member.name!r}: the members hold more than "
+                                           f"{max_total_bytes} bytes uncompressed", 413)
+        except (tarfile.TarError, OSError, EOFError, zlib.error) as exc:
+            raise PackageError(f"{label}: not a readable tar archive: {exc}") from None
 
 
 def xr_dir_name(path: Path) -> str:
@@ -87,10 +116,7 @@ def extract_upload(path: str | os.PathLike, dest: str | os.PathLike, *, label: s
             return kind, extract_zip(path, dest / xr_dir_name(path), label=label, max_total_bytes=max_total_bytes)
         except ZipPackageError as exc:
             raise PackageError(str(exc), exc.status) from None
-    with open(path, "rb") as f:
-        gzipped = f.read(2) == GZIP_MAGIC
-    if gzipped:
-        check_gzip_inflation(path, label, max_total_bytes)
+    scan_tar(path, label, max_total_bytes)
     try:
         return kind, extract_package(path, dest, max_total_bytes=max_total_bytes)
     except ArchiveError as exc:
