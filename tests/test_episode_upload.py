@@ -380,3 +380,18 @@ def test_a_pi_package_with_a_blob_keeps_it_beside_the_episode(client, tmp_path):
     assert ep["episode_id"] == "ep1" and ep["action"] == "written", ep
     stored = [p for p in (client.settings.inbox_dir / "ep1").rglob("*.npy")]
     assert [p.read_bytes() for p in stored] == [b"\x93NUMPY fake frame"]
+
+
+def test_a_rejected_episode_is_listed_with_its_reasons_once_however_often_it_comes(client):
+    body = zip_of([("metadata.json", b'{"episode_id": "bad1"}'),
+                   ("steps/000000.jsonl", b'{"observation": {"x": [1]}, "action": {"command": [NaN]}, "timestamp_ns": 1}\n')])
+    for _ in range(2):
+        r = upload(client, body)
+        assert r.status_code == 200, r.get_json()
+        ep = only_episode(r.get_json())
+        assert ep["action"] == "rejected" and ep["status"] == "rejected" and ep["trainable"] == []
+        assert any("not a finite number" in e for e in ep["errors"])
+    (entry,) = client.get("/api/episodes", headers={"Authorization": f"Bearer {client.token}"}).get_json()["episodes"]
+    assert entry["episode_id"] == "bad1" and entry["status"] == "rejected"
+    assert entry["source"].startswith("upload:xr-") and "/tmp/" not in entry["errors"][0]
+    assert list((Path(client.settings.home) / "tmp").iterdir()) == []

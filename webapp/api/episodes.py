@@ -27,14 +27,19 @@ warnings | rejected), "errors", "warnings", "trainable", "not_trainable" ({compo
 """
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import re
+import shutil
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from flask import Blueprint, current_app, jsonify, request
 
 from hope_models.data.inbox import InboxError, check_tag, ingest_into_inbox, list_inbox, tag_episode
+from hope_models.durable import file_sha256
 from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
 from webapp.api.validation import get_str, json_body, query_args
 from webapp.errors import ApiError
@@ -48,6 +53,7 @@ TAG_LIST_HEADER = "X-Continuon-Tag-list"
 MAX_PACKAGES = 20  # one drop of a browser; more is a client gone wrong
 # ingest's verdicts in the words of the inbox's list (and of the app's handoff answer)
 STATUS = {"accepted": "ok", "accepted_with_warnings": "warnings"}
+EXTRACTED = "package-"
 UNPACK_FACTOR = 4  # what a package may hold uncompressed, in upload limits: bounds $HOPE_HOME/tmp
 
 
@@ -80,9 +86,9 @@ def _packages(got: Received) -> list[tuple[str, Path]]:
 
 
 def _extracted_at(settings: Any) -> re.Pattern:
-    """Where uploads are extracted ($HOPE_HOME/tmp/upload-*/package-N/): a path that means nothing
+    """Where uploads are extracted ($HOPE_HOME/tmp/package-<sha>/): a path that means nothing
     to a client (and is gone after the request), in the sources and messages ingest recorded."""
-    return re.compile(re.escape(str(Path(settings.home) / TMP_DIR)) + r"/upload-[^/]+/package-\d+/?")
+    return re.compile(re.escape(str(Path(settings.home) / TMP_DIR)) + "/" + EXTRACTED + r"[0-9a-f]+/?")
 
 
 def _readable(value: Any, where: re.Pattern, label: str) -> Any:
@@ -108,27 +114,62 @@ def _episode_answer(entry: dict[str, Any], where: re.Pattern, label: str) -> dic
             "origin": entry.get("origin"), "source": entry.get("source")}
 
 
-def _ingest(settings: Any, got: Received, packages: list[tuple[str, Path]], tags: list[str]) -> list[dict]:
-    extracted = []
-    limit = UNPACK_FACTOR * upload_limit(settings)
-    for i, (label, path) in enumerate(packages):
-        dest = got.dir / f"package-{i}"
+@contextmanager
+def _extraction_area(settings: Any) -> Iterator[Path]:
+    """$HOPE_HOME/tmp, held by one upload's extraction and ingest at a time (an flock on the dir:
+    the kernel drops it when its holder dies). Packages are extracted to `package-<sha>` in it,
+    a name of their bytes, so ingest records the same source for the same package (a rejected
+    one uploaded again replaces its record instead of adding one); the lock makes that name free."""
+    area = Path(settings.home) / TMP_DIR
+    area.mkdir(mode=0o700, parents=True, exist_ok=True)
+    fd = os.open(area, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield area
+    finally:
+        os.close(fd)
+
+
+def _extract(area: Path, packages: list[tuple[str, Path]], limit: int,
+             into: list[tuple[str, str, Path, Path]]) -> None:
+    """Every package extracted before any is ingested: (label, kind, what to ingest, its dir)
+    appended to `into` as each dir is made, so the caller removes them whatever happens."""
+    seen = set()
+    for label, path in packages:
+        sha = file_sha256(path)[:16]
+        if sha in seen:  # the same bytes twice in one drop: one result
+            continue
+        seen.add(sha)
+        dest = area / f"{EXTRACTED}{sha}"
+        shutil.rmtree(dest, ignore_errors=True)  # left by an upload that died (we hold the lock)
         dest.mkdir()
+        into.append((label, "", dest, dest))
         try:
-            extracted.append((label, *extract_upload(path, dest, label=label, max_total_bytes=limit)))
+            kind, where = extract_upload(path, dest, label=label, max_total_bytes=limit)
         except PackageError as exc:
             raise ApiError(exc.message, exc.status) from None
-    out = []
-    for label, kind, where in extracted:
+        into[-1] = (label, kind, where, dest)
+
+
+def _ingest(settings: Any, packages: list[tuple[str, Path]], tags: list[str]) -> list[dict]:
+    with _extraction_area(settings) as area:
+        extracted: list[tuple[str, str, Path, Path]] = []
         try:
-            result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}")
-        except InboxError as exc:
-            raise ApiError(exc.message, exc.status) from None
-        episodes = [_episode_answer(e, _extracted_at(settings), label) for e in result["episodes"]]
-        if not episodes:
-            raise ApiError(f"{label}: no episode in this {KINDS[kind]}", 400)
-        out.append({"name": label, "kind": kind, "episodes": episodes})
-    return out
+            _extract(area, packages, UNPACK_FACTOR * upload_limit(settings), extracted)
+            out = []
+            for label, kind, where, _ in extracted:
+                try:
+                    result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}")
+                except InboxError as exc:
+                    raise ApiError(exc.message, exc.status) from None
+                episodes = [_episode_answer(e, _extracted_at(settings), label) for e in result["episodes"]]
+                if not episodes:
+                    raise ApiError(f"{label}: no episode in this {KINDS[kind]}", 400)
+                out.append({"name": label, "kind": kind, "episodes": episodes})
+            return out
+        finally:
+            for *_, dest in extracted:
+                shutil.rmtree(dest, ignore_errors=True)
 
 
 @bp.post("/api/episodes/upload")
@@ -139,7 +180,7 @@ def upload():
     tags = _split_tags(request.headers.get(TAG_LIST_HEADER, ""), TAG_LIST_HEADER)  # before the body
     with received(settings, max_parts=MAX_PACKAGES + 1) as got:
         tags += [t for t in _split_tags(got.fields.get("tags", ""), "tags") if t not in tags]
-        packages = _ingest(settings, got, _packages(got), tags)
+        packages = _ingest(settings, _packages(got), tags)
     episodes = [e for p in packages for e in p["episodes"]]
     summary = {action: sum(1 for e in episodes if e["action"] == action)
                for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
