@@ -12,9 +12,10 @@ Pi runtime's `<episode_id>.tar.gz` (checksums of its upload_manifest.json verifi
 app's zip of an episode dir, which it POSTs with `Content-Type: application/zip` and the headers
 X-Continuon-Tag-xr_mode / -control_role / -environment_id (also in its metadata.json, so not
 repeated as tags) and X-Continuon-Tag-list (comma-separated: each one becomes an inbox tag, as
-does each of a multipart `tags` field). Every package of a request is extracted under the
-request's own dir in $HOPE_HOME/tmp (removed after) before any is ingested, so one refused package
-(400 naming the member, 413 too large) means nothing is written at all. Accepted ones go into the
+does each of a multipart `tags` field). Every package of a request is extracted to
+$HOPE_HOME/tmp/package-<sha of its bytes> (one upload at a time extracts and ingests; removed
+after) before any is ingested, so one refused package (400 naming the member, 413 too large)
+means nothing is written at all. Accepted ones go into the
 inbox (hope_models/data/inbox.py: validated with the train profile, blobs confined to the episode's
 own dir, idempotent); the answer lists each episode's verdict: 200 {"packages": [{"name", "kind",
 "episodes": [{"episode_id", "action", "status", "errors", "warnings", "steps", "trainable",
