@@ -22,6 +22,10 @@ export function init(c) {
     event.target.value = "";
     upload(files);
   });
+  // a package dropped just beside the zone must not make the browser open (or download) it
+  for (const name of ["dragover", "drop"]) {
+    window.addEventListener(name, (event) => { if (!zone.contains(event.target)) event.preventDefault(); });
+  }
   $("#refresh-episodes").addEventListener("click", () => show().catch((err) => ctx.flash(err.message, true)));
   $("#episodes-table tbody").addEventListener("submit", onTag);
 }
