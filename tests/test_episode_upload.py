@@ -395,3 +395,16 @@ def test_a_rejected_episode_is_listed_with_its_reasons_once_however_often_it_com
     assert entry["episode_id"] == "bad1" and entry["status"] == "rejected"
     assert entry["source"].startswith("upload:xr-") and "/tmp/" not in entry["errors"][0]
     assert list((Path(client.settings.home) / "tmp").iterdir()) == []
+
+
+def test_zip_members_are_counted_before_zipfile_parses_them(tmp_path):
+    """A central directory that claims more than the limit is refused by the walk, not by zipfile."""
+    from hope_models.rlds.zip_package import ZipPackageError, extract_zip
+
+    z = tmp_path / "many.zip"
+    z.write_bytes(zip_of([(f"{i}", b"") for i in range(30)]))
+    with pytest.raises(ZipPackageError, match="more than 20 members"):
+        extract_zip(z, tmp_path / "out", max_members=20)
+    assert not (tmp_path / "out").exists()
+    assert extract_zip(z, tmp_path / "ok", max_members=30) == tmp_path / "ok"
+    assert len(list((tmp_path / "ok").iterdir())) == 30

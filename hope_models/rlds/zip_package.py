@@ -4,11 +4,12 @@ The XR app zips its episode dir with names relative to it (`metadata.json`,
 `steps/000000.jsonl`, ...). Nothing in a zip from another machine is trusted, so before anything is
 written every member is checked: the member-name rules of rlds/archive.py (no absolute name, no
 `..`), no symlink or device (the mode a Unix zipper keeps in `external_attr`), no encrypted
-member, only stored or deflated data, no name twice; at most `max_members` members (counted in the
-central directory itself, before zipfile builds an object per entry: a tiny archive may declare
-millions), at most `max_total_bytes` uncompressed, and no member or archive that inflates more
-than MAX_RATIO times (a zip bomb). The headers can lie, so the sizes are checked twice: as
-declared, and as actually inflated while writing. Files are created with O_EXCL|O_NOFOLLOW in a
+member, only stored or deflated data, no name twice; at most `max_members` members (counted in
+the central directory itself, at most MAX_CENTRAL_DIR_BYTES, before zipfile reads it whole and
+builds an object per entry: a small archive may declare millions), at most `max_total_bytes`
+uncompressed, and no member or archive that inflates more than MAX_RATIO times (a zip bomb).
+The headers can lie, so the sizes are checked twice: as declared, and as actually inflated while
+writing (zipfile also stops a member at its declared size, and its CRC then fails). Files are created with O_EXCL|O_NOFOLLOW in a
 dir of our own, removed again when any member is refused, so a refused zip leaves nothing.
 """
 from __future__ import annotations
@@ -26,6 +27,7 @@ from .archive import ArchiveError, member_name_path
 
 MAX_MEMBERS = 10_000  # an XR episode dir holds a metadata file, a steps file and its media
 MAX_RATIO = 200  # JSONL of floats inflates ~5-10x; zeros far more: a member this compressible is refused
+MAX_CENTRAL_DIR_BYTES = 16 << 20  # MAX_MEMBERS entries with long names and extras fit many times over
 RATIO_FLOOR = 1 << 20  # below this many bytes a high ratio is harmless (a short JSON of repeats)
 CHUNK = 1 << 20
 METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
@@ -49,6 +51,8 @@ def _count_members(fp: BinaryIO, label: str, max_members: int) -> None:
     if endrec is None:
         raise ZipPackageError(f"{label}: not a zip archive (no end of central directory record)")
     size_cd = endrec[zipfile._ECD_SIZE]  # noqa: SLF001
+    if size_cd > MAX_CENTRAL_DIR_BYTES:  # zipfile reads it whole into memory
+        raise ZipPackageError(f"{label}: a central directory of {size_cd} bytes, more than {MAX_CENTRAL_DIR_BYTES}")
     start = endrec[zipfile._ECD_LOCATION] - size_cd  # noqa: SLF001
     if endrec[zipfile._ECD_SIGNATURE] == zipfile.stringEndArchive64:  # noqa: SLF001
         start -= zipfile.sizeEndCentDir64 + zipfile.sizeEndCentDir64Locator
