@@ -408,3 +408,14 @@ def test_zip_members_are_counted_before_zipfile_parses_them(tmp_path):
     assert not (tmp_path / "out").exists()
     assert extract_zip(z, tmp_path / "ok", max_members=30) == tmp_path / "ok"
     assert len(list((tmp_path / "ok").iterdir())) == 30
+
+
+def test_the_app_calls_as_dart_sends_them(client, package):
+    """package:http: lower-case header names, a String body gets `; charset=utf-8`."""
+    assert upload(client, package).status_code == 200
+    auth = {"authorization": f"Bearer {client.token}"}
+    r = client.post("/api/v1/data/tag", data=json.dumps({"episode_id": "ep_00000_10hz", "tag": "dart"}),
+                    headers={**auth, "content-type": "application/json; charset=utf-8"})
+    assert r.status_code == 200 and r.get_json()["success"] is True, r.get_json()
+    episodes = client.get("/api/v1/data/episodes", headers=auth).get_json()["episodes"]
+    assert isinstance(episodes, list) and episodes[0]["tags"] == ["dart"]
