@@ -53,7 +53,7 @@ def multipart(fields: dict[str, str], files: list[tuple[str, str, bytes]]) -> tu
     for name, value in fields.items():
         out += (f"--{boundary}\r\ncontent-disposition: form-data; name=\"{name}\"\r\n"
                 f"content-type: text/plain; charset=utf-8\r\ncontent-transfer-encoding: binary\r\n\r\n").encode()
-        out += value.encode("utf-8") + b"\r\n"
+        out += value.encode("utf-8", "surrogatepass") + b"\r\n"  # a raw lone surrogate: older Dart's bytes
     for name, filename, data in files:
         out += (f"--{boundary}\r\ncontent-type: application/octet-stream\r\n"
                 f"content-disposition: form-data; name=\"{name}\"; filename=\"{filename}\"\r\n\r\n").encode()
@@ -158,6 +158,18 @@ def test_lone_surrogates_are_kept_not_lost(client):
     assert json.loads(text.splitlines()[0])["observation"]["ui_context"]["notes"] == "half an emoji \ud83d"
     listed = client.get("/api/health")  # any answer is still valid UTF-8 JSON
     assert listed.status_code == 200
+
+
+def test_a_lone_surrogate_sent_as_raw_bytes_is_the_same_episode_as_its_escape(client):
+    # Dart's jsonEncode escapes a lone surrogate; an older Dart UTF-8 encoder wrote its three bytes
+    escaped = handoff(client, record(notes="half an emoji \ud83d"))
+    assert escaped.status_code == 200, escaped.get_json()
+    raw = json.dumps(record(notes="half an emoji \ud83d"), ensure_ascii=False, separators=(",", ":"))
+    assert "\ud83d" in raw  # the str holds the surrogate itself, not its escape
+    again = handoff(client, raw)
+    assert again.status_code == 200, again.get_json()
+    assert again.get_json()["episode_id"] == escaped.get_json()["episode_id"]
+    assert again.get_json()["action"] == "unchanged"
 
 
 @pytest.mark.parametrize("name", ["../../x", "..", "frame_0.jpg/../../etc", "other.jpg", ""])

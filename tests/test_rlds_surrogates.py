@@ -141,3 +141,19 @@ def test_json_output_of_the_commands_is_valid_utf8(source: Path, tmp_path: Path,
     doc = json.loads(done.stdout.decode("utf-8"))
     assert str(source) in json.dumps(doc, ensure_ascii=False)
 
+
+
+def test_a_file_holding_a_lone_surrogates_own_bytes_is_read(tmp_path: Path):
+    # ED A0 BD is how older Dart, Java's modified UTF-8 or CESU-8 write U+D83D: not valid UTF-8,
+    # but one lost character must not cost the episode
+    path = tmp_path / "raw.json"
+    path.write_bytes(json.dumps(episode_doc(), ensure_ascii=False).encode("utf-8", "surrogatepass"))
+    assert b"\xed\xa0\xbd" in path.read_bytes()
+    [report] = read_path(path)
+    assert len(report.episodes) == 1, [p.message for p in report.problems]
+    assert report.episodes[0].steps[0].observation["note"] == NOTE
+    # still refused: bytes that are no text at all, with the offset named
+    bad = tmp_path / "bad.json"
+    bad.write_bytes(b'{"metadata": {"episode_id": "\xff\xfe"}, "steps": []}')
+    [refused] = read_path(bad)
+    assert not refused.episodes and any("offset" in p.message for p in refused.problems)

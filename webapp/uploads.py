@@ -127,7 +127,8 @@ class _Parts:
             self.got.files.append((self.name or "", self.filename or "", self.path, self.path.stat().st_size))
         else:
             try:
-                self.got.fields[self.name or ""] = bytes(self.buf).decode("utf-8")
+                # surrogatepass: a lone UTF-16 surrogate as raw bytes (older Dart) is text the episode keeps
+                self.got.fields[self.name or ""] = bytes(self.buf).decode("utf-8", "surrogatepass")
             except UnicodeDecodeError as exc:
                 raise ApiError(f"{self.name}: form field is not UTF-8 text (byte {exc.start})", 400) from None
         self.name, self.out = None, None

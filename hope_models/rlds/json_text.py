@@ -87,9 +87,11 @@ def read_bytes(path: str | os.PathLike, limits: ReadLimits) -> bytes:
 
 
 def decode_text(data: bytes) -> str:
-    """UTF-8 with or without BOM; invalid UTF-8 names the byte offset."""
+    """UTF-8 with or without BOM; invalid UTF-8 names the byte offset. A lone UTF-16 surrogate
+    written as its three UTF-8-style bytes (older Dart, Java's modified UTF-8, CESU-8) is taken as
+    that surrogate, which the writers keep escaped, rather than costing the episode."""
     try:
-        return data.decode("utf-8-sig")
+        return data.decode("utf-8-sig", "surrogatepass")
     except UnicodeDecodeError as exc:
         raise TextReadError(f"not UTF-8 text: invalid byte at offset {exc.start}") from None
 

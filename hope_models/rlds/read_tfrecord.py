@@ -147,7 +147,7 @@ def unwrap_gzip(data: bytes, source: str, limits: ReadLimits) -> Container:
 
 def _text(value: bytes) -> str | None:
     try:
-        return value.decode("utf-8")
+        return value.decode("utf-8", "surrogatepass")  # a lone surrogate's bytes: kept (json_text.decode_text)
     except UnicodeDecodeError:
         return None
 
