@@ -137,6 +137,29 @@ def test_ingest_writes_rejects_and_reruns_without_changes(tmp_path: Path):
     assert tree(ds) == before
 
 
+def test_sources_under_a_temporary_dir_are_recorded_under_its_name(tmp_path: Path):
+    # an upload is extracted to a temp dir that is gone afterwards: the manifest and the answer
+    # name the package instead, and a prefix-sharing dir is left alone
+    src = tmp_path / "tmp" / "package-ab12"
+    single_json(src / "good.json", "good", steps_10hz(4))
+    nan_steps = steps_10hz(3)
+    (src / "bad.jsonl").write_text("\n".join(json.dumps(s) for s in nan_steps[:1]) + "\n" +
+                                   json.dumps(nan_steps[1]).replace("0.2]", "NaN]") + "\n")
+    single_json(tmp_path / "tmp" / "package-ab123" / "other.json", "other", steps_10hz(5))
+    ds = tmp_path / "ds"
+    result = ingest_paths([src, tmp_path / "tmp" / "package-ab123"], ds, sources_as=(str(src), "upload:ep.zip"))
+    sources = sorted(e["source"] for e in result["episodes"])
+    assert sources == sorted(["upload:ep.zip/good.json", "upload:ep.zip/bad.jsonl",
+                              str(tmp_path / "tmp" / "package-ab123" / "other.json")])
+    manifest = json.loads((ds / MANIFEST).read_text())
+    assert {e["source"] for e in manifest["episodes"]} == {"upload:ep.zip/good.json",
+                                                            str(tmp_path / "tmp" / "package-ab123" / "other.json")}
+    [rejected] = manifest["rejected"]
+    assert rejected["source"] == "upload:ep.zip/bad.jsonl"
+    for text in (json.dumps(manifest), json.dumps(result)):
+        assert str(src) + "/" not in text and str(src) + ":" not in text
+
+
 def test_clashing_ids_get_a_content_hash_suffix(tmp_path: Path):
     first = single_json(tmp_path / "a" / "run.json", "run", steps_10hz(3))
     second = single_json(tmp_path / "b" / "run.json", "run", steps_10hz(3, command=[0.5, 0.5]))

@@ -26,6 +26,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -193,16 +194,19 @@ def _ingest_episode(ep: Episode, entry: dict[str, Any], dataset_dir: Path,
 
 
 def ingest_paths(paths: Iterable[str | os.PathLike], dataset_dir: str | os.PathLike, *,
-                 confined: bool = False, locked: bool = False, **reader_options: Any) -> dict[str, Any]:
+                 confined: bool = False, locked: bool = False, sources_as: tuple[str, str] | None = None,
+                 **reader_options: Any) -> dict[str, Any]:
     """Ingests every episode under `paths` into `dataset_dir`; returns what happened to each.
 
+    `sources_as` = (a dir, its name): sources under a dir that is gone after this call (an upload
+    extracted to a temp dir) are recorded, and reported, under that name instead.
     Raises FileNotFoundError for a missing input path and IngestError for an unusable dataset dir."""
     sources = [Path(os.path.abspath(p)) for p in unique_paths(paths)]
     for source in sources:
         if not source.exists():
             raise FileNotFoundError(f"{source}: no such file or directory")
     reports = (report for source in sources for report in read_reports(source, **reader_options))
-    return ingest_reports(reports, dataset_dir, confined=confined, locked=locked)
+    return ingest_reports(reports, dataset_dir, confined=confined, locked=locked, sources_as=sources_as)
 
 
 @contextmanager
@@ -223,12 +227,13 @@ def dataset_lock(dataset_dir: str | os.PathLike) -> Iterator[Path]:
 
 def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLike, *,
                    confined: bool = False, content_ids: str | None = None,
-                   locked: bool = False) -> dict[str, Any]:
+                   locked: bool = False, sources_as: tuple[str, str] | None = None) -> dict[str, Any]:
     """`ingest_paths` for reports already read (or built in memory, like the app's handoff).
     `locked`: the caller holds dataset_lock already."""
     if not locked:
         with dataset_lock(dataset_dir) as dataset:
-            return ingest_reports(reports, dataset, confined=confined, content_ids=content_ids, locked=True)
+            return ingest_reports(reports, dataset, confined=confined, content_ids=content_ids, locked=True,
+                                  sources_as=sources_as)
     dataset = Path(os.path.abspath(dataset_dir))
     remove_stale_tmp_dirs(dataset)
     manifest = load_manifest(dataset)
@@ -254,12 +259,36 @@ def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLi
                 results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
             except (ValueError, TypeError) as exc:  # unwritable content
                 results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
+    if sources_as is not None:
+        results = _rename_sources(manifest, results, *sources_as)
     manifest_written = write_manifest(dataset, manifest)
     summary = {action: sum(1 for r in results if r["action"] == action)
                for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
     summary["ok"] = summary["rejected"] == 0
     summary["manifest_written"] = manifest_written
     return {"dataset": str(dataset), "episodes": results, "summary": summary}
+
+
+def _rename_sources(manifest: Manifest, results: list[dict[str, Any]], root: str,
+                    name: str) -> list[dict[str, Any]]:
+    """Every mention of `root` (sources, reasons, warnings) in the results and the manifest as `name`."""
+    root = os.path.abspath(root).rstrip(os.sep)
+    pattern = re.compile(re.escape(root) + r"(?=/|\b|$)")
+
+    def text(value: Any) -> Any:
+        if isinstance(value, str):
+            return pattern.sub(lambda _m: name, value)
+        if isinstance(value, list):
+            return [text(v) for v in value]
+        if isinstance(value, dict):
+            return {k: text(v) for k, v in value.items()}
+        return value
+
+    for record in manifest.episodes.values():
+        record["source"] = text(record.get("source"))
+    manifest.rejected = {text(k): text(v) for k, v in manifest.rejected.items()}
+    manifest.skipped = {text(k): text(v) for k, v in manifest.skipped.items()}
+    return [text(r) for r in results]
 
 
 def _save_what_fits(dataset: Path, manifest: Manifest) -> None:
