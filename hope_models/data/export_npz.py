@@ -30,8 +30,9 @@ from hope_models.data.spec_inference import episode_signature, infer_spec
 from hope_models.data.spec_request import SpecRequest
 from hope_models.durable import atomic_open, atomic_write, file_sha256
 from hope_models.rlds.episode import Episode
+from hope_models.rlds.export_cloud import export_each
 from hope_models.rlds.read_npz import CLOUD_MAX_BYTES, FORMAT, NPZ_SUFFIX, sidecar_path
-from hope_models.rlds.validation_report import exception_entry, read_reports, report_entries, unique_paths
+from hope_models.rlds.validation_report import exception_entry
 from hope_models.rlds.write_episode_dir import safe_episode_id
 
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # the earliest a zip can say: no clock in the bytes
@@ -198,25 +199,6 @@ def export_npz_paths(paths: Iterable[str | os.PathLike], out_dir: str | os.PathL
     """Checks every episode under `paths` with the train profile (the backend asks nothing of the
     metadata, but the arrays must be trainable) and writes those that pass (all with
     `allow_invalid`, which still refuses an episode that does not fit its spec or the size)."""
-    paths = unique_paths(paths)
-    for path in paths:
-        if not path.exists():
-            raise FileNotFoundError(f"{path}: no such file or directory")
-    results: list[dict[str, Any]] = []
-    used_ids: set[str] = set()
-    for path in paths:
-        for report in read_reports(path, **reader_options):
-            entries = report_entries(report, "train")
-            if not report.episodes:
-                results.extend(dict(e, action="skipped" if e["status"] == "skipped" else "refused",
-                                    package=None, sidecar=None) for e in entries)
-                continue
-            for ep, entry in zip(report.episodes, entries):
-                if not entry["ok"] and not allow_invalid:
-                    results.append(dict(entry, action="refused", package=None, sidecar=None))
-                    continue
-                results.append(_export_one(ep, entry, out_dir, request, used_ids, max_bytes))
-    summary = {action: sum(1 for r in results if r["action"] == action)
-               for action in ("exported", "refused", "skipped")}
-    summary["ok"] = summary["refused"] == 0
-    return {"episodes": results, "summary": summary}
+    return export_each(paths, "train", allow_invalid,
+                       lambda ep, entry, used_ids: _export_one(ep, entry, out_dir, request, used_ids, max_bytes),
+                       {"package": None, "sidecar": None}, **reader_options)

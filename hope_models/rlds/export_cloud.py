@@ -17,7 +17,7 @@ import os
 import tarfile
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 from ..durable import atomic_open
 from .episode import Episode
@@ -124,10 +124,12 @@ def export_episode(ep: Episode, out_dir: str | os.PathLike, created_ns: int | No
     return final
 
 
-def export_paths(paths: Iterable[str | os.PathLike], out_dir: str | os.PathLike,
-                 allow_invalid: bool = False, **reader_options: Any) -> dict[str, Any]:
-    """Validates every episode under `paths` with the cloud profile and packages those that pass
-    (all of them with `allow_invalid`, which still refuses content JSON cannot hold)."""
+def export_each(paths: Iterable[str | os.PathLike], profile: str, allow_invalid: bool,
+                export_one: Callable[[Episode, dict[str, Any], set[str]], dict[str, Any]],
+                unwritten: dict[str, Any], **reader_options: Any) -> dict[str, Any]:
+    """The walk every export makes: each episode under `paths` checked with `profile`, and those
+    that pass (all with `allow_invalid`) handed to `export_one(ep, entry, used_ids)`, which returns
+    its result; `unwritten` is what a refused or skipped result carries instead of file names."""
     paths = unique_paths(paths)
     for path in paths:
         if not path.exists():
@@ -136,33 +138,43 @@ def export_paths(paths: Iterable[str | os.PathLike], out_dir: str | os.PathLike,
     used_ids: set[str] = set()
     for path in paths:
         for report in read_reports(path, **reader_options):
-            entries = report_entries(report, "cloud")
+            entries = report_entries(report, profile)
             if not report.episodes:
                 results.extend(dict(e, action="skipped" if e["status"] == "skipped" else "refused",
-                                    package=None) for e in entries)
+                                    **unwritten) for e in entries)
                 continue
             for ep, entry in zip(report.episodes, entries):
                 if not entry["ok"] and not allow_invalid:
-                    results.append(dict(entry, action="refused", package=None))
+                    results.append(dict(entry, action="refused", **unwritten))
                     continue
-                try:
-                    episode_id = safe_episode_id(ep.episode_id)
-                    if episode_id in used_ids:
-                        # Two sources with one id would overwrite each other's package; the
-                        # second gets the same content-hash suffix ingest would give it.
-                        digest = prepare_episode(ep).content_sha256
-                        episode_id = f"{episode_id}-{digest[:8]}"
-                        entry = dict(entry, warnings=entry["warnings"] + [
-                            f"{ep.source}: metadata.episode_id: {ep.episode_id!r} was already exported "
-                            f"in this run; packaged as {episode_id!r}"])
-                    package = export_episode(ep, out_dir, episode_id=episode_id)
-                    used_ids.add(episode_id)
-                    results.append(dict(entry, action="exported", package=str(package)))
-                except (OSError, ValueError, TypeError) as exc:
-                    failed = exception_entry(ep.source, exc, ep.episode_id)
-                    results.append(dict(failed, action="refused", package=None,
-                                        warnings=entry["warnings"]))
+                results.append(export_one(ep, entry, used_ids))
     summary = {action: sum(1 for r in results if r["action"] == action)
                for action in ("exported", "refused", "skipped")}
     summary["ok"] = summary["refused"] == 0
     return {"episodes": results, "summary": summary}
+
+
+def export_paths(paths: Iterable[str | os.PathLike], out_dir: str | os.PathLike,
+                 allow_invalid: bool = False, **reader_options: Any) -> dict[str, Any]:
+    """Validates every episode under `paths` with the cloud profile and packages those that pass
+    (all of them with `allow_invalid`, which still refuses content JSON cannot hold)."""
+
+    def package_one(ep: Episode, entry: dict[str, Any], used_ids: set[str]) -> dict[str, Any]:
+        try:
+            episode_id = safe_episode_id(ep.episode_id)
+            if episode_id in used_ids:
+                # Two sources with one id would overwrite each other's package; the
+                # second gets the same content-hash suffix ingest would give it.
+                digest = prepare_episode(ep).content_sha256
+                episode_id = f"{episode_id}-{digest[:8]}"
+                entry = dict(entry, warnings=entry["warnings"] + [
+                    f"{ep.source}: metadata.episode_id: {ep.episode_id!r} was already exported "
+                    f"in this run; packaged as {episode_id!r}"])
+            package = export_episode(ep, out_dir, episode_id=episode_id)
+            used_ids.add(episode_id)
+            return dict(entry, action="exported", package=str(package))
+        except (OSError, ValueError, TypeError) as exc:
+            failed = exception_entry(ep.source, exc, ep.episode_id)
+            return dict(failed, action="refused", package=None, warnings=entry["warnings"])
+
+    return export_each(paths, "cloud", allow_invalid, package_one, {"package": None}, **reader_options)
