@@ -394,6 +394,9 @@ def test_a_rejected_episode_is_listed_with_its_reasons_once_however_often_it_com
     (entry,) = client.get("/api/episodes", headers={"Authorization": f"Bearer {client.token}"}).get_json()["episodes"]
     assert entry["episode_id"] == "bad1" and entry["status"] == "rejected"
     assert entry["source"].startswith("upload:xr-") and "/tmp/" not in entry["errors"][0]
+    # the manifest names the package too, not the extraction dir that is gone
+    manifest = (client.settings.inbox_dir / "manifest.json").read_text()
+    assert '"upload:xr-' in manifest and "package-" not in manifest and "/tmp/" not in manifest
     assert list((Path(client.settings.home) / "tmp").iterdir()) == []
 
 

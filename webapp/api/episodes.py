@@ -160,7 +160,9 @@ def _ingest(settings: Any, packages: list[tuple[str, Path]], tags: list[str]) ->
             out = []
             for label, kind, where, _ in extracted:
                 try:
-                    result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}")
+                    # the extraction dir is gone after this request: sources are named by the package
+                    result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}",
+                                               sources_as=(str(where), f"upload:{where.name}"))
                 except InboxError as exc:
                     raise ApiError(exc.message, exc.status) from None
                 episodes = [_episode_answer(e, _extracted_at(settings), label) for e in result["episodes"]]
