@@ -120,7 +120,11 @@ def test_tags_live_in_the_manifest_only(tmp_path: Path):
     assert manifest(inbox)["episodes"][0]["content_sha256"] == digest
     assert ingest_into_inbox([src], inbox, origin="upload")["episodes"][0]["action"] == "unchanged"
     assert list_inbox(inbox)[0]["tags"] == ["wave"]
-    for bad in ("", "   ", "x" * 65, 7, None, "a\nb"):
+    # half an emoji, as Dart text may hold: kept, and the manifest stays valid UTF-8
+    assert tag_episode(inbox, "ep", "hi \ud83d")["tags"] == ["wave", "hi \ud83d"]
+    (inbox / "manifest.json").read_bytes().decode("utf-8")
+    assert list_inbox(inbox)[0]["tags"] == ["wave", "hi \ud83d"]
+    for bad in ("", "   ", "x" * 65, 7, None, "a\nb", "a\x7fb"):
         with pytest.raises(InboxError) as exc:
             tag_episode(inbox, "ep", bad)
         assert exc.value.status == 400
