@@ -32,7 +32,7 @@ from pathlib import Path
 import pytest
 
 from brain_fixtures import brain_runs
-from daemon_fixtures import Home, Proc, free_port
+from daemon_fixtures import Home, Proc, free_port, wait_until
 from test_api import add_completed_run
 from test_api_app_metrics import dart_metrics, dart_progress
 
@@ -155,14 +155,6 @@ def tree(path: Path) -> dict[str, tuple[int, int]]:
 
 # -- the real serve ------------------------------------------------------------------------------------------
 
-def wait_for(predicate, timeout: float, what: str, home: Home):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.2)
-    pytest.fail(f"timed out after {timeout:g} s waiting for {what}\n{home.describe()}")
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +175,7 @@ def served(tmp_path_factory):
                 home.env, log)
     try:
         token = (home.path / "token")
-        wait_for(lambda: token.exists() and proc.alive() and _health(port), 60, "serve to answer /api/health", home)
+        wait_until(lambda: token.exists() and proc.alive() and _health(port), 60, "serve to answer /api/health", home)
         yield {"home": home, "port": port, "token": token.read_text().strip(), "run_id": run_id, "last": last,
                "at15": last.parent / "00000015", "proc": proc}
     finally:
@@ -322,7 +314,7 @@ def test_models_list_and_activate_a_version_promoted_before(app, promoted, serve
 
     def serving():
         return app.get("/api/brain")[1]["components"]["fast_loop"]["serving"]["version"]
-    wait_for(lambda: serving() == promoted["first"]["version"], 15, "the activated version to serve", served["home"])
+    wait_until(lambda: serving() == promoted["first"]["version"], 15, "the activated version to serve", served["home"])
     assert app.post_json("/api/v1/models/activate", {"model_id": "999999"})[0] == 404
 
 

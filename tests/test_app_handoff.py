@@ -67,7 +67,8 @@ def dart_json(obj) -> str:
     return json.dumps(obj)
 
 
-def make_client(home: Path, upload_max_mb: int):
+def make_client(home: Path, upload_max_mb: int = 1):
+    """The webapp on a fresh HOPE_HOME as a Flask test client with .settings, .token and .close()."""
     from hope_models.settings import load_settings
     from registry.db import Registry
     from webapp import create_app

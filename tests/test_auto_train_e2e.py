@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon_fixtures import Home, Proc, free_port
+from daemon_fixtures import Home, Proc, free_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -104,14 +104,6 @@ def recorded(tmp_path_factory) -> list[Path]:
     return dirs
 
 
-def wait_for(predicate, timeout: float, what: str, home: Home):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.25)
-    pytest.fail(f"timed out after {timeout:g} s waiting for {what}\n{home.describe()}")
 
 
 def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, recorded):
@@ -125,7 +117,7 @@ def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, rec
                 home.env, log)
     try:
         token_file = home.path / "token"
-        wait_for(lambda: token_file.exists() and proc.alive() and _answers(port), 60, "serve to answer", home)
+        wait_until(lambda: token_file.exists() and proc.alive() and _answers(port), 60, "serve to answer", home)
         app = App(port, token_file.read_text().strip())
         st = app.get("/api/learning/status")
         assert st["enabled"] is True and st["running"] is False and st["is_paused"] is False
@@ -136,13 +128,13 @@ def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, rec
             assert out["status"] in ("ok", "warnings") and sorted(out["trainable"]) == ["fast_loop", "mid_loop", "vqvae"], out
             stored.append(out["episode_id"])
             if n == EPISODES - 2:  # one short: nothing starts, and the app is told how many more
-                wait_for(lambda: app.get("/api/learning/status")["current_phase"] == "waiting for data (1 more)",
+                wait_until(lambda: app.get("/api/learning/status")["current_phase"] == "waiting for data (1 more)",
                          10, "the phase to ask for 1 more episode", home)
                 assert app.get("/api/runs")["runs"] == []
         assert len(set(stored)) == EPISODES
 
         # the chain starts by itself, saying why
-        chain = wait_for(lambda: _chain(app), 30, "an auto chain to be queued", home)
+        chain = wait_until(lambda: _chain(app), 30, "an auto chain to be queued", home)
         assert [r["component"] for r in chain] == ["vqvae", "fast_loop", "mid_loop"]
         assert all(r["config"]["data"] == str(home.settings.inbox_dir) and r["total_steps"] == TRAIN_STEPS
                    for r in chain)
@@ -152,7 +144,7 @@ def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, rec
         fast = chain[1]["id"]
 
         # it completes, the gate promotes the fast_loop and BrainService serves it
-        version = wait_for(lambda: _served(app, fast), 600, "the chain's fast_loop to be served", home)
+        version = wait_until(lambda: _served(app, fast), 600, "the chain's fast_loop to be served", home)
         assert version.startswith(f"{fast}@{TRAIN_STEPS}:")
         for r in _chain(app):
             assert r["state"] == "completed", r

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import pytest
 
+from test_app_handoff import make_client
+
 REPO = Path(__file__).resolve().parents[1]
 XR_SAMPLE = "history/continuonbrain/rlds/episodes/follow_user_mr_v2"
 SAFETY = {"content_rating": {"audience": "general", "violence": "none", "language": "clean"},
@@ -103,23 +105,6 @@ def lying_zip(real_size: int, declared: int) -> bytes:
 
 
 # -- the app ----------------------------------------------------------------------------------------
-
-def make_client(home: Path, upload_max_mb: int = 1):
-    from hope_models.settings import load_settings
-    from registry.db import Registry
-    from webapp import create_app
-    from webapp.auth import load_or_create_token
-
-    settings = load_settings(env={"HOPE_HOME": str(home), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": "",
-                                  "HOPE_UPLOAD_MAX_MB": str(upload_max_mb)})
-    token = load_or_create_token(settings)
-    registry = Registry.open(settings)
-    app, _ = create_app(settings, token=token, registry=registry)
-    c = app.test_client()
-    c.settings, c.token = settings, token
-    c.close = lambda: (app.extensions["hope"].close(), registry.close())
-    return c
-
 
 @pytest.fixture
 def client(tmp_path):
