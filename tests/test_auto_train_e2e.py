@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import secrets
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from daemon_fixtures import Home, Proc, free_port, wait_until
+from test_app_client_replay import DartClient
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -49,43 +49,16 @@ def app_record(episode_dir: Path, n: int) -> dict:
             "steps": steps, "task_classification": {"tasks": ["reach"]}}
 
 
-def multipart(fields: list[tuple[str, str]]) -> tuple[bytes, str]:
-    """http.MultipartRequest's body for text fields only (no asset files: the episode has none)."""
-    boundary = "dart-http-boundary-" + secrets.token_hex(26)[:51]
-    out = bytearray()
-    for name, value in fields:
-        out += (f'--{boundary}\r\ncontent-disposition: form-data; name="{name}"\r\n\r\n'.encode()
-                + value.encode("utf-8") + b"\r\n")
-    out += f"--{boundary}--\r\n".encode()
-    return bytes(out), f"multipart/form-data; boundary={boundary}"
-
-
-class App:
-    def __init__(self, port: int, token: str):
-        self.port, self.token = port, token
-
-    def send(self, method: str, path: str, body: bytes = b"", headers: dict | None = None):
-        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=60)
-        try:
-            hdrs = {"authorization": f"Bearer {self.token}", "content-length": str(len(body)), **(headers or {})}
-            conn.putrequest(method, path)
-            for k, v in hdrs.items():
-                conn.putheader(k, v)
-            conn.endheaders(body or None)
-            resp = conn.getresponse()
-            raw = resp.read()
-        finally:
-            conn.close()
-        return resp.status, (json.loads(raw) if raw else None)
+class App(DartClient):
+    """The app's client, on the wire as the replay test writes it; a call that is not 200 fails."""
 
     def get(self, path: str):
-        status, body = self.send("GET", path)
+        status, body = super().get(path)
         assert status == 200, (path, status, body)
         return body
 
-    def handoff(self, record: dict) -> dict:
-        body, ctype = multipart([("manifest", json.dumps(record, separators=(",", ":"))), ("assets", "[]")])
-        status, out = self.send("POST", "/api/training/episode_handoff", body, {"content-type": ctype})
+    def handoff(self, record: dict) -> dict:  # the record screen's episode here has no asset files
+        status, out = super().handoff(json.dumps(record, separators=(",", ":")), "[]", [])
         assert status == 200, (status, out)
         return out
 
@@ -149,7 +122,8 @@ def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, rec
         for r in _chain(app):
             assert r["state"] == "completed", r
         status, answer = app.send("POST", "/api/brain/infer", json.dumps(
-            {"component": "fast_loop", "observation": [0.1, -0.2, 0.0, 0.3, 0.05, -0.05]}).encode(), {"content-type": "application/json"})
+            {"component": "fast_loop", "observation": [0.1, -0.2, 0.0, 0.3, 0.05, -0.05]}).encode(),
+            {"content-type": "application/json", **app._headers()})
         assert status == 200 and answer["model_version"] == version, answer
 
         models = app.get("/api/v1/models")["models"]
