@@ -1,14 +1,17 @@
-"""`run_trainer.py sim-demos`: record reacher episodes (expert demonstrations) as canonical RLDS.
+"""`run_trainer.py sim-demos`: record reacher episodes (expert demonstrations or play) as canonical RLDS.
 
     run_trainer.py sim-demos --episodes 50 --out ~/datasets/reach50 [--task reach|track]
-        [--seed 100000] [--noise 1.0] [--frames] [--json]
+        [--seed 100000] [--policy expert|play] [--noise 1.0] [--frames] [--json]
 
 Episode i uses seed S+i (default S = 100000, away from eval-reflex's default held-out seeds 0..N-1).
 --noise SIGMA drives the env with the expert's action plus N(0, SIGMA^2) while the recorded
 action.command stays the expert's (DART); --frames adds a 64x64 top-down frame per step as
 blobs/step_NNNNNN_rgb.npy (needs MUJOCO_GL=egl, set automatically unless you set MUJOCO_GL).
+--policy play records play instead: smooth random exploration with no expert label (recorder.py,
+expert.PlayPolicy), episode ids <prefix>-<task>-play-s<seed>, tagged "play"; world models and the
+VQ-VAE learn from it, the fast_loop never clones it. --noise with play is a usage error.
 Exit 0 on success, 2 for a usage error (an episode dir that already exists, a bad value, frames
-without a GL backend).
+without a GL backend, --noise with --policy play).
 """
 from __future__ import annotations
 
@@ -32,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise", type=non_negative_float, default=0.0, metavar="SIGMA",
                         help="DART noise: std of the Gaussian added to the executed action (the recorded label stays "
                              "the expert's); 0 = none (default). 1.0 is the documented recipe")
+    parser.add_argument("--policy", choices=("expert", "play"), default="expert",
+                        help="expert: demonstrations (default); play: smooth random exploration without labels, "
+                             "for the world model and the VQ-VAE (the fast_loop never clones it)")
     parser.add_argument("--steps", type=positive_int, default=None,
                         help="steps per episode (default and maximum 1000 = 20 s; fewer for a quick look)")
     parser.add_argument("--frames", action="store_true", help="also store a 64x64 RGB frame per step (MUJOCO_GL=egl)")
@@ -42,6 +48,14 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.sim.recorder import DEFAULT_SEED_BASE, record_dataset
 
     seed = DEFAULT_SEED_BASE if args.seed is None else args.seed
+    play = args.policy == "play"
+    if play and args.noise:
+        msg = (f"--noise {args.noise:g} with --policy play: play has no expert label for DART noise to keep, "
+               "its executed command already is the exploration; drop --noise")
+        if args.json:
+            print(json.dumps({"ok": False, "error": msg}))
+        print(f"error: {msg}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
 
     def progress(rec) -> None:
@@ -50,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = record_dataset(args.out, args.episodes, seed=seed, task=args.task, frames=args.frames,
-                                noise=args.noise or None, progress=progress,
+                                noise=args.noise or None, progress=progress, policy="play" if play else None,
                                 **({} if args.steps is None else {"steps": args.steps}))
     except (FileExistsError, NotADirectoryError, ValueError, RuntimeError) as exc:
         if args.json:
@@ -62,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         "out": str(result.out_dir),
         "task": args.task,
         "seeds": [seed, seed + args.episodes - 1],
+        "policy": args.policy,
         "noise": args.noise,
         "frames": bool(args.frames),
         "mean_return": round(result.mean_return, 3),
@@ -72,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        print(f"recorded {len(result.episodes)} {args.task} episodes (seeds {seed}-{seed + args.episodes - 1}, "
+        kind = f"{args.task} play" if play else args.task
+        print(f"recorded {len(result.episodes)} {kind} episodes (seeds {seed}-{seed + args.episodes - 1}, "
               f"noise {args.noise:g}{', frames' if args.frames else ''}) into {result.out_dir}; "
               f"mean return {result.mean_return:.1f}")
     return 0

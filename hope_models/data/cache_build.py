@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from hope_models.data.dataset_cache import CACHE_FORMAT, CacheError
+from hope_models.data.dataset_cache import CACHE_FORMAT, CacheError, is_play_episode
 from hope_models.data.dataset_spec import infer_dataset_spec
 from hope_models.data.extract import EpisodeMismatch, blob_frames, field_matrix, group_matrix
 from hope_models.data.features import FeatureSpec
@@ -147,6 +147,7 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
     obs_stats, act_stats = RunningStats(spec.obs_dim), RunningStats(spec.act_dim)
     offsets = [0]
     imagined: list[bool] = []
+    play: list[bool] = []
     episodes: list[dict[str, Any]] = []
     excluded: list[Excluded] = []
     seen: dict[str, str] = {}
@@ -180,12 +181,15 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
                     offsets.append(offsets[-1] + len(t))
                     is_imagined = ep.is_imagined
                     imagined.append(is_imagined)
+                    is_play = is_play_episode(ep.metadata, ep.steps)
+                    play.append(is_play)
                     dt = np.diff(t)
                     episodes.append({
                         "episode_id": ep.episode_id, "source": ep.source, "steps": len(t),
                         "duration_s": float(t[-1]),
                         "rate_hz": round(1.0 / float(np.median(dt)), 2) if dt.size and np.median(dt) > 0 else None,
                         "imagined": is_imagined,
+                        "play": is_play,
                         "origin": _origin(ep.metadata),
                     })
     finally:
@@ -202,6 +206,7 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
     _write_json(tmp / "episodes.json", episodes)
     _save_npy(tmp / "offsets.npy", np.asarray(offsets, dtype=np.int64))
     _save_npy(tmp / "imagined.npy", np.asarray(imagined, dtype=bool))
+    _save_npy(tmp / "play.npy", np.asarray(play, dtype=bool))
     arrays = {
         "steps": {"file": "steps.bin", "dtype": "<f4", "shape": [n, spec.obs_dim + spec.act_dim]},
         "t": {"file": "t.bin", "dtype": "<f8", "shape": [n]},
@@ -209,7 +214,7 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
     if spec.frame is not None:
         arrays["frames"] = {"file": "frames.bin", "dtype": "|u1", "shape": [n, *spec.frame.shape]}
     return {"steps": n, "episodes": len(episodes), "obs_dim": spec.obs_dim, "act_dim": spec.act_dim,
-            "imagined_episodes": int(sum(imagined)), "arrays": arrays,
+            "imagined_episodes": int(sum(imagined)), "play_episodes": int(sum(play)), "arrays": arrays,
             "excluded": [e.as_dict() for e in excluded]}
 
 

@@ -7,13 +7,21 @@ cache (load_or_build), cache_build.py writes one.
 Layout of <cache_root>/<key>/:
     manifest.json   counts, dims, array shapes/dtypes, excluded episodes, fingerprints, build time
     spec.json       the feature spec with normalisation statistics
-    episodes.json   one entry per included episode: id, source, steps, duration, rate, imagined
+    episodes.json   one entry per included episode: id, source, steps, duration, rate, imagined, play
     steps.bin float32 [N, D_obs + D_act]  observation then action columns of each step; `obs`
                           and `act` are column views of it, so a window is one gather, not two
     t.bin    float64 [N]  seconds since the episode's first step
     frames.bin uint8 [N, H, W, 3]  only when the spec has a frame feature (inline floats or .npy
                           frame blobs, loaded step by step during the build; see frames.py)
-    offsets.npy int64 [E+1]   imagined.npy bool [E]
+    offsets.npy int64 [E+1]   imagined.npy bool [E]   play.npy bool [E]
+
+Play episodes (is_play_episode) are unlabeled exploration: their actions are what was executed,
+not what an expert would do, so world models and the VQ-VAE learn from them while behaviour
+cloning (the fast_loop) must not (sampler.AnchorSampler's exclude_play). An episode is play when
+its producer says so in the metadata: the tag "play" (the documented mark, docs/rlds.md; a real
+robot's producer sets it), or provenance.sim.policy "play" (sim-demos --policy play), or when
+every step's action.source is "sim_play" or "play". The metadata marks win because a producer
+writes them once per episode; the per-step rule only catches copies whose metadata lost them.
 """
 from __future__ import annotations
 
@@ -28,7 +36,11 @@ import numpy as np
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 
-CACHE_FORMAT = "hope.dataset_cache/5"  # 5: frame blobs (inference may now choose a frame it did not before)
+# 5: frame blobs (inference may now choose a frame it did not before); 6: play.npy. A format change
+# changes every cache key (cache.cache_key), so older caches are rebuilt, never read without play.npy.
+CACHE_FORMAT = "hope.dataset_cache/6"
+PLAY_TAG = "play"
+PLAY_SOURCES = ("sim_play", "play")  # action.source values of play steps
 DEFAULT_RESIDENT_BUDGET_MB = 64  # step arrays larger than this are read with pread, not mapped
 
 
@@ -54,6 +66,7 @@ class DatasetCache:
             self.episodes: list[dict[str, Any]] = json.loads((self.path / "episodes.json").read_text(encoding="utf-8"))
             self.offsets = np.load(self.path / "offsets.npy", allow_pickle=False)
             self.imagined = np.load(self.path / "imagined.npy", allow_pickle=False)
+            self.play = np.load(self.path / "play.npy", allow_pickle=False)
         except (OSError, ValueError, KeyError, FeatureSpecError) as exc:
             raise CacheError(f"{self.path}: not a readable dataset cache: {exc}") from None
         if self.manifest.get("format") != CACHE_FORMAT:
@@ -61,7 +74,8 @@ class DatasetCache:
         self.n_steps = int(self.manifest["steps"])
         self.n_episodes = int(self.manifest["episodes"])
         if (self.offsets.shape != (self.n_episodes + 1,) or int(self.offsets[-1]) != self.n_steps
-                or self.imagined.shape != (self.n_episodes,) or len(self.episodes) != self.n_episodes):
+                or self.imagined.shape != (self.n_episodes,) or self.play.shape != (self.n_episodes,)
+                or len(self.episodes) != self.n_episodes):
             raise CacheError(f"{self.path}: episode tables disagree with the manifest")
         self._files: dict[str, Any] = {}
         self.x = self._map("steps")
@@ -167,6 +181,20 @@ class DatasetCache:
                     worst = max(worst, int((i - j + (j >= 0)).max(initial=1)))
             self._block_rows[key] = worst
         return self._block_rows[key]
+
+
+def is_play_episode(metadata: dict[str, Any], steps: Any = ()) -> bool:
+    """Whether an episode is play (unlabeled exploration); the rule is in the module doc."""
+    tags = metadata.get("tags")
+    if isinstance(tags, list) and any(isinstance(t, str) and t.strip().lower() == PLAY_TAG for t in tags):
+        return True
+    provenance = metadata.get("provenance")
+    sim = provenance.get("sim") if isinstance(provenance, dict) else None
+    if isinstance(sim, dict) and sim.get("policy") == "play":
+        return True
+    actions = [getattr(s, "action", None) for s in steps]
+    sources = [a.get("source") if isinstance(a, dict) else None for a in actions]
+    return bool(sources) and all(src in PLAY_SOURCES for src in sources)
 
 
 # A step stamped within a microsecond after a grid time counts as "at" it: grid times are computed

@@ -8,6 +8,10 @@ position is its cursor, and `state_dict()`/`load_state_dict()` carry it in a che
 Each pool is an int32 array of its eligible step indices plus one shuffled copy per epoch, 8 bytes
 per step in all; the sampler never touches the dataset itself.
 
+exclude_play drops play episodes (unlabeled exploration, dataset_cache.is_play_episode) from both
+pools: a component that clones the recorded actions (the fast_loop) must never see them as targets.
+A dataset with nothing but play then has nothing to clone, and the sampler says so.
+
 The validation split is by episode: an episode is in it when the hash of its id falls under
 `val_fraction`, so adding episodes never moves existing ones between splits.
 """
@@ -86,7 +90,7 @@ class _Pool:
 class AnchorSampler:
     def __init__(self, cache: DatasetCache, batch_size: int, seed: int = 0, imagined_ratio: float = 0.0,
                  split: str = "train", val_fraction: float = 0.1, min_history_s: float = 0.0,
-                 horizon_s: float = 0.0, shuffle: bool = True):
+                 horizon_s: float = 0.0, shuffle: bool = True, exclude_play: bool = False):
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size={batch_size!r} must be a positive integer")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -107,15 +111,25 @@ class AnchorSampler:
         self.min_history_s = float(min_history_s)
         self.horizon_s = float(horizon_s)
         self.shuffle = shuffle
+        self.exclude_play = bool(exclude_play)
         self.cursor = 0
+        if self.exclude_play and cache.n_episodes and bool(cache.play.all()):
+            data = cache.manifest.get("dataset_dir") or cache.path.name
+            raise ValueError(f"{data}: all {cache.n_episodes} episodes are play (unlabeled exploration); "
+                             "the fast_loop clones expert actions and needs demonstrations (record them with "
+                             "sim-demos --policy expert, or train mid_loop/vqvae on play)")
         episodes = split_episodes(cache, split, self.val_fraction)
+        n_play = int(cache.play[episodes].sum())
+        if self.exclude_play:
+            episodes = episodes[~cache.play[episodes]]
         starts, lengths = self._eligible(episodes)
         flags = cache.imagined[episodes]
         key = [seed, SPLITS[split]]
         self.real = _Pool(starts[~flags], lengths[~flags], key + [0], shuffle)
         self.imagined = _Pool(starts[flags], lengths[flags], key + [1], shuffle)
         n_imag_eps = int(flags.sum())
-        where = f"the {split} split of {cache.path.name} ({len(episodes)} episodes, {n_imag_eps} imagined)"
+        skipped = f", {n_play} play episodes excluded" if self.exclude_play and n_play else ""
+        where = f"the {split} split of {cache.path.name} ({len(episodes)} episodes, {n_imag_eps} imagined{skipped})"
         if self.ratio > 0 and self.imagined.size == 0:
             raise ValueError(f"imagined_ratio={imagined_ratio} asks for imagined episodes, but {where} has no "
                              "imagined anchors")
@@ -168,6 +182,8 @@ class AnchorSampler:
 
     # -- resume ---------------------------------------------------------------------------------
     def _config(self) -> dict:
+        # exclude_play is not a key of its own: the pool sizes and the cache fingerprint pin the
+        # pools, and a new key would refuse every checkpoint saved before it existed
         return {"seed": self.seed, "batch_size": self.batch_size, "imagined_ratio": str(self.ratio),
                 "split": self.split, "val_fraction": self.val_fraction, "min_history_s": self.min_history_s,
                 "horizon_s": self.horizon_s, "shuffle": self.shuffle,

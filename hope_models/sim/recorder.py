@@ -2,9 +2,9 @@
 
     paths = record_episodes("datasets/reach50", episodes=50, seed=100000, task="reach", noise=0.3)
 
-Episode i runs the task with seed `seed + i` under `policy` (default: the expert) and is written as
-<out_dir>/<episode_id>/ (metadata.json, steps/000000.jsonl, blobs/ with frames). One step per
-20 ms control step, 1000 steps:
+Episode i runs the task with seed `seed + i` under `policy` (default: the expert; "play" for
+play, below) and is written as <out_dir>/<episode_id>/ (metadata.json, steps/000000.jsonl, blobs/
+with frames). One step per 20 ms control step, 1000 steps:
 
     step_index, timestamp_ns = index x 20 000 000 (relative clock, starts at 0)
     observation  = the reacher observation block (reacher.py: robot_state.joint_positions[2],
@@ -12,7 +12,7 @@ Episode i runs the task with seed `seed + i` under `policy` (default: the expert
                    (+ media.rgb = {"uri": "blobs/step_NNNNNN_rgb.npy", "width": 64, "height": 64,
                    "format": "npy_uint8_hwc"} with frames: that observation's 64x64 top-down frame)
     action       = {"command": [shoulder, wrist] (the label: the policy's action in [-1, 1]),
-                    "source": "sim_expert" | "sim_policy"
+                    "source": "sim_expert" | "sim_policy" | "sim_play"
                     (+ "executed_command": what was actually applied, when noise is on)}
     reward       = the reward received for this step's transition (1 on target, else 0)
     is_terminal  = True on the last step only
@@ -22,6 +22,13 @@ clip(label + N(0, sigma^2)) while the recorded action.command stays the policy's
 at the observed state. The demos then cover the states a slightly wrong policy drifts into, each
 labelled with the expert's correction, which is what makes behaviour cloning robust in closed loop.
 The noise RNG is seeded from the episode seed, so recording is deterministic.
+
+Play (policy="play", expert.PlayPolicy seeded with the episode seed): smooth random exploration
+with no expert label. action.command is the command actually executed (there is nothing else to
+record), action.source and control_role are "sim_play", provenance.sim.policy is "play", the tags
+end with "play" and the episode id is <prefix>-<task>-play-s<seed>, so play and demos of the same
+seed never clash. The dataset cache marks such episodes (dataset_cache.is_play_episode) and the
+fast_loop never clones them; noise is refused (the executed command already is the noise).
 
 Metadata: schema_version "1.1", robot_model "dmc-reacher", environment_id "dm_control/reacher-<task>",
 provenance.origin = `origin` ("sim:dm_control"), provenance.sim = {task, seed, control_period_s,
@@ -138,16 +145,20 @@ def sim_metadata(ep_id: str, task: str, source: str, tags: Sequence[str], softwa
     }
 
 
-def episode_id_for(prefix: str, task: str, seed: int) -> str:
-    return safe_episode_id(f"{prefix}-{task}-s{seed:06d}")
+def episode_id_for(prefix: str, task: str, seed: int, play: bool = False) -> str:
+    return safe_episode_id(f"{prefix}-{task}{'-play' if play else ''}-s{seed:06d}")
+
+
+def _is_play(policy) -> bool:
+    return isinstance(policy, str) and policy == "play"
 
 
 def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, noise: float | None = None,
                    origin: str = DEFAULT_ORIGIN, tags: Sequence[str] = (), episode_id: str | None = None,
                    frame_dir: str | Path | None = None, steps: int = EPISODE_STEPS) -> tuple[Episode, float]:
     """One episode as an in-memory canonical Episode (frames saved under frame_dir/blobs/), and its
-    return (the sum of the rewards of the executed actions)."""
-    from hope_models.sim.expert import ExpertController
+    return (the sum of the rewards of the executed actions). policy="play" records play."""
+    from hope_models.sim.expert import ExpertController, PlayPolicy
 
     if noise is not None and (not np.isfinite(noise) or noise < 0):
         raise ValueError(f"noise={noise} must be a non-negative standard deviation (action units)")
@@ -155,7 +166,13 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
         raise ValueError("frames=True needs frame_dir, where the .npy frames are written before the episode dir")
     if not 1 <= steps <= EPISODE_STEPS:
         raise ValueError(f"steps={steps} must be within 1-{EPISODE_STEPS}")
-    policy = policy if policy is not None else ExpertController()
+    play = _is_play(policy)
+    if isinstance(policy, str) and not play:
+        raise ValueError(f"policy={policy!r} is not a policy object or 'play'")
+    if play and noise:
+        raise ValueError(f"noise={noise}: play has no expert label to keep, its executed command is the "
+                         "exploration; record play without noise")
+    policy = PlayPolicy(seed) if play else policy if policy is not None else ExpertController()
     is_expert = isinstance(policy, ExpertController)
     noisy = bool(noise)
     env = make_env(task, seed, frames=frames)
@@ -171,11 +188,12 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
         executed = np.clip(label + rng.normal(0.0, noise, label.shape), env.action_low, env.action_high)
         return label, executed, {"executed_command": [float(v) for v in executed]}, {}
 
-    source = "sim_expert" if is_expert else "sim_policy"
+    source = "sim_play" if play else "sim_expert" if is_expert else "sim_policy"
     out, total = rollout(env, obs, choose, source, steps, frame_dir if frames else None)
-    ep_id = episode_id or episode_id_for("dmc-reacher", task, seed)
+    ep_id = episode_id or episode_id_for("dmc-reacher", task, seed, play)
     policy_name = getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__)
-    metadata = sim_metadata(ep_id, task, source, [*tags] + (["dart_noise"] if noisy else []),
+    extra_tags = (["dart_noise"] if noisy else []) + (["play"] if play else [])
+    metadata = sim_metadata(ep_id, task, source, [*tags, *extra_tags],
                             software_versions("recorder", "hope_models.sim.recorder"), len(out), {
                                 "origin": origin,
                                 "sim": {"domain": "reacher", "task": task, "seed": int(seed),
@@ -195,7 +213,7 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
                    progress: Callable[[RecordedEpisode], None] | None = None,
                    steps: int = EPISODE_STEPS) -> RecordResult:
     """record_episodes with the per-episode returns (see the module doc); `steps` shortens the
-    episodes (smoke tests), the default is the full 1000."""
+    episodes (smoke tests), the default is the full 1000. policy="play" records play episodes."""
     if task not in TASKS:
         raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
@@ -205,7 +223,9 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise NotADirectoryError(f"{out}: exists and is not a directory")
-    ids = [episode_id_for(episode_id_prefix, task, seed + i) for i in range(episodes)]
+    if _is_play(policy) and noise:
+        raise ValueError(f"noise={noise}: play episodes are recorded without noise")
+    ids = [episode_id_for(episode_id_prefix, task, seed + i, _is_play(policy)) for i in range(episodes)]
     taken = [i for i in ids if (out / i).exists()]
     if taken:
         raise FileExistsError(f"{out / taken[0]}: episode dir already exists ({len(taken)} of the {episodes} "

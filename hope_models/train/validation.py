@@ -66,14 +66,16 @@ _DEFAULTS = {f.name: f.default for f in fields(TrainConfig) if f.name in VALIDAT
 
 def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, imagined_ratio: float,
                    val_fraction: float):
-    """The AnchorSampler the trainer draws `split` ("train", "val", "all") from for this component."""
+    """The AnchorSampler the trainer draws `split` ("train", "val", "all") from for this component.
+    A component that clones the recorded actions (`clones_actions`, the fast_loop) never draws
+    from play episodes: their actions are exploration, not labels."""
     from hope_models.data.sampler import AnchorSampler
 
     win = component.window
     horizon = getattr(component, "horizon_s", max(win.horizons_s, default=0.0))
     return AnchorSampler(cache, batch_size, seed=seed, imagined_ratio=imagined_ratio, split=split,
                          val_fraction=val_fraction, min_history_s=float(getattr(component, "min_history_s", 0.0)),
-                         horizon_s=float(horizon))
+                         horizon_s=float(horizon), exclude_play=bool(getattr(component, "clones_actions", False)))
 
 
 def validation_metrics(component, cache, setup: ValidationSetup, *, anchors_from=None) -> dict[str, float]:
