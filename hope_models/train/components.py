@@ -154,6 +154,7 @@ class VQVAEComponent(_Component):
 
 class FastLoopComponent(_Component):
     name = "fast_loop"
+    clones_actions = True  # behaviour cloning: play episodes' actions are no labels (validation.anchor_sampler)
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
         pred = self._model(_tensor(batch.obs), _tensor(batch.mask), self._frames(batch))
