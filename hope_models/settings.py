@@ -54,6 +54,10 @@ class Settings:
     gate_val_tolerance: float = 0.05  # candidate val loss may be at most this fraction above the promoted one's
     gate_reflex_tolerance: float = 50.0  # sim reflex: mean return may be at most this many points below
     gate_reflex_episodes: int = 5  # held-out reacher seeds the reflex check runs
+    # baselines (gate.py, check 3): a vqvae keeps at least 1 - this share of the held-out variance;
+    # a mid_loop's predicted observation has at least this much lower error than copy-last
+    gate_vqvae_max_nmse: float = 0.05
+    gate_mid_loop_min_gain: float = 0.30
     # a full disk (hope_models/disk.py, daemon/disk_guard.py): free MB under home a job needs before
     # the daemon dispatches it (0 = its checkpoint size x (keep_last + 2) + 200 MB), and how many
     # finished runs keep their run dirs (0 = keep all; promoted and pinned runs are always kept)
@@ -107,6 +111,8 @@ _ENV = {
     "HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance",
     "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
+    "HOPE_GATE_VQVAE_MAX_NMSE": "gate_vqvae_max_nmse",
+    "HOPE_GATE_MID_LOOP_MIN_GAIN": "gate_mid_loop_min_gain",
     "HOPE_DISK_FLOOR_MB": "disk_floor_mb",
     "HOPE_KEEP_RUNS": "keep_runs",
     "HOPE_INBOX": "inbox_dataset",
@@ -122,6 +128,7 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
+            "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
             "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
             "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
 # list settings whose items never contain a path separator are split on commas and blanks instead

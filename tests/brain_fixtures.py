@@ -65,7 +65,7 @@ def _build_runs(root: Path) -> None:
         runs = {"alpha30": alpha30, "alpha15": alpha30.parent / "00000015"}
         runs["big"] = _train(root / "ds6", root / "runs" / "big", cache, "fast_loop", 10, 10, {})
         runs["vq"] = _train(root / "ds6", root / "runs" / "vq", cache, "vqvae", 20, 20,
-                            {"n_codes": 16, "code_dim": 8, "hidden": 16})
+                            {"n_codes": 16, "code_dim": 8, "groups": 2, "hidden": 16})
         runs["alpha_vq"] = _train(root / "ds6", root / "runs" / "alpha_vq", cache, "fast_loop", 20, 20, SMALL,
                                   vqvae_dir=runs["vq"])
         runs["other"] = _train(root / "ds8", root / "runs" / "other", cache, "fast_loop", 10, 10, SMALL)

@@ -74,7 +74,7 @@ def trained(tmp_path_factory):
         assert r.outcome == "completed", r.message
         return root / name, r
 
-    vq, vq_result = run("vq", "vqvae", 20, {"n_codes": 16, "code_dim": 8, "hidden": 16})
+    vq, vq_result = run("vq", "vqvae", 20, {"n_codes": 16, "code_dim": 8, "groups": 2, "hidden": 16})
     small = {"d_model": 16, "d_state": 16, "n_layers": 1}
     mid20, _ = run("mid20", "mid_loop", 20, small, vq_result.checkpoint)
     mid40, _ = run("mid40", "mid_loop", 40, small, vq_result.checkpoint)
@@ -182,10 +182,13 @@ def test_surprise_and_curiosity_are_the_mid_loops_validation_cross_entropy(api, 
     body = api.get("/api/training/metrics").get_json()
     dart_metrics(body)
     assert body["surprise"] == pytest.approx(val_loss(trained["mid40"]), rel=1e-12)
-    assert body["curiosity"] == pytest.approx(val_loss(trained["mid40"]) / math.log(16), rel=1e-12)
+    # two groups of 16 codes: an observation's code is one of 16 ** 2
+    assert body["curiosity"] == pytest.approx(val_loss(trained["mid40"]) / (2 * math.log(16)), rel=1e-12)
     assert body["surprise_source"]["run_id"] == new and body["surprise_source"]["n_codes"] == 16
+    assert body["surprise_source"]["code_groups"] == 2
     hist = body["curiosity_history"]
-    assert [p["value"] for p in hist] == pytest.approx([val_loss(trained[k]) / math.log(16) for k in ("mid20", "mid40")])
+    assert [p["value"] for p in hist] == pytest.approx([val_loss(trained[k]) / (2 * math.log(16))
+                                                        for k in ("mid20", "mid40")])
     assert old in hist[0]["label"] and new in hist[1]["label"]
     assert hist[0]["timestamp"] == (T0 + timedelta(minutes=5)).isoformat()
     # a trained, held-out number: positive, and near chance after a few steps on random-ish codes

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from hope_models.data.cache import load_or_build
-from hope_models.data.sampler import AnchorSampler, is_validation_episode, split_episodes
+from hope_models.data.sampler import (
+    MIN_VAL_EPISODES, AnchorSampler, is_validation_episode, split_episodes, validation_mask,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -89,13 +91,26 @@ def test_validation_split_is_by_episode_and_deterministic(mixed):
     train = set(split_episodes(mixed, "train", 0.2).tolist())
     val = set(split_episodes(mixed, "val", 0.2).tolist())
     assert train and val and not train & val and train | val == set(range(mixed.n_episodes))
-    assert val == {e for e, eid in enumerate(mixed.episode_ids) if is_validation_episode(eid, 0.2)}
+    assert val == set(np.flatnonzero(validation_mask(mixed.episode_ids, 0.2)).tolist())
     s = AnchorSampler(mixed, 32, seed=0, split="val", val_fraction=0.2)
     eps = set(mixed.episode_of(np.concatenate([s.next_batch() for _ in range(20)])).tolist())
     assert eps <= val
     # membership depends on the id alone, so adding episodes never moves existing ones
     assert is_validation_episode("ep_00003_10hz", 0.2) == is_validation_episode("ep_00003_10hz", 0.2)
     assert sum(is_validation_episode(f"episode-{i}", 0.2) for i in range(2000)) == pytest.approx(400, abs=60)
+
+
+def test_a_small_dataset_holds_out_at_least_three_episodes_and_growth_only_moves_them_to_training():
+    ids = [f"demo-{i}" for i in range(10)]
+    hashed = [is_validation_episode(e, 0.1) for e in ids]
+    val = validation_mask(ids, 0.1)
+    assert int(val.sum()) == max(MIN_VAL_EPISODES, sum(hashed)) and all(val[i] for i, h in enumerate(hashed) if h)
+    assert int(validation_mask(ids[:5], 0.1).sum()) >= 1  # a third of 5
+    assert not validation_mask(ids, 0.0).any()  # no validation asked for: none
+    grown = [f"demo-{i}" for i in range(200)]
+    big = validation_mask(grown, 0.1)
+    for i in range(10):  # an episode held out of the big set was held out of the small one too
+        assert not big[i] or val[i]
 
 
 def test_min_history_and_horizon_restrict_anchors(mixed):

@@ -1,11 +1,14 @@
 """Fast and Mid Loop models: window forward vs one-tick stepping, masks, action shifting, targets."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from hope_models.models.fast_loop import FastLoop, FastLoopConfig
-from hope_models.models.mid_loop import MidLoop, MidLoopConfig, mid_loop_loss, previous_actions
+from hope_models.models.mid_loop import MidLoop, MidLoopConfig, previous_actions
+from hope_models.models.mid_loop_metrics import mid_loop_loss
 from hope_models.models.ssm import count_params
 from hope_models.models.vqvae import VQVAE, VQVAEConfig
 
@@ -16,7 +19,7 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def _trained_looking_vq(**kw) -> VQVAE:
-    vq = VQVAE(VQVAEConfig(**{"obs_dim": 20, "n_codes": 16, "code_dim": 8, "hidden": 32, **kw}))
+    vq = VQVAE(VQVAEConfig(**{"obs_dim": 20, "n_codes": 16, "code_dim": 8, "hidden": 32, "groups": 1, **kw}))
     x = (torch.randint(0, 256, (64, *vq.cfg.frame_shape), dtype=torch.uint8) if vq.cfg.input == "frame"
          else torch.randn(64, 20))
     vq(x, init_codebook=True)  # a seeded codebook, so codes vary
@@ -178,47 +181,95 @@ def test_previous_actions_drop_the_anchors_own_action():
 
 def test_mid_loop_stepping_gives_forwards_logits_at_every_point():
     torch.manual_seed(4)
-    vq = _trained_looking_vq()
-    model = MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2, 4)), vq)
-    codes = torch.randint(0, 16, (3, 20))
+    vq = _trained_looking_vq(groups=2)
+    model = MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2, 4)), vq).eval()  # eval: no dropout
+    codes = torch.randint(0, 16, (3, 20, 2))
     prev = previous_actions(torch.randn(3, 20, 6))
     logits = model(codes, prev, torch.ones(3, 20, dtype=torch.bool))
-    assert logits.shape == (3, 20, 2, 16)
+    assert logits.shape == (3, 20, 2, 2, 16)
     state = model.init_state(3)
     for t in range(20):
         step_logits, state = model.step(codes[:, t], prev[:, t], state)
         assert (step_logits - logits[:, t]).abs().max().item() < TOL
 
 
+def _mid(horizons=(2,), n_codes=8, groups=1):
+    vq = _trained_looking_vq(n_codes=n_codes, groups=groups, code_dim=8)
+    return MidLoop(MidLoopConfig(act_dim=6, n_codes=n_codes, horizon_steps=horizons), vq).eval()
+
+
 def test_mid_loop_targets_and_copy_last_baseline_by_hand():
-    codes = torch.tensor([[0, 1, 2, 3, 4, 5]])
+    model = _mid()
+    codes = torch.tensor([[0, 1, 2, 3, 4, 5]])[..., None]  # [B, K, G=1]
     mask = torch.ones(1, 6, dtype=torch.bool)
     # perfect logits for horizon 2: the code two points later
-    logits = torch.full((1, 6, 1, 8), -20.0)
+    logits = torch.full((1, 6, 1, 1, 8), -20.0)
     for k in range(4):
-        logits[0, k, 0, codes[0, k + 2]] = 20.0
-    loss, m = mid_loop_loss(logits, codes, mask, (2,))
-    assert m["targets"] == 4 and m["window_targets"] == 4
+        logits[0, k, 0, 0, codes[0, k + 2, 0]] = 20.0
+    loss, m = mid_loop_loss(model, logits, codes, mask, training=False)
+    assert m["targets"] == 4
     assert m["accuracy"] == 1.0 and m["copy_last_accuracy"] == 0.0 and loss.item() < 1e-6
 
-    still = torch.full((1, 6), 7)  # nothing changes: copying the last code is always right
-    _, m = mid_loop_loss(logits, still, mask, (2,))
+    still = torch.full((1, 6, 1), 7)  # nothing changes: copying the last code is always right
+    _, m = mid_loop_loss(model, logits, still, mask, training=False)
     assert m["copy_last_accuracy"] == 1.0 and m["accuracy"] == 0.0
 
     masked = torch.tensor([[False, False, True, True, True, True]])  # window starts before the episode
-    _, m = mid_loop_loss(logits, codes, masked, (2,))
+    _, m = mid_loop_loss(model, logits, codes, masked, training=False)
     assert m["targets"] == 2  # only points 2 and 3 (targets 4 and 5) are real pairs
 
     # beyond the window: the anchor's future code, where the episode still runs
-    future = torch.tensor([[7, 9]])
-    logits2 = torch.zeros(1, 6, 2, 10)
-    logits2[0, -1, 0, 7] = 5.0
-    _, m = mid_loop_loss(logits2, codes, mask, (10, 20), future, torch.tensor([[True, False]]))
-    assert m["window_targets"] == 0 and m["targets"] == 1
+    model2 = _mid(horizons=(10, 20), n_codes=10)
+    future = torch.tensor([[7, 9]])[..., None]
+    logits2 = torch.zeros(1, 6, 2, 1, 10)
+    logits2[0, -1, 0, 0, 7] = 5.0
+    _, m = mid_loop_loss(model2, logits2, codes, mask, future_codes=future,
+                         future_mask=torch.tensor([[True, False]]), training=False)
+    assert m["targets"] == 1
     assert m["anchor_accuracy"] == 1.0 and m["anchor_copy_last_accuracy"] == 0.0
     # no target at all (window shorter than the horizons, no futures): a zero loss, not a crash
     empty = logits2.clone().requires_grad_(True)
-    loss, m = mid_loop_loss(empty, codes, mask, (10, 20))
+    loss, m = mid_loop_loss(model2, empty, codes, mask, training=False)
     assert loss.item() == 0.0 and m["targets"] == 0
     loss.backward()
     assert empty.grad is not None and (empty.grad == 0).all()
+
+
+def test_mid_loop_baselines_are_counted_on_training_targets_only():
+    """copy-last: P(stay) from the training targets' stays, the rest spread over the other codes;
+    code frequency: Laplace-smoothed training frequencies. Evaluation never changes the counts."""
+    model = _mid(n_codes=4)
+    codes = torch.tensor([[0, 0, 0, 1, 1, 2]])[..., None]  # horizon 2 pairs: (0,0) (0,1) (0,1) (1,2)
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    logits = torch.zeros(1, 6, 1, 1, 4)  # uniform: nll = ln 4 per target
+    loss, m = mid_loop_loss(model, logits, codes, mask, training=True)
+    assert model.stay_counts[0, 0].tolist() == [3.0, 1.0]  # [changed, stayed]
+    assert model.code_counts[0].tolist() == [1.0, 2.0, 1.0, 0.0]  # targets 0, 1, 1, 2
+    assert abs(loss.item() - math.log(4)) < 1e-6
+    before = (model.stay_counts.clone(), model.code_counts.clone())
+    _, m = mid_loop_loss(model, logits, codes, mask, training=False)
+    assert torch.equal(model.stay_counts, before[0]) and torch.equal(model.code_counts, before[1])
+    p_stay = (1 + 1) / (4 + 2)  # Laplace over [changed, stayed]
+    copy = [p_stay, (1 - p_stay) / 3, (1 - p_stay) / 3, (1 - p_stay) / 3]
+    freq = [(c + 1) / (4 + 4) for c in (1, 2, 2, 1)]  # P(target) of targets 0, 1, 1, 2
+    assert abs(m["copy_last_nll"] - sum(-math.log(p) for p in copy) / 4) < 1e-5
+    assert abs(m["code_freq_nll"] - sum(-math.log(p) for p in freq) / 4) < 1e-5
+    assert abs(m["nll"] - math.log(4)) < 1e-6 and "nll_2steps" in m
+
+
+def test_mid_loop_decoded_prediction_against_copy_last_observation():
+    """obs_mse is the error of the expected decoded observation; copy_last_obs_mse the error of the
+    real current observation; with one-hot logits the prediction is that code's reconstruction."""
+    model = _mid(n_codes=8)
+    obs = torch.randn(1, 6, 20)
+    codes = model.codes(obs)
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    logits = torch.full((1, 6, 1, 1, 8), -30.0)
+    for k in range(4):
+        logits[0, k, 0, 0, codes[0, k + 2, 0]] = 30.0
+    _, m = mid_loop_loss(model, logits, codes, mask, obs=obs, training=False)
+    recon = model.vqvae.decode(codes[0, 2:])
+    assert abs(m["obs_mse"] - float(((recon - obs[0, 2:]) ** 2).mean())) < 1e-5
+    assert abs(m["copy_last_obs_mse"] - float(((obs[0, :4] - obs[0, 2:]) ** 2).mean())) < 1e-5
+    _, m = mid_loop_loss(model, logits, codes, mask, obs=obs, training=True)
+    assert "obs_mse" not in m  # training batches skip the decoding

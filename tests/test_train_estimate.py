@@ -268,7 +268,7 @@ def test_the_layers_from_a_config_are_the_layers_of_the_model_built_from_it(fram
                        FeatureGroup([FeatureField("action.command", 3)]),
                        FrameFeature("observation.rgb", (64, 64, 3)) if frames else None)
     vq = resolve("vqvae", spec, {"channels": 8, "n_codes": 16, "hidden": 40}).cfg
-    cases = [("vqvae", {"channels": 4, "code_dim": 8}, None), ("vqvae", {}, None),
+    cases = [("vqvae", {"channels": 4, "code_dim": 8, "groups": 2}, None), ("vqvae", {}, None),
              ("fast_loop", {"d_model": 24, "d_state": 12}, None), ("fast_loop", {"window": {"k": 3}}, vq),
              ("mid_loop", {"n_layers": 3, "d_model": 16, "mlp_ratio": 3}, vq), ("mid_loop", {}, vq)]
     for name, model_config, vq_cfg in cases:

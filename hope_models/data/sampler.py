@@ -13,7 +13,12 @@ pools: a component that clones the recorded actions (the fast_loop) must never s
 A dataset with nothing but play then has nothing to clone, and the sampler says so.
 
 The validation split is by episode: an episode is in it when the hash of its id falls under
-`val_fraction`, so adding episodes never moves existing ones between splits.
+`val_fraction`, so adding episodes never moves an existing one from training into validation
+(a model is never validated on an episode an earlier model of the same data trained on). A small
+dataset gets a floor: at least min(MIN_VAL_EPISODES, a third of its episodes) are held out, the ones
+with the smallest hashes, because a "validation" of one episode decides nothing (10 demos at 0.1
+would otherwise hold out 0-2, often 1). Adding episodes can only move a floor episode back into
+training, never the other way.
 """
 from __future__ import annotations
 
@@ -30,9 +35,26 @@ SPLITS = {"train": 0, "val": 1, "all": 2}
 _EPS = 1e-6
 
 
+MIN_VAL_EPISODES = 3
+
+
+def _episode_hash(episode_id: str) -> float:
+    return int.from_bytes(hashlib.sha256(episode_id.encode("utf-8")).digest()[:8], "big") / 2**64
+
+
 def is_validation_episode(episode_id: str, val_fraction: float) -> bool:
-    h = int.from_bytes(hashlib.sha256(episode_id.encode("utf-8")).digest()[:8], "big")
-    return h / 2**64 < val_fraction
+    """The hash rule alone (validation_mask adds the small-dataset floor)."""
+    return _episode_hash(episode_id) < val_fraction
+
+
+def validation_mask(episode_ids, val_fraction: float) -> np.ndarray:
+    """bool [E]: which episodes are held out (the hash rule plus the floor of the module doc)."""
+    hashes = np.array([_episode_hash(e) for e in episode_ids], dtype=np.float64)
+    val = hashes < val_fraction
+    floor = min(MIN_VAL_EPISODES, len(hashes) // 3) if val_fraction > 0 else 0
+    if int(val.sum()) < floor:
+        val[np.argsort(hashes, kind="stable")[:floor]] = True
+    return val
 
 
 def split_episodes(cache: DatasetCache, split: str, val_fraction: float) -> np.ndarray:
@@ -41,7 +63,7 @@ def split_episodes(cache: DatasetCache, split: str, val_fraction: float) -> np.n
         raise ValueError(f"split={split!r} is not one of {', '.join(SPLITS)}")
     if split == "all":
         return np.arange(cache.n_episodes)
-    val = np.array([is_validation_episode(e, val_fraction) for e in cache.episode_ids], dtype=bool)
+    val = validation_mask(cache.episode_ids, val_fraction)
     return np.flatnonzero(val if split == "val" else ~val)
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.data.cache import load_or_build
-from hope_models.data.sampler import is_validation_episode
+from hope_models.data.sampler import validation_mask
 
 DEFAULT_VAL_FRACTION = 0.1
 
@@ -29,7 +29,7 @@ def summarise_dataset(dataset_dir: str | Path, cache_root: str | Path, spec_path
     eps = cache.episodes
     durations = [e["duration_s"] for e in eps]
     spec = cache.spec
-    n_val = sum(is_validation_episode(e["episode_id"], val_fraction) for e in eps)
+    n_val = int(validation_mask([e["episode_id"] for e in eps], val_fraction).sum())
     return {
         "dataset_dir": str(Path(dataset_dir).resolve()),
         "cache_path": str(info.path),

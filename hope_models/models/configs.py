@@ -17,8 +17,9 @@ class VQVAEConfig:
     input: str = "vector"  # "vector" (obs_dim floats) or "frame" (frame_shape uint8 image)
     obs_dim: int = 0  # vector input size (ignored for frames)
     frame_shape: tuple[int, int, int] = (64, 64, 3)
-    n_codes: int = 128
-    code_dim: int = 32
+    n_codes: int = 128  # codes per group
+    code_dim: int = 48  # encoder output width, cut into `groups` equal slices
+    groups: int = 3  # codebooks, one code each per observation (product quantisation: vqvae.py)
     hidden: int = 128  # MLP width (vector input)
     channels: int = 32  # first conv width (frame input); then 2x, 2x, 2x
     beta: float = 0.25  # commitment weight
@@ -37,6 +38,8 @@ class VQVAEConfig:
                 raise ValueError(f"frame_shape={self.frame_shape} must be [H, W, 3] with H, W multiples of 16")
         if self.n_codes < 2 or self.code_dim < 1:
             raise ValueError(f"n_codes={self.n_codes} must be >= 2 and code_dim={self.code_dim} >= 1")
+        if self.groups < 1 or self.code_dim % self.groups:
+            raise ValueError(f"groups={self.groups} must be >= 1 and divide code_dim={self.code_dim}")
         if self.hidden < 1 or self.channels < 1:
             raise ValueError(f"hidden={self.hidden} and channels={self.channels} must be >= 1")
         if self.beta < 0 or self.eps <= 0:
@@ -91,6 +94,13 @@ class MidLoopConfig:
     mlp_ratio: int = 2
     min_timescale: float = 1.0  # grid steps (100 ms each in the default window)
     max_timescale: float = 64.0
+    dropout: float = 0.1  # on the SSM's input and the head's: a few dozen episodes overfit without it
+    # The action-conditioned world model (mid_loop.py, "World model"): from the context at a grid
+    # point, the exact observation there and the actions held over the next wm_horizon grid steps,
+    # the observation after each of them. 0 = none. A vector VQ-VAE only (it predicts vectors).
+    wm_horizon: int = 4
+    wm_hidden: int = 256
+    wm_weight: float = 1.0  # of its MSE (normalised units) beside the codes' NLL in the loss
 
     def ssm_config(self) -> SSMConfig:
         return SSMConfig(self.d_model, self.d_state, self.n_layers, self.mlp_ratio, self.min_timescale,
@@ -103,6 +113,11 @@ class MidLoopConfig:
             raise ValueError(f"horizon_steps={self.horizon_steps} must be positive whole grid steps")
         if self.d_model < 1 or self.n_layers < 1 or self.d_state < 1 or self.mlp_ratio < 1:
             raise ValueError("d_model, n_layers, d_state and mlp_ratio must be >= 1")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout={self.dropout} must be within [0, 1)")
+        if self.wm_horizon < 0 or self.wm_hidden < 1 or not self.wm_weight >= 0:
+            raise ValueError(f"wm_horizon={self.wm_horizon} must be >= 0, wm_hidden={self.wm_hidden} >= 1 and "
+                             f"wm_weight={self.wm_weight} >= 0")
         _check_timescales(self.min_timescale, self.max_timescale)
 
 

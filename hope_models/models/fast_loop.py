@@ -1,7 +1,7 @@
 """Fast Loop: the reflex policy. The last K grid points of observations (and their codes) -> the action.
 
     obs [B, K, obs_dim] --Linear--+                                  per point (no mixing in time)
-    codes [B, K] (frozen VQ-VAE, optional) --Embed--+--> x = e + GatedMLP(LN(e))
+    codes [B, K, G] (frozen VQ-VAE, optional) --Embed, sum over G--+--> x = e + GatedMLP(LN(e))
                                                            |
                   u = LN(x) * mask --> WindowSSM (the ONLY mixing in time: exactly the last K points)
                                                            |
@@ -55,7 +55,9 @@ class FastLoop(nn.Module):
         self.cfg = cfg
         d, hidden = cfg.d_model, cfg.mlp_ratio * cfg.d_model
         self.obs_in = nn.Linear(cfg.obs_dim, d)
-        self.code_in = nn.Embedding(cfg.n_codes, d) if vqvae is not None else None
+        # one embedding row per code of every group (the VQ-VAE's table rows); a point's code
+        # embedding is the sum of its G groups' rows
+        self.code_in = nn.Embedding(vqvae.codebook.shape[0], d) if vqvae is not None else None
         self.enc_ln = nn.LayerNorm(d)
         self.enc_mlp = GatedMLP(d, hidden)
         self.ssm_ln = nn.LayerNorm(d)
@@ -82,21 +84,21 @@ class FastLoop(nn.Module):
         return self.vqvae is not None and self.vqvae.cfg.input == "frame"
 
     def codes(self, obs: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor:
-        """Codes of each point: obs [..., obs_dim] or frames [..., H, W, 3] -> [...] long."""
+        """Codes of each point: obs [..., obs_dim] or frames [..., H, W, 3] -> [..., G] long."""
         if self.wants_frames:
             if frames is None:
                 raise ValueError("this Fast Loop's VQ-VAE reads frames: pass frames")
             lead = frames.shape[:-3]
-            return self.vqvae.encode(frames.reshape(-1, *frames.shape[-3:])).reshape(lead)
+            return self.vqvae.encode(frames.reshape(-1, *frames.shape[-3:])).reshape(*lead, -1)
         lead = obs.shape[:-1]
-        return self.vqvae.encode(obs.reshape(-1, obs.shape[-1])).reshape(lead)
+        return self.vqvae.encode(obs.reshape(-1, obs.shape[-1])).reshape(*lead, -1)
 
     # -- pointwise parts: functions of one grid point, so the same in both forms -----------------
 
     def _encode(self, obs: torch.Tensor, frames: torch.Tensor | None) -> torch.Tensor:
         e = self.obs_in(obs)
         if self.vqvae is not None:
-            e = e + self.code_in(self.codes(obs, frames))
+            e = e + self.code_in(self.vqvae.rows(self.codes(obs, frames))).sum(-2)
         return e + self.enc_mlp(self.enc_ln(e))
 
     def _head(self, z: torch.Tensor) -> torch.Tensor:

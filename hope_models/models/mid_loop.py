@@ -1,7 +1,13 @@
 """Mid Loop: latent dynamics. 1-10 s of codes and past actions -> the codes seconds ahead.
 
-    codes [B, K] (frozen VQ-VAE) --Embed--+
-    previous actions [B, K, act_dim] --Linear--+--> SSMStack --> Linear --> logits [B, K, H, n_codes]
+    codes [B, K, G] (frozen VQ-VAE) --Embed, sum over G--+
+    previous actions [B, K, act_dim] --Linear-------------+--> SSMStack --> Linear
+                                                                --> logits [B, K, H, G, n_codes]
+
+G is the VQ-VAE's code groups: each group's code is a categorical of n_codes, predicted
+independently given the history (the log-likelihood of an observation's code is the sum over its
+groups). The predicted observation at a horizon is the VQ-VAE's decoder at the expected z_q under
+those distributions (VQVAE.decode_expected): one small matrix product, cheap enough per tick.
 
 At every grid point k the model predicts the code at k + s_h grid steps for each horizon h
 (horizon_steps, e.g. (5, 10) = 0.5 s and 1 s on the default 2 s / K=20 window's 100 ms grid).
@@ -18,9 +24,25 @@ Training targets (mid_loop_loss), all through the frozen VQ-VAE:
 - beyond the window: the code of the held observation at anchor time + horizon (the window
   batch's future_obs, or future_frames when the data layer provides them), for the last point,
   where future_mask says the episode still runs.
-Metrics: accuracy, and copy_last_accuracy, the baseline that predicts "the code will not change"
-(the code at k for every horizon), on the same targets; anchor_* versions on the beyond-window
-targets only (the prediction inference actually uses).
+Metrics (mid_loop_metrics.py) compare the model with two baselines on the same targets, both
+fitted on the training targets only (counts kept as buffers, so they travel with the weights and
+the gate reads the same numbers): copy-last ("the code will not change": the current code with
+the training split's probability that a group's code stays the same over that horizon, the rest
+spread evenly) and code frequency (each group's code drawn from its training frequencies).
+
+World model (wm_*, when cfg.wm_horizon > 0 and the VQ-VAE reads vectors): the same model
+conditioned on the actions still to be taken. At grid point k,
+
+    [context y_k (the SSM's output, detached), obs_k, act_k .. act_{k+M-1}] --MLP--> obs_{k+1..k+M} - obs_k
+
+with M = wm_horizon and act_j the action held at point j (normalised units throughout). The context
+is detached so the world model never changes what the unconditional heads learn (their metrics and
+the gate's baselines stay exactly as they were); the exact observation is an input because the
+codes keep only ~95 % of its variance and a planner needs the target offset to the centimetre.
+Direct multi-step prediction (not a one-step model rolled out) so that a planner scores a held
+action sequence with one pass and no error compounds through the tokenizer. Targets: every point
+of the window with M real points after it (world_model_loss, mid_loop_metrics.py). Its parameters
+are all named wm_*: the torch-free inference runtime ignores them.
 
 Two forms: forward() over a window, init_state()/step() one grid point at a time; stepping a
 window's points from init_state() gives forward()'s logits at every point (tested within 1e-5).
@@ -37,7 +59,6 @@ from __future__ import annotations
 import logging
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from hope_models.models.configs import MidLoopConfig
@@ -59,15 +80,27 @@ class MidLoop(nn.Module):
         if vqvae is None or vqvae.cfg.n_codes != cfg.n_codes:
             raise ValueError(f"the Mid Loop needs a VQ-VAE with n_codes={cfg.n_codes} codes")
         self.cfg = cfg
-        self.code_in = nn.Embedding(cfg.n_codes, cfg.d_model)
+        self.groups = vqvae.cfg.groups
+        h, g, n = len(cfg.horizon_steps), self.groups, cfg.n_codes
+        self.code_in = nn.Embedding(g * n, cfg.d_model)  # one row per code of every group (vqvae.rows)
         self.act_in = nn.Linear(cfg.act_dim, cfg.d_model)
         self.ssm = SSMStack(cfg.ssm_config())
-        self.head = nn.Linear(cfg.d_model, len(cfg.horizon_steps) * cfg.n_codes)
+        self.drop = nn.Dropout(cfg.dropout)
+        self.head = nn.Linear(cfg.d_model, h * g * n)
+        self.obs_dim = vqvae.cfg.obs_dim if vqvae.cfg.input == "vector" else 0
+        self.wm_net = None
+        if cfg.wm_horizon > 0 and self.obs_dim > 0:
+            m, d, w = cfg.wm_horizon, self.obs_dim, cfg.wm_hidden
+            self.wm_net = nn.Sequential(nn.Linear(cfg.d_model + d + m * cfg.act_dim, w), nn.SiLU(),
+                                        nn.Linear(w, w), nn.SiLU(), nn.Linear(w, m * d))
         self.vqvae = vqvae.requires_grad_(False)  # frozen, saved with our weights (see fast_loop.py)
+        # The baselines' statistics, counted on training targets (mid_loop_metrics.count_targets).
+        self.register_buffer("code_counts", torch.zeros(g, n, dtype=torch.float64))
+        self.register_buffer("stay_counts", torch.zeros(h, g, 2, dtype=torch.float64))  # [changed, stayed]
         log.info("%s", self.describe())
 
     def describe(self) -> str:
-        return (f"MidLoop(codes {self.cfg.n_codes} + act {self.cfg.act_dim} -> codes at "
+        return (f"MidLoop({self.groups} x {self.cfg.n_codes} codes + act {self.cfg.act_dim} -> codes at "
                 f"{list(self.cfg.horizon_steps)} grid steps ahead, d_model {self.cfg.d_model}, "
                 f"{self.cfg.n_layers} blocks, state {self.cfg.d_state}): "
                 f"{count_params(self, trainable_only=True) / 1e6:.3f} M trainable parameters "
@@ -78,70 +111,58 @@ class MidLoop(nn.Module):
         return self.vqvae.cfg.input == "frame"
 
     def codes(self, obs: torch.Tensor | None, frames: torch.Tensor | None = None) -> torch.Tensor:
-        """Codes of observations [..., obs_dim] or frames [..., H, W, 3] -> [...] long."""
+        """Codes of observations [..., obs_dim] or frames [..., H, W, 3] -> [..., G] long."""
         if self.wants_frames:
             if frames is None:
                 raise ValueError("this Mid Loop's VQ-VAE reads frames: pass frames")
-            return self.vqvae.encode(frames.reshape(-1, *frames.shape[-3:])).reshape(frames.shape[:-3])
-        return self.vqvae.encode(obs.reshape(-1, obs.shape[-1])).reshape(obs.shape[:-1])
+            return self.vqvae.encode(frames.reshape(-1, *frames.shape[-3:])).reshape(*frames.shape[:-3], -1)
+        return self.vqvae.encode(obs.reshape(-1, obs.shape[-1])).reshape(*obs.shape[:-1], -1)
+
+    def _inputs(self, codes: torch.Tensor, prev_act: torch.Tensor) -> torch.Tensor:
+        return self.code_in(self.vqvae.rows(codes)).sum(-2) + self.act_in(prev_act)
 
     def _logits(self, y: torch.Tensor) -> torch.Tensor:
-        return self.head(y).unflatten(-1, (len(self.cfg.horizon_steps), self.cfg.n_codes))
+        return self.head(self.drop(y)).unflatten(-1, (len(self.cfg.horizon_steps), self.groups, self.cfg.n_codes))
 
     def forward(self, codes: torch.Tensor, prev_act: torch.Tensor,
                 mask: torch.Tensor | None = None) -> torch.Tensor:
-        """codes [B, K], prev_act [B, K, A] (see previous_actions), mask [B, K] -> logits [B, K, H, n_codes]."""
-        y, _ = self.ssm(self.code_in(codes) + self.act_in(prev_act), mask)
+        """codes [B, K, G], prev_act [B, K, A] (see previous_actions), mask [B, K] -> logits [B, K, H, G, n_codes]."""
+        return self._logits(self.context(codes, prev_act, mask))
+
+    def context(self, codes: torch.Tensor, prev_act: torch.Tensor,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
+        """The SSM's output at every point [B, K, d_model]: what the heads read."""
+        y, _ = self.ssm(self.drop(self._inputs(codes, prev_act)), mask)
+        return y
+
+    def heads(self, y: torch.Tensor) -> torch.Tensor:
+        """context [..., d_model] -> the unconditional heads' logits [..., H, G, n_codes]."""
         return self._logits(y)
+
+    @property
+    def has_world_model(self) -> bool:
+        return self.wm_net is not None
+
+    def wm_predict(self, y: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """World model: context [..., d_model], observation [..., D], actions held at the next
+        wm_horizon points [..., M, A] -> the observations after each [..., M, D] (normalised)."""
+        if self.wm_net is None:
+            raise ValueError("this Mid Loop has no world model (wm_horizon 0, or a frame VQ-VAE)")
+        x = torch.cat([y.detach(), obs, actions.flatten(-2)], dim=-1)
+        return obs.unsqueeze(-2) + self.wm_net(x).unflatten(-1, (self.cfg.wm_horizon, self.obs_dim))
 
     def init_state(self, batch: int) -> torch.Tensor:
         return self.ssm.init_state(batch)
 
     def step(self, code_t: torch.Tensor, prev_act_t: torch.Tensor,
              state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One grid point: code_t [B], the previous point's action [B, A] -> (logits [B, H, n_codes], state)."""
-        y, state = self.ssm.step(self.code_in(code_t) + self.act_in(prev_act_t), state)
+        """One grid point: code_t [B, G], the previous point's action [B, A] -> (logits [B, H, G, n_codes], state)."""
+        y, state = self.ssm.step(self._inputs(code_t, prev_act_t), state)
         return self._logits(y), state
 
-
-def mid_loop_loss(logits: torch.Tensor, codes: torch.Tensor, mask: torch.Tensor, horizon_steps: tuple[int, ...],
-                  future_codes: torch.Tensor | None = None,
-                  future_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """Cross-entropy over the in-window and beyond-window targets (see the module doc).
-
-    logits [B, K, H, n], codes [B, K], mask [B, K] bool, future_codes/future_mask [B, H].
-    """
-    k = codes.shape[1]
-    preds, targets, copies = [], [], []
-    for h, s in enumerate(horizon_steps):
-        if s < k:
-            valid = mask[:, :k - s] & mask[:, s:]
-            preds.append(logits[:, :k - s, h][valid])
-            targets.append(codes[:, s:][valid])
-            copies.append(codes[:, :k - s][valid])
-    n_window = sum(int(t.numel()) for t in targets)
-    metrics: dict[str, float] = {}
-    if future_codes is not None:
-        fmask = torch.ones_like(future_codes, dtype=torch.bool) if future_mask is None else future_mask
-        anchor_logits = logits[:, -1][fmask]
-        anchor_targets = future_codes[fmask]
-        anchor_copy = codes[:, -1:].expand_as(future_codes)[fmask]
-        preds.append(anchor_logits)
-        targets.append(anchor_targets)
-        copies.append(anchor_copy)
-        if anchor_targets.numel():
-            metrics["anchor_accuracy"] = float((anchor_logits.argmax(-1) == anchor_targets).float().mean())
-            metrics["anchor_copy_last_accuracy"] = float((anchor_copy == anchor_targets).float().mean())
-    if sum(int(t.numel()) for t in targets) == 0:
-        # e.g. every anchor within a horizon of its episode's start and end: nothing to learn from
-        # this batch, which must not stop a run. A zero loss that still has a graph (backward works).
-        return logits.sum() * 0.0, {"targets": 0.0, "window_targets": 0.0}
-    pred, target, copy = torch.cat(preds), torch.cat(targets), torch.cat(copies)
-    loss = F.cross_entropy(pred, target)
-    metrics.update({
-        "accuracy": float((pred.argmax(-1) == target).float().mean()),
-        "copy_last_accuracy": float((copy == target).float().mean()),
-        "targets": float(target.numel()),
-        "window_targets": float(n_window),
-    })
-    return loss, metrics
+    def predicted_observation(self, logits: torch.Tensor) -> torch.Tensor:
+        """logits [..., G, n_codes] -> the expected observation (normalised vector, or frame) [..., ...]."""
+        probs = logits.softmax(-1)
+        lead = probs.shape[:-2]
+        out = self.vqvae.decode_expected(probs.reshape(-1, *probs.shape[-2:]))
+        return out.reshape(*lead, *out.shape[1:])

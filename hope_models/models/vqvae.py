@@ -1,6 +1,15 @@
-"""VQ-VAE: one observation frame (a 64x64 RGB image or a state vector) to one discrete code.
+"""VQ-VAE: one observation frame (a 64x64 RGB image or a state vector) to a few discrete codes.
 
-    x -> encoder -> z_e [B, code_dim] -> nearest codebook row -> code [B] -> z_q -> decoder -> x_hat
+    x -> encoder -> z_e [B, code_dim] -> G groups of code_dim/G -> nearest row of each group's
+         codebook -> codes [B, G] -> z_q (the G rows side by side) -> decoder -> x_hat
+
+- Groups (product quantisation): z_e is cut into `groups` slices, each quantised against its own
+  codebook of `n_codes` rows, so one observation is G codes and the code space has n_codes ** G
+  cells. One codebook of 1024 codes keeps only ~90 % of the variance of the reacher's normalised
+  6-d observation (k-means bound, measured: docs/training.md); three groups of 128 keep ~95 %+ and
+  each group stays a small categorical the Mid Loop can predict. The G codebooks are stored as one
+  [G * n_codes, code_dim / G] table: group g owns rows g * n_codes .. (g + 1) * n_codes - 1, and
+  a code is the group-local index 0 .. n_codes - 1 (`rows()` turns codes into table rows).
 
 - Inputs: "frame" = uint8 images [B, H, W, 3] (H, W multiples of 16; 64x64 here), a small conv
   encoder/decoder; "vector" = normalised observation vectors [B, obs_dim], an MLP encoder/decoder.
@@ -37,7 +46,7 @@ log = logging.getLogger(__name__)
 class VQOutput(NamedTuple):
     recon: torch.Tensor  # decoder output, in the space of target()
     z_e: torch.Tensor  # [B, code_dim] encoder outputs (with grad)
-    codes: torch.Tensor  # [B] long
+    codes: torch.Tensor  # [B, G] long, group-local
     recon_loss: torch.Tensor
     commit_loss: torch.Tensor
 
@@ -91,12 +100,13 @@ class VQVAE(nn.Module):
         # the outputs grow early in training faster than the EMA codebook follows, and nearly
         # everything lands on the few outermost codes (perplexity ~5 of 128 in our tests).
             self.decoder = _mlp([cfg.code_dim, cfg.hidden, cfg.hidden, cfg.obs_dim])
-        k, d = cfg.n_codes, cfg.code_dim
+        k, d = cfg.groups * cfg.n_codes, cfg.code_dim // cfg.groups  # every group's rows in one table
         self.register_buffer("codebook", torch.zeros(k, d))
         self.register_buffer("ema_count", torch.zeros(k))  # EMA of assignments per code
         self.register_buffer("ema_sum", torch.zeros(k, d))  # EMA of the encoder outputs assigned
         self.register_buffer("unused_steps", torch.zeros(k, dtype=torch.int64))  # since used or restarted
         self.register_buffer("idle_steps", torch.zeros(k, dtype=torch.int64))  # since really used (metric)
+        self.register_buffer("_offsets", torch.arange(cfg.groups) * cfg.n_codes, persistent=False)
         self.register_buffer("initialized", torch.zeros((), dtype=torch.int64))  # 0/1
         self.register_buffer("restarts", torch.zeros((), dtype=torch.int64))  # dead codes re-seeded so far
         log.info("%s", self.describe())
@@ -105,8 +115,9 @@ class VQVAE(nn.Module):
         n = sum(p.numel() for p in self.parameters())
         what = (f"{self.cfg.frame_shape[0]}x{self.cfg.frame_shape[1]} frame" if self.cfg.input == "frame"
                 else f"{self.cfg.obs_dim}-d vector")
-        return (f"VQVAE({what} -> {self.cfg.n_codes} codes x {self.cfg.code_dim}): {n / 1e6:.3f} M parameters "
-                f"(+ {self.cfg.n_codes * self.cfg.code_dim} codebook values as EMA buffers)")
+        g = self.cfg.groups
+        return (f"VQVAE({what} -> {g} group{'s' * (g > 1)} of {self.cfg.n_codes} codes x {self.cfg.code_dim // g}): "
+                f"{n / 1e6:.3f} M parameters (+ {self.codebook.numel()} codebook values as EMA buffers)")
 
     @property
     def wants_frames(self) -> bool:
@@ -125,19 +136,41 @@ class VQVAE(nn.Module):
         return x.to(torch.float32)
 
     # -- the quantiser --------------------------------------------------------------------------
+    def groups_of(self, z: torch.Tensor) -> torch.Tensor:
+        """[B, code_dim] -> [B, G, code_dim / G]: the slice each group quantises."""
+        return z.unflatten(-1, (self.cfg.groups, self.cfg.code_dim // self.cfg.groups))
+
+    def rows(self, codes: torch.Tensor) -> torch.Tensor:
+        """Group-local codes [..., G] -> rows of the codebook table [..., G]."""
+        return codes + self._offsets
+
     def nearest(self, z: torch.Tensor) -> torch.Tensor:
-        """Index of the closest codebook row for each z [B, code_dim] (ties: the lowest index)."""
-        d = (z * z).sum(1, keepdim=True) - 2.0 * z @ self.codebook.t() + (self.codebook ** 2).sum(1)[None]
-        return d.argmin(dim=1)
+        """The closest row of each group's codebook for each z [B, code_dim] -> codes [B, G] (ties:
+        the lowest index)."""
+        zg = self.groups_of(z)  # [B, G, d]
+        book = self.codebook.view(self.cfg.groups, self.cfg.n_codes, -1)  # [G, K, d]
+        d = ((zg * zg).sum(-1, keepdim=True) - 2.0 * torch.einsum("bgd,gkd->bgk", zg, book)
+             + (book ** 2).sum(-1)[None])
+        return d.argmin(dim=-1)
+
+    def quantised(self, codes: torch.Tensor) -> torch.Tensor:
+        """codes [B, G] -> z_q [B, code_dim]: each group's row, side by side."""
+        return self.codebook[self.rows(codes)].flatten(-2)
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        """Raw frames or normalised vectors [B, ...] -> codes [B] (long). Never changes any state."""
+        """Raw frames or normalised vectors [B, ...] -> codes [B, G] (long). Never changes any state."""
         return self.nearest(self.encoder(self.prepare(x)))
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
-        """codes [B] -> reconstructions: [B, 3, H, W] in ~[0, 1] for frames, [B, obs_dim] for vectors."""
-        return self.decoder(self.codebook[codes])
+        """codes [B, G] -> reconstructions: [B, 3, H, W] in ~[0, 1] for frames, [B, obs_dim] for vectors."""
+        return self.decoder(self.quantised(codes))
+
+    def decode_expected(self, probs: torch.Tensor) -> torch.Tensor:
+        """Per-group code probabilities [B, G, n_codes] -> the decoder's output at the expected z_q
+        (each group's probability-weighted row): the Mid Loop's predicted observation."""
+        book = self.codebook.view(self.cfg.groups, self.cfg.n_codes, -1)
+        return self.decoder(torch.einsum("bgk,gkd->bgd", probs, book).flatten(-2))
 
     def forward(self, x: torch.Tensor, *, init_codebook: bool = False) -> VQOutput:
         """One training/validation pass. init_codebook=True seeds an uninitialised codebook from
@@ -147,7 +180,7 @@ class VQVAE(nn.Module):
         if init_codebook and not bool(self.initialized):
             self._init_codebook(z_e.detach())
         codes = self.nearest(z_e.detach())
-        z_q = self.codebook[codes]  # a gathered copy: later in-place codebook updates do not touch it
+        z_q = self.quantised(codes)  # a gathered copy: later in-place codebook updates do not touch it
         commit = F.mse_loss(z_e, z_q)
         z_st = z_e + (z_q - z_e).detach()  # straight-through: decoder gradient flows to the encoder
         recon = self.decoder(z_st)
@@ -160,11 +193,15 @@ class VQVAE(nn.Module):
     @torch.no_grad()
     def _init_codebook(self, z: torch.Tensor) -> None:
         k = self.cfg.n_codes
-        if z.shape[0] >= k:
-            rows = z[torch.randperm(z.shape[0])[:k]]
-        else:  # too few outputs: repeat them, jittered so no two rows are identical
-            rows = z[torch.randint(0, z.shape[0], (k,))]
-            rows = rows + 0.01 * (z.std() + 1e-6) * torch.randn_like(rows)
+        books = []
+        for zg in self.groups_of(z).unbind(1):  # [B, d] each
+            if zg.shape[0] >= k:
+                rows = zg[torch.randperm(zg.shape[0])[:k]]
+            else:  # too few outputs: repeat them, jittered so no two rows are identical
+                rows = zg[torch.randint(0, zg.shape[0], (k,))]
+                rows = rows + 0.01 * (zg.std() + 1e-6) * torch.randn_like(rows)
+            books.append(rows)
+        rows = torch.cat(books)
         self.codebook.copy_(rows)
         self.ema_sum.copy_(rows)
         self.ema_count.fill_(1.0)
@@ -174,12 +211,13 @@ class VQVAE(nn.Module):
 
     @torch.no_grad()
     def update_codebook(self, z_e: torch.Tensor, codes: torch.Tensor) -> None:
-        """EMA step with one batch's encoder outputs and their codes."""
-        k, decay, eps = self.cfg.n_codes, self.cfg.ema_decay, self.cfg.eps
-        onehot = F.one_hot(codes, k).to(z_e.dtype)  # [B, K]; a matmul, not index_add: deterministic
+        """EMA step with one batch's encoder outputs [B, code_dim] and their codes [B, G]."""
+        k, decay, eps = self.codebook.shape[0], self.cfg.ema_decay, self.cfg.eps
+        z = self.groups_of(z_e).flatten(0, 1)  # [B * G, d]: every group's slice, next to its row
+        onehot = F.one_hot(self.rows(codes).flatten(), k).to(z_e.dtype)  # a matmul, not index_add: deterministic
         counts = onehot.sum(0)
         self.ema_count.mul_(decay).add_(counts, alpha=1 - decay)
-        self.ema_sum.mul_(decay).add_(onehot.t() @ z_e, alpha=1 - decay)
+        self.ema_sum.mul_(decay).add_(onehot.t() @ z, alpha=1 - decay)
         n = self.ema_count.sum()
         smoothed = (self.ema_count + eps) / (n + k * eps) * n  # Laplace: never ~0
         self.codebook.copy_(self.ema_sum / smoothed[:, None])
@@ -188,11 +226,13 @@ class VQVAE(nn.Module):
 
     @torch.no_grad()
     def restart_dead_codes(self, z_e: torch.Tensor) -> int:
-        """Re-seed codes unused for dead_after_steps updates from random rows of z_e; returns how many."""
+        """Re-seed codes unused for dead_after_steps updates from random encoder outputs of z_e (the
+        slice of the code's own group); returns how many."""
         dead = torch.nonzero(self.unused_steps >= self.cfg.dead_after_steps).flatten()
         if dead.numel() == 0:
             return 0
-        rows = z_e[torch.randint(0, z_e.shape[0], (dead.numel(),))]
+        zg = self.groups_of(z_e)  # [B, G, d]
+        rows = zg[torch.randint(0, z_e.shape[0], (dead.numel(),)), dead // self.cfg.n_codes]
         self.codebook[dead] = rows
         self.ema_sum[dead] = rows  # with ema_count 1 the next update starts from exactly this row
         self.ema_count[dead] = 1.0
@@ -202,12 +242,15 @@ class VQVAE(nn.Module):
 
     # -- metrics --------------------------------------------------------------------------------
     def code_stats(self, codes: torch.Tensor) -> dict[str, float]:
-        """perplexity of this batch's codes, batch_code_usage (fraction of codes it uses) and
-        code_usage (fraction that won at least one point within the last dead_after_steps updates
-        or in this batch; a restarted code counts only once it is actually used)."""
-        counts = torch.bincount(codes, minlength=self.cfg.n_codes).to(torch.float32)
-        p = counts / counts.sum().clamp(min=1.0)
-        nz = p[p > 0]
-        return {"perplexity": float(torch.exp(-(nz * nz.log()).sum())),
+        """perplexity of this batch's codes (per group, averaged over the groups: out of n_codes),
+        batch_code_usage (fraction of the codes it uses) and code_usage (fraction that won at least
+        one point within the last dead_after_steps updates or in this batch; a restarted code
+        counts only once it is actually used)."""
+        g, k = self.cfg.groups, self.cfg.n_codes
+        counts = torch.bincount(self.rows(codes).flatten(), minlength=g * k).to(torch.float32).view(g, k)
+        p = counts / counts.sum(1, keepdim=True).clamp(min=1.0)
+        entropy = -torch.where(p > 0, p * p.clamp(min=1e-30).log(), torch.zeros_like(p)).sum(1)
+        return {"perplexity": float(torch.exp(entropy).mean()),
                 "batch_code_usage": float((counts > 0).float().mean()),
-                "code_usage": float(((self.idle_steps < self.cfg.dead_after_steps) | (counts > 0)).float().mean())}
+                "code_usage": float(((self.idle_steps.view(g, k) < self.cfg.dead_after_steps) | (counts > 0))
+                                    .float().mean())}

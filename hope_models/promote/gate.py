@@ -12,7 +12,10 @@ Checks, in order (the later ones only when the earlier ones could run):
    gate_val_tolerance). Skipped, with the reason, when nothing is promoted, when the promoted
    model cannot read this data (other component, fields, frame or window: "does not fit"), or when
    the data has no validation split.
-3. reflex: a fast_loop trained on the sim reacher (its feature spec reads the reacher's observation
+3. baselines: a vqvae or mid_loop must beat its trivial baselines on the same held-out batches
+   (hope_models/promote/baselines.py: the tokenizer's variance kept, the predictor against copy-last
+   and code frequencies), with every figure in the verdict.
+4. reflex: a fast_loop trained on the sim reacher (its feature spec reads the reacher's observation
    and writes its action) is run in closed loop on gate_reflex_episodes held-out seeds (0..N-1;
    demos are recorded from seed 100000 up), and so is the promoted one; refused when the
    candidate's mean return is below the promoted one's minus gate_reflex_tolerance.
@@ -46,6 +49,7 @@ import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
 from hope_models.json_finite import finite
+from hope_models.promote.baselines import baselines_check
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
 # The first episodes' metadata read to decide the sim task (metadata.environment_id).
@@ -335,8 +339,10 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
         cand_val = validation_metrics(cand, normalised_view(cache, cand.spec), setup)
     except NoValidationSplit as exc:
         gate.record("val_loss", SKIPPED, f"val_loss: not compared: {data} has no validation split ({exc})")
+        baselines_check(gate, metrics, cand, None)
         return cache
     metrics["candidate_val"] = cand_val
+    baselines_check(gate, metrics, cand, cand_val)
     c_loss = metrics["candidate_val_loss"] = cand_val.get("loss")
     if c_loss is None or not math.isfinite(c_loss):
         gate.record("val_loss", FAILED, f"the candidate's validation loss is {c_loss}")

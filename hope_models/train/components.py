@@ -8,6 +8,9 @@ are built from a feature spec or rebuilt from a checkpoint.
                window's K (its stepped form computes exactly the last K points)
     mid_loop   window mid, 2 s, K=20,           codes (frozen VQ-VAE, required) + past actions
                horizons 0.5 s and 1 s           -> codes ahead; loss cross-entropy
+                                                + the action-conditioned world model (wm_*, vector
+                                                VQ-VAE): obs of the next points given the actions
+                                                to be held; + wm_weight x its MSE
 
 build_component() builds the configuration model_config.resolve() gives: the defaults of each
 model's config dataclass, the dims of the feature spec, and `model_config` overrides (any config
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import logging
 from dataclasses import asdict
 from pathlib import Path
@@ -45,7 +49,8 @@ from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.windows import WindowSpec
 from hope_models.durable import file_sha256
 from hope_models.models.fast_loop import FastLoop
-from hope_models.models.mid_loop import MidLoop, mid_loop_loss, previous_actions
+from hope_models.models.mid_loop import MidLoop, previous_actions
+from hope_models.models.mid_loop_metrics import mid_loop_loss, world_model_loss
 from hope_models.models.ssm import count_params
 from hope_models.models.vqvae import VQVAE, VQVAEConfig
 from hope_models.train.contract import COMPONENTS
@@ -99,8 +104,14 @@ class _Component:
         return self._loss(batch, training=True)
 
     def evaluate(self, batch) -> dict[str, float]:
-        with torch.no_grad():
-            loss, metrics = self._loss(batch, training=False)
+        """The metrics of one batch in eval mode (no dropout), the model back in its mode after."""
+        was_training = self._model.training
+        self._model.eval()
+        try:
+            with torch.no_grad():
+                loss, metrics = self._loss(batch, training=False)
+        finally:
+            self._model.train(was_training)
         return {"loss": float(loss), **metrics}
 
     def after_step(self, step: int) -> None:
@@ -134,11 +145,13 @@ class VQVAEComponent(_Component):
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
         model: VQVAE = self._model
-        out = model(self._x(batch), init_codebook=training)
+        x = self._x(batch)
+        out = model(x, init_codebook=training)
         if training:  # the codebook moves in after_step, once the optimiser step has been taken
             self._pending = (out.z_e.detach(), out.codes)
         metrics = {"recon_loss": out.recon_loss.item(), "commit_loss": out.commit_loss.item(),
-                   **model.code_stats(out.codes), "codes_restarted": float(model.restarts)}
+                   **model.code_stats(out.codes), "codes_restarted": float(model.restarts),
+                   **reconstruction_quality(model, x, out.recon_loss.item())}
         return model.loss_of(out), metrics
 
     def after_step(self, step: int) -> None:
@@ -150,6 +163,18 @@ class VQVAEComponent(_Component):
         n = self._model.restart_dead_codes(z_e)
         if n:
             log.debug("vqvae step %d: restarted %d dead codes", step, n)
+
+
+def reconstruction_quality(model: VQVAE, x: torch.Tensor, err: float) -> dict[str, float]:
+    """recon_nmse: the reconstruction's squared error over the batch's own variance, i.e. 1 - the
+    share of variance kept (frames too, over pixels); frames also psnr_db, 10 log10(1 / pixel MSE)
+    on [0, 1] pixels."""
+    with torch.no_grad():
+        xin = model.prepare(x)
+        out = {"recon_nmse": err / max(float(xin.var(0, unbiased=False).mean()), 1e-12)}
+        if model.cfg.input == "frame":
+            out["psnr_db"] = 10.0 * math.log10(1.0 / max(err, 1e-12))
+        return out
 
 
 class FastLoopComponent(_Component):
@@ -179,8 +204,20 @@ class MidLoopComponent(_Component):
             future_codes = model.codes(_tensor(batch.future_obs))
         future_mask = None if future_codes is None or batch.future_mask is None else _tensor(batch.future_mask)
         mask = _tensor(batch.mask)
-        logits = model(codes, previous_actions(_tensor(batch.act)), mask)
-        return mid_loop_loss(logits, codes, mask, self.model_config.horizon_steps, future_codes, future_mask)
+        act = _tensor(batch.act)
+        y = model.context(codes, previous_actions(act), mask)
+        logits = model.heads(y)
+        vector = not self.wants_frames
+        loss, metrics = mid_loop_loss(
+            model, logits, codes, mask, obs=_tensor(batch.obs) if vector else None,
+            future_codes=future_codes, future_mask=future_mask,
+            future_obs=_tensor(batch.future_obs) if vector and batch.future_obs is not None else None,
+            labels=tuple(f"{h:g}s" for h in self._window.horizons_s), training=training)
+        if model.has_world_model:  # the action-conditioned world model (mid_loop.py), trained alongside
+            wm_loss, wm_metrics = world_model_loss(model, y, _tensor(batch.obs), act, mask, self._window.grid_step_s)
+            metrics.update(wm_metrics)
+            loss = loss + model.cfg.wm_weight * wm_loss
+        return loss, metrics
 
 
 _CLASSES = {"vqvae": VQVAEComponent, "fast_loop": FastLoopComponent, "mid_loop": MidLoopComponent}

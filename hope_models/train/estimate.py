@@ -290,15 +290,19 @@ def config_layers(resolved: Any) -> list[Layer]:
     hidden = cfg.mlp_ratio * d
     frozen = _vqvae_layers(vq, False) if vq is not None else []
     if resolved.name == "fast_loop":
-        codes = [Layer("Embedding", ((cfg.n_codes, d),), True)] if vq is not None else []
+        codes = [Layer("Embedding", ((cfg.n_codes * vq.groups, d),), True)] if vq is not None else []
         return [_linear(cfg.obs_dim, d, True), *codes, _layer_norm(d, True), *_gated_mlp(d, hidden, True),
                 _layer_norm(d, True), _ssm("WindowSSM", d, cfg.d_state, True), _layer_norm(d, True),
                 *_gated_mlp(d, hidden, True), _layer_norm(d, True), _linear(d, cfg.act_dim, True), *frozen]
     block = [_layer_norm(d, True), _ssm("DiagonalSSM", d, cfg.d_state, True), _layer_norm(d, True),
              *_gated_mlp(d, hidden, True)]
-    return [Layer("Embedding", ((cfg.n_codes, d),), True), _linear(cfg.act_dim, d, True),
+    wm = []  # the action-conditioned world model (mid_loop.py): a vector VQ-VAE only
+    if getattr(cfg, "wm_horizon", 0) > 0 and vq.input == "vector":
+        m, w, o = cfg.wm_horizon, cfg.wm_hidden, vq.obs_dim
+        wm = [_linear(d + o + m * cfg.act_dim, w, True), _linear(w, w, True), _linear(w, m * o, True)]
+    return [Layer("Embedding", ((cfg.n_codes * vq.groups, d),), True), _linear(cfg.act_dim, d, True),
             *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), _layer_norm(d, True),
-            _linear(d, len(cfg.horizon_steps) * cfg.n_codes, True), *frozen]
+            _linear(d, len(cfg.horizon_steps) * cfg.n_codes * vq.groups, True), *wm, *frozen]
 
 
 def check_fits(estimate: MemoryEstimate, budget_mb: float, soft_fraction: float = 0.9) -> MemoryEstimate:

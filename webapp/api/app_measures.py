@@ -8,13 +8,14 @@ measured yet is None (the API answers null), never a 0 that looks like a measure
   latest training: the newest run that has started and, when it belongs to a chain, every started
   run of that chain in chain order. Each point is labelled "<component> · run <id> · step <n>".
 - surprise: the latest completed mid_loop run's validation cross-entropy, in nats per predicted
-  code: the Mid Loop predicts the VQ-VAE codes of the next steps, and at the end of a completed
+  observation code (the sum over the VQ-VAE's code groups): the Mid Loop predicts the VQ-VAE codes
+  of the next steps, and at the end of a completed
   job the trainer measures its mean cross-entropy on the held-out validation episodes (the episode
   split of val_fraction, hope_models/train/validation.py), written to the run's result.json as
   summary.val.loss (the promotion gate computes the same number the same way).
-- curiosity: surprise / ln(n_codes), n_codes the codebook size of the VQ-VAE the Mid Loop reads
-  (its checkpoint's config.json): 0 = the next codes are fully predictable, 1 = no better than a
-  uniform guess (above 1: worse than a guess). curiosity_history: one point per completed mid_loop
+- curiosity: surprise / (groups x ln(n_codes)), the log of the number of codes an observation can
+  take (groups codebooks of n_codes each, from the Mid Loop checkpoint's config.json): 0 = the next
+  codes are fully predictable, 1 = no better than a uniform guess (above 1: worse than a guess). curiosity_history: one point per completed mid_loop
   run, at the time it finished.
 - parameter change: ||w_new - w_old||_2 / ||w_old||_2 over all the tensors the two checkpoints
   share (same name and shape), from the safetensors files with NumPy, between a component's
@@ -133,23 +134,29 @@ def last_metric(run: Run) -> dict[str, Any] | None:
 
 # -- surprise and curiosity: the Mid Loop's validation cross-entropy -----------------------------
 
-def _n_codes(run: Run, result: dict) -> int | None:
+def _code_space(run: Run, result: dict) -> tuple[int, int] | None:
+    """(n_codes per group, groups) of the VQ-VAE the run's Mid Loop reads."""
     from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 
     ckpt = run.last_checkpoint or result.get("checkpoint")
     if not isinstance(ckpt, str):
         return None
     try:
-        cfg = read_json_object(Path(ckpt) / CONFIG_FILE).get("model_config")
+        obj = read_json_object(Path(ckpt) / CONFIG_FILE)
     except (OSError, CheckpointError):
         return None
+    cfg, vq = obj.get("model_config"), obj.get("vqvae")
     n = cfg.get("n_codes") if isinstance(cfg, dict) else None
-    return n if isinstance(n, int) and not isinstance(n, bool) and n >= 2 else None
+    vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
+    groups = vq_cfg.get("groups", 1) if isinstance(vq_cfg, dict) else 1  # 1: saved before groups existed
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (n, groups)) or n < 2 or groups < 1:
+        return None
+    return n, groups
 
 
 def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
     """The validation cross-entropy of the newest `limit` completed mid_loop runs, oldest first:
-    [{"run_id", "finished_at", "step", "surprise", "n_codes", "curiosity"}]."""
+    [{"run_id", "finished_at", "step", "surprise", "n_codes", "code_groups", "curiosity"}]."""
     from hope_models.checkpoint_format import CheckpointError, read_json_object
 
     rows = s.scalars(select(Run).where(Run.component == "mid_loop", Run.state == "completed")
@@ -165,10 +172,12 @@ def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
         loss = finite_number(val.get("loss")) if isinstance(val, dict) else None
         if loss is None:
             continue  # no validation split (too few episodes): nothing was measured
-        n = _n_codes(run, result)
+        space = _code_space(run, result)
+        n, groups = space if space else (None, None)
         when = run.finished_at or run.updated_at
         out.append({"run_id": run.id, "finished_at": when.isoformat() if when else None, "step": run.step,
-                    "surprise": loss, "n_codes": n, "curiosity": loss / math.log(n) if n else None})
+                    "surprise": loss, "n_codes": n, "code_groups": groups,
+                    "curiosity": loss / (groups * math.log(n)) if space else None})
     return out[::-1]
 
 

@@ -6,7 +6,7 @@
             "curiosity_history": [...same shape, one point per completed mid_loop run...],
             "surprise_history": [...same shape, in nats...],
             "surprise": float | null, "curiosity": float | null,
-            "surprise_source": {"run_id", "step", "n_codes", "finished_at"} | null,
+            "surprise_source": {"run_id", "step", "n_codes", "code_groups", "finished_at"} | null,
             "runs": [{"id", "component", "state", "step", "total_steps"}]}
     GET /api/learning/progress
         -> {"total_steps": int, "total_episodes": int, "learning_updates": int,
@@ -23,7 +23,8 @@ What each number is (webapp/api/app_measures.py and docs/app.md say it exactly):
   metrics.jsonl, evenly thinned to at most `limit` points with the first and the newest kept;
 - surprise: the latest completed mid_loop run's validation cross-entropy, in nats per predicted
   code, on the dataset's held-out validation episodes (summary.val.loss of its result.json);
-  curiosity: surprise / ln(codebook size), 0 = fully predictable, 1 = no better than chance.
+  curiosity: surprise / ln(number of codes an observation can take), 0 = fully predictable, 1 = no
+  better than chance.
   Both null until a mid_loop has completed with a validation split: never a made-up 0;
 - total_steps: optimizer steps of every run in the registry; total_episodes: the distinct
   episodes in the ingest manifests of the inbox and of the datasets runs trained on;
@@ -80,7 +81,7 @@ def training_metrics():
         "surprise_history": _series(validations, "surprise", limit),
         "surprise": last["surprise"] if last else None,
         "curiosity": last["curiosity"] if last else None,
-        "surprise_source": None if last is None else {k: last[k] for k in ("run_id", "step", "n_codes", "finished_at")},
+        "surprise_source": None if last is None else {k: last[k] for k in ("run_id", "step", "n_codes", "code_groups", "finished_at")},
         "runs": run_rows,
     })
 
