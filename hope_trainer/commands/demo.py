@@ -8,7 +8,8 @@
    BrainService and the worker child on the embedded broker);
 3. queues the chain vqvae, fast_loop, mid_loop through the registry, as `hope-trainer sequential`
    does, and shows each run's progress in the terminal while the worker trains it;
-4. auto-promotion gates every completed run (finite weights, validation loss, the sim reflex);
+4. auto-promotion gates every completed run (finite weights, validation loss, the vqvae's and the
+   mid_loop's held-out figures against their baselines, the sim reflex);
    as soon as BrainService serves the new fast_loop, one inference goes through the HTTP API with
    the token (that first answer closes the loop: its run's loop-closure time is recorded);
 5. evaluates the promoted fast_loop in closed loop on held-out seeds 0..N-1 with the expert and a
@@ -20,8 +21,9 @@
    chain trains on them by itself. Until the summary it is off, whatever the settings say: the
    demo's own data is not in the inbox, and an auto chain must not change what the demo measures.
 
-Exit 0 when every run completed, the fast_loop was promoted and served, and its mean return is at
-least --target-return (900); 1 otherwise, saying what fell short; 2 when it cannot start (port taken,
+Exit 0 when every run completed, the gate promoted each of them (the vqvae and the mid_loop only
+when they beat their baselines on held-out episodes: hope_models/promote/baselines.py), the
+fast_loop was served, and its mean return is at least --target-return (900); 1 otherwise, saying what fell short; 2 when it cannot start (port taken,
 settings); 130 after Ctrl-C before the summary. This process never imports torch or MuJoCo: the
 recording, training, gating and evaluation all run in child processes.
 

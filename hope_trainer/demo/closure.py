@@ -16,6 +16,8 @@ from typing import Any
 
 from hope_trainer.demo.shared import CLOSURE_WAIT_S, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
 
+BRAIN_TICKS = 75  # 1.5 s of 20 ms ticks: past the Mid Loop's 1 s horizon, so a surprise is due
+
 
 class ClosureSteps:
     def _gating_idle(self) -> bool:
@@ -77,19 +79,54 @@ class ClosureSteps:
             self.sleep(0.3)
         return self._gate(fast_id)
 
+    def brain_inference(self, gates: dict[str, Any], ids: list[str], data: Path) -> dict[str, Any] | None:
+        """Once the gate promoted the chain's vqvae and mid_loop and BrainService serves them: one
+        session ticked through the first 1.5 s of the first demonstration (a Mid Loop prediction
+        made one horizon ago is then due), and its last answer: action, code, prediction, surprise."""
+        from hope_trainer.demo.shared import COMPONENTS
+
+        wanted = {c: (gates.get(i) or {}) for c, i in zip(COMPONENTS, ids)}
+        if any(g.get("state") != "promoted" for g in wanted.values()):
+            return None  # the summary already says which one the gate refused
+        deadline = time.monotonic() + SERVE_WAIT_S
+        while any((self.serve.brain.status().get(c) or {}).get("version") != g["version"] for c, g in wanted.items()):
+            if time.monotonic() > deadline:
+                return {"error": f"BrainService does not serve the promoted {', '.join(wanted)} after {SERVE_WAIT_S:.0f} s"}
+            self.sleep(0.2)
+        answer: dict[str, Any] = {}
+        for i, (obs, _expert) in enumerate(self._observations(data, BRAIN_TICKS)):
+            answer = self._post_infer({"component": "fast_loop", "observation": obs, "session": "demo-brain",
+                                       "reset": i == 0})
+            if answer.get("error"):
+                return answer
+        return {**answer, "ticks": BRAIN_TICKS}
+
+    def _observations(self, data: Path, n: int) -> list[tuple[list[float], list[float]]]:
+        """The first n steps of the first demonstration: (observation in the spec's order, expert command)."""
+        episode = sorted(p for p in data.iterdir() if p.is_dir())[0]
+        out = []
+        with open(episode / "steps" / "000000.jsonl", encoding="utf-8") as f:
+            for line in f:
+                step = json.loads(line)
+                o = step["observation"]
+                obs = [*o["robot_state"]["joint_positions"], *o["robot_state"]["joint_velocities"], *o["target_offset"]]
+                out.append(([float(v) for v in obs], [float(v) for v in step["action"]["command"]]))
+                if len(out) == n:
+                    break
+        return out
+
     def _observation(self, data: Path) -> tuple[list[float], list[float]]:
         """The first step of the first demonstration: the observation vector in the spec's order
         (joint positions, joint velocities, target offset) and the expert's command there."""
-        episode = sorted(p for p in data.iterdir() if p.is_dir())[0]
-        with open(episode / "steps" / "000000.jsonl", encoding="utf-8") as f:
-            step = json.loads(f.readline())
-        o = step["observation"]
-        obs = [*o["robot_state"]["joint_positions"], *o["robot_state"]["joint_velocities"], *o["target_offset"]]
-        return [float(v) for v in obs], [float(v) for v in step["action"]["command"]]
+        return self._observations(data, 1)[0]
 
     def infer_over_http(self) -> dict[str, Any]:
         obs, expert = self.first_observation
-        body = json.dumps({"component": "fast_loop", "observation": obs, "session": "demo", "reset": True}).encode()
+        answer = self._post_infer({"component": "fast_loop", "observation": obs, "session": "demo", "reset": True})
+        return answer if answer.get("error") else {**answer, "observation": obs, "expert_action": expert}
+
+    def _post_infer(self, request: dict[str, Any]) -> dict[str, Any]:
+        body = json.dumps(request).encode()
         req = urllib.request.Request(self.url.rstrip("/") + "/api/brain/infer", data=body, method="POST",
                                      headers={"Content-Type": "application/json",
                                               "Authorization": f"Bearer {self.token}"})
@@ -100,7 +137,7 @@ class ClosureSteps:
             return {"error": f"HTTP {exc.code}: {exc.read().decode('utf-8', 'replace')[:300]}"}
         except (urllib.error.URLError, OSError, ValueError) as exc:
             return {"error": str(exc)}
-        return {**answer, "observation": obs, "expert_action": expert}
+        return answer
 
     def loop_closure(self, fast_id: str) -> float | None:
         from registry import runs

@@ -75,7 +75,51 @@ def component_figures(run: dict[str, Any], gate: dict[str, Any] | None) -> dict[
         "error": run.get("error"),
         "gate": gate,
         "loop_closure_s": run.get("loop_closure_s"),
+        "held_out": held_out(run["component"], result),
     }
+
+
+_VQVAE_KEYS = ("recon_nmse", "perplexity", "code_usage", "psnr_db")
+_MID_KEYS = ("obs_mse", "copy_last_obs_mse", "nll", "copy_last_nll", "code_freq_nll")
+
+
+def held_out(component: str, result: dict[str, Any]) -> dict[str, Any] | None:
+    """The validation figures a component is judged by (result.json summary.val): the VQ-VAE's
+    reconstruction and codebook, the Mid Loop's per-horizon figures against its baselines."""
+    summary = result.get("summary")
+    val = summary.get("val") if isinstance(summary, dict) else None
+    if not isinstance(val, dict):
+        return None
+    if component == "vqvae":
+        return {k: val[k] for k in _VQVAE_KEYS if k in val}
+    if component == "mid_loop":
+        labels = sorted({k[len("nll_"):] for k in val if k.startswith("nll_")}, key=lambda x: float(x.rstrip("s")))
+        return {label: {k: val.get(f"{k}_{label}") for k in _MID_KEYS} for label in labels}
+    return None
+
+
+def held_out_lines(rows: list[dict[str, Any]]) -> list[str]:
+    lines = []
+    for r in rows:
+        h = r.get("held_out")
+        if not h:
+            continue
+        if r["component"] == "vqvae" and "recon_nmse" in h:
+            nmse = h["recon_nmse"]
+            lines.append(f"vqvae (held-out episodes): keeps {_num(100 * (1 - nmse), '.1f')} % of the variance "
+                         f"(normalised MSE {_num(nmse, '.4f')}, target <= 0.05), perplexity "
+                         f"{_num(h.get('perplexity'), '.0f')} per group, code usage {_num(100 * h.get('code_usage', math.nan), '.0f')} %")
+        elif r["component"] == "mid_loop":
+            parts = []
+            for label, f in h.items():
+                mse, copy = f.get("obs_mse"), f.get("copy_last_obs_mse")
+                gain = (1 - mse / copy) if isinstance(mse, (int, float)) and isinstance(copy, (int, float)) and copy else None
+                than = "-" if gain is None else f"{abs(100 * gain):.0f} % {'lower' if gain >= 0 else 'higher'}"
+                parts.append(f"{label}: observation error {_num(mse, '.3f')} vs copy-last {_num(copy, '.3f')} "
+                             f"({than}), nll {_num(f.get('nll'), '.2f')} "
+                             f"vs copy-last {_num(f.get('copy_last_nll'), '.2f')}, code frequency {_num(f.get('code_freq_nll'), '.2f')}")
+            lines.append("mid_loop (held-out episodes): " + "; ".join(parts))
+    return lines
 
 
 def _num(value: Any, fmt: str, missing: str = "-") -> str:
@@ -109,6 +153,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         state = "" if r["state"] == "completed" else f"  [{r['state']}]"
         lines.append(f"{r['component']:<10} {steps:>11}  {loss:<21} {rss:>9} {took:>7}  {_gate_text(r['gate'])}{state}")
     lines.append("")
+    lines.extend(held_out_lines(rows))
     inference = summary.get("inference")
     if inference and inference.get("action") is not None:
         action = ", ".join(f"{a:+.3f}" for a in inference["action"])
@@ -116,6 +161,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"inference (POST /api/brain/infer): action [{action}]"
                      + (f" (the expert: [{', '.join(f'{a:+.3f}' for a in expert)}])" if expert else "")
                      + f", {inference.get('model_version')}, {_num(inference.get('latency_ms'), '.2f')} ms")
+    brain = summary.get("brain")
+    if brain and brain.get("error"):
+        lines.append(f"whole brain: {brain['error']}")
+    elif brain:
+        lines.append(f"whole brain (session ticked through {brain.get('ticks')} steps of a demonstration): action "
+                     f"[{', '.join(_num(a, '+.3f') for a in brain.get('action') or [])}], versions {brain.get('versions')}")
+        lines.extend(_whole_brain_lines(brain))
     elif inference:
         lines.append(f"inference: {inference.get('error')}")
     reflex = summary.get("reflex")
@@ -138,6 +190,22 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _whole_brain_lines(inference: dict[str, Any]) -> list[str]:
+    """The answer's code, prediction and surprise (BrainService serving all three components)."""
+    out = []
+    if inference.get("code") is not None:
+        out.append(f"  code {inference['code']}")
+    pred = inference.get("prediction")
+    if isinstance(pred, dict):
+        for label, obs in pred.items():
+            out.append(f"  prediction at +{label}: [{', '.join(_num(v, '+.3f') for v in obs)}]")
+    if "surprise" in inference:
+        value = inference.get("surprise")
+        out.append("  surprise: none yet (no prediction made one horizon ago in this session)" if value is None
+                   else f"  surprise {_num(value, '.2f')} nats")
+    return out
+
+
 def verdict(summary: dict[str, Any], target_return: float) -> list[str]:
     """What the demo promised and did not do; [] when all is well."""
     problems = []
@@ -145,18 +213,23 @@ def verdict(summary: dict[str, Any], target_return: float) -> list[str]:
         if r["state"] != "completed":
             problems.append(f"{r['component']} run {r['run_id']} ended {r['state']}"
                             + (f": {r['error']}" if r.get("error") else ""))
-    fast = next((r for r in summary.get("components") or [] if r["component"] == "fast_loop"), None)
-    if fast is not None and fast["state"] == "completed":
-        gate = fast.get("gate")
+    for r in summary.get("components") or []:
+        # every member must earn its place: the gate checks the vqvae's and mid_loop's baselines too
+        if r["state"] != "completed":
+            continue
+        gate, name = r.get("gate"), r["component"]
         if gate is None:
-            problems.append("the fast_loop run was not gated (auto-promotion did not finish)")
+            problems.append(f"the {name} run was not gated (auto-promotion did not finish)")
         elif gate["state"] == "refused":
-            problems.append(f"the gate refused the fast_loop: {'; '.join(gate.get('reasons') or [])}")
+            problems.append(f"the gate refused the {name}: {'; '.join(gate.get('reasons') or [])}")
         elif gate["state"] == "error":
-            problems.append(f"auto-promotion of the fast_loop failed: {gate.get('message')}")
+            problems.append(f"auto-promotion of the {name} failed: {gate.get('message')}")
     inference = summary.get("inference") or {}
     if inference.get("error"):
         problems.append(f"inference through the API failed: {inference['error']}")
+    brain = summary.get("brain") or {}
+    if brain.get("error"):
+        problems.append(f"the whole-brain inference failed: {brain['error']}")
     reflex = summary.get("reflex") or {}
     mean = reflex.get("mean_return")
     if reflex.get("error"):

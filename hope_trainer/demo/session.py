@@ -170,11 +170,13 @@ class Demo(ChainSteps, ClosureSteps):
         else:
             reflex = {"error": "no fast_loop is promoted, so there is nothing to evaluate"}
         closure = self.loop_closure(fast_id) if self.inference and not self.inference.get("error") else None
+        brain = self.brain_inference(gates, ids, data)
         objs = self._runs(ids)
         self.timings["total"] = time.monotonic() - self.started
         return {
             "components": [component_figures(o, gates.get(o["id"])) for o in objs],
             "inference": self.inference,
+            "brain": brain,
             "reflex": reflex,
             "loop_closure_s": closure,
             "target_return": self.args.target_return,
