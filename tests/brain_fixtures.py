@@ -10,6 +10,11 @@ datasets; about 10 s in all on an idle core:
     runs["alpha_vq"]                   a fast_loop reading that VQ-VAE's codes
     runs["other"]                      a fast_loop for another robot (obs 8 -> act 3)
 
+    whole = brain_whole_runs(tmp_path_factory)  (tests/test_brain_whole.py: all three components)
+    whole["vq_a"], whole["vq_b"]       two versions of one vector VQ-VAE run (2 groups of 16 codes)
+    whole["mid_a"], whole["mid_b"]     two versions of one mid_loop run reading vq_a (K=20, horizons 5, 10)
+    whole["vq8"], whole["mid8"]        a VQ-VAE and a mid_loop for another robot (obs 8 -> act 3)
+
 `promote_pointer(home, ckpt)` writes $HOPE_HOME/promoted/fast_loop.json the way the gate does
 (hope_models.promoted), and `rewrite_manifest(ckpt)` re-hashes a checkpoint dir a test has
 edited, so the edit reaches the check under test instead of stopping at the manifest.
@@ -69,6 +74,48 @@ def _build_runs(root: Path) -> None:
         runs["alpha_vq"] = _train(root / "ds6", root / "runs" / "alpha_vq", cache, "fast_loop", 20, 20, SMALL,
                                   vqvae_dir=runs["vq"])
         runs["other"] = _train(root / "ds8", root / "runs" / "other", cache, "fast_loop", 10, 10, SMALL)
+    finally:
+        torch.set_num_threads(threads)
+    (root / "runs.json").write_text(json.dumps({name: str(p.relative_to(root)) for name, p in runs.items()}))
+
+
+_WHOLE: dict[str, Path] = {}
+VQ_SMALL = {"n_codes": 16, "code_dim": 8, "groups": 2, "hidden": 16}
+MID_SMALL = {"d_model": 16, "d_state": 16, "n_layers": 2}
+
+
+def brain_whole_runs(tmp_path_factory) -> dict[str, Path]:
+    """The vqvae and mid_loop checkpoints of brain_whole_runs (module doc), trained once per test run."""
+    if _WHOLE:
+        return _WHOLE
+    from conftest import shared_build
+
+    root = shared_build(tmp_path_factory, "brain-whole", _build_whole)
+    _WHOLE.update({name: root / rel for name, rel in json.loads((root / "runs.json").read_text()).items()})
+    return _WHOLE
+
+
+def _build_whole(root: Path) -> None:
+    import torch
+
+    from hope_models.data.synthetic import generate_dataset
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        # the same data as brain_runs' ds6/ds8 (same generator and seeds): the fast_loops there fit
+        generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
+        generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
+        cache = root / "cache"
+        vq_b = _train(root / "ds6", root / "runs" / "vq", cache, "vqvae", 60, 30, VQ_SMALL)
+        runs = {"vq_a": vq_b.parent / "00000030", "vq_b": vq_b}
+        # long enough to learn that codes persist (the surprise test needs a model that expects something)
+        mid_b = _train(root / "ds6", root / "runs" / "mid", cache, "mid_loop", 200, 100, MID_SMALL,
+                       vqvae_dir=runs["vq_a"])
+        runs.update(mid_a=mid_b.parent / "00000100", mid_b=mid_b)
+        runs["vq8"] = _train(root / "ds8", root / "runs" / "vq8", cache, "vqvae", 20, 20, VQ_SMALL)
+        runs["mid8"] = _train(root / "ds8", root / "runs" / "mid8", cache, "mid_loop", 10, 10, MID_SMALL,
+                              vqvae_dir=runs["vq8"])
     finally:
         torch.set_num_threads(threads)
     (root / "runs.json").write_text(json.dumps({name: str(p.relative_to(root)) for name, p in runs.items()}))

@@ -281,7 +281,7 @@ def test_sessions_keep_state_reset_and_are_bounded(runs, home):
 # -- input validation ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("args,status,pattern", [
-    (("mid_loop", OBS6), 404, "unknown component 'mid_loop'"),
+    (("world_model", OBS6), 404, "unknown component 'world_model'"),
     ((None, OBS6), 404, "unknown component"),
     (("fast_loop", OBS6[:5]), 400, r"has 5 values, .* needs 6 \(observation.robot_state.joint_positions\[0\]"),
     (("fast_loop", OBS6 + [1.0]), 400, "has 7 values"),
@@ -346,8 +346,8 @@ def test_a_non_finite_answer_is_a_500_and_never_poisons_the_session(runs, home, 
 
 
 def test_constructor_refuses_components_it_cannot_serve(home):
-    with pytest.raises(ValueError, match="no inference runtime for \\['mid_loop'\\]"):
-        BrainService(home, components=("fast_loop", "mid_loop"))
+    with pytest.raises(ValueError, match="no inference runtime for \\['world_model'\\]"):
+        BrainService(home, components=("fast_loop", "world_model"))
     with pytest.raises(ValueError, match="poll_s"):
         BrainService(home, poll_s=5)
 
@@ -476,7 +476,7 @@ def test_infer_cli_asks_the_running_webapp(runs, home):
                 want, state = model.act(OBS6, state)
                 assert out["via"] == "http" and out["model_version"] == model.version and out["session"] == "cli"
                 assert np.allclose(out["action"], want, atol=1e-6), tick
-            proc = _infer_cli(home, "--component", "mid_loop", "--observation", json.dumps(OBS6), port=port)
+            proc = _infer_cli(home, "--component", "world_model", "--observation", json.dumps(OBS6), port=port)
             assert proc.returncode == 2 and "unknown component" in proc.stderr, proc.stderr
             proc = _infer_cli(home, "--observation", "[1, 2]", port=port)
             assert proc.returncode == 2 and "has 2 values" in proc.stderr, proc.stderr

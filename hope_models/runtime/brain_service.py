@@ -1,23 +1,26 @@
-"""BrainService: serves the promoted model of each component and follows promotions without a restart.
+"""BrainService: serves the promoted vqvae, fast_loop and mid_loop and follows promotions without a restart.
 
     brain = BrainService(settings.home, on_swap=..., on_first_inference=..., on_error=...)
     brain.start()                                   # loads what is promoted now, then watches
     brain.infer("fast_loop", [0.1, ...], session="arm-1")
-        -> {"action": [...], "model_version": "reach@2500:1a2b3c4d5e6f", "latency_ms": 0.08, "session": "arm-1"}
-    brain.status()["fast_loop"]                     # version, checkpoint, loaded_at, last_error, sessions
+        -> {"action": [...], "model_version": "reach@2500:1a2b3c4d5e6f", "latency_ms": 0.08, "session": "arm-1",
+            "code": [3, 11], "prediction": {"0.5s": [...], "1s": [...]}, "surprise": 2.1,
+            "surprise_by_horizon": {"0.5s": 2.1, "1s": 3.0}, "mid_tick": 35, "mid_grid_point": 7,
+            "versions": {"vqvae": ..., "fast_loop": ..., "mid_loop": ...}}
+    brain.status()["mid_loop"]                      # version, checkpoint, loaded_at, last_error, sessions, ...
     brain.stop()
 
-The promoted model of a component is named by its pointer file $HOPE_HOME/promoted/<component>.json
-(hope_models.promoted). A watcher thread reads the pointer every poll_s (0.2 s) and compares
-its bytes with the last seen, so a promotion or a rollback is noticed within a poll. The new
-checkpoint is then loaded on the watcher thread, off the request path: its manifest verified (each
-file read and hashed once, the weights loaded from the bytes that were hashed), their sha256 checked
-against the pointer's, its config checked to fit (a fast_loop this runtime
-can run, with the same observation and action layout as the model being served), warmed with one
-tick, and only then swapped in by assigning one reference. A request reads that reference once at
-its start and finishes on the object it read, so requests in flight complete on the old weights and
-none fail. A checkpoint that does not fit is refused: the old model keeps serving, and the reason
-is in status()["<component>"]["last_error"] and passed to on_error.
+Each component's promoted model is named by its pointer file $HOPE_HOME/promoted/<component>.json
+(hope_models.promoted). A watcher thread reads the pointers every poll_s (0.2 s) and compares
+their bytes with the last seen, so a promotion or a rollback is noticed within a poll. A new
+checkpoint is loaded on the watcher thread, off the request path: its manifest verified (each file
+read and hashed once, the weights loaded from the bytes that were hashed), their sha256 checked
+against the pointer's, its config checked to fit (a checkpoint this runtime can run, reading the
+same layout as the model being served: fit_fields), warmed, and only then swapped in by assigning
+one reference. A request reads that reference once and finishes on the object it read, so
+requests in flight complete on the old weights and none fail. A checkpoint that does not fit is
+refused: the old model keeps serving, the reason is in status()["<component>"]["last_error"] and
+passed to on_error. Each component follows its own pointer.
 
 Hooks (plain attributes, read each time they are called, so the webapp can wire them after
 construction): on_swap(component, version, checkpoint) and on_error(component, message) run on the
@@ -26,26 +29,27 @@ fires once per loaded version on a hook thread of its own, so the request that t
 waits for the webapp's registry write (`wait_hooks()` waits for it; `stop()` runs what is queued).
 A hook that raises is logged, never propagated. A refused pointer is not retried until it changes.
 
-Torch-free (the webapp hosts this in the `serve` process, whose memory budget has no room for torch):
-the fast_loop runs as FastLoopNumpy, tested equal to torch's FastLoop within 1e-5.
+Torch-free (the `serve` process's memory budget has no room for torch): FastLoopNumpy,
+VQVAERuntime and MidLoopNumpy, each tested equal to its torch model.
 
-Recurrent state: a request with `session` steps that session's state (window-exact: the action is
-FastLoop.forward over the session's last K observations); without one the call is stateless (a
-fresh state, i.e. a 1-point window). Sessions are kept per component in an LRU of `max_sessions`;
-`reset=True` starts the session's episode again, and a version change resets every session (a state
-computed by other weights means nothing to the new ones).
+A request is one control tick of a session and answers from every served component that reads the
+observation's layout; `component` names the one the caller needs (503 while it is not served).
+The fast_loop's recurrent state (window-exact: FastLoop.forward over the session's last K
+observations) and the Mid Loop's grid points (brain_mid.py: when it runs, `prediction` and
+`surprise`) are per session; without one the call is stateless (a 1-point window). Sessions are
+kept per component in an LRU of `max_sessions`; `reset=True` starts the session's episode again,
+and a version change resets that component's sessions (a state computed by other weights means
+nothing to the new ones); a vqvae change changes only `code`.
 
-Every answer is finite. An observation value beyond +-MAX_ABS_OBSERVATION (1e6) is refused (400,
-the message gives the range): no robot sends one, and near float32's limit it overflowed. If the
-served model still computes NaN or Inf from a valid observation, that is the model's fault: the
-request gets BrainError status 500 naming the version, the event is logged and counted
-(status()["<component>"]["non_finite"]), and the session's recurrent state is committed only when
-the tick's action and state are finite, so the next tick answers as if the bad one never happened.
+Every answer is finite. An observation value beyond +-MAX_ABS_OBSERVATION (1e6) is refused (400).
+If the fast_loop computes NaN or Inf from a valid observation, that is the model's fault: BrainError
+500 naming the version, logged and counted (status()["fast_loop"]["non_finite"]), and the session's
+state is committed only when the tick's action and state are finite. A non-finite Mid Loop
+prediction is answered as null (counted the same way) and the action is still given.
 """
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import OrderedDict
@@ -57,36 +61,21 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from hope_models.promoted import PointerError, pointer_path, read_pointer
-from hope_models.runtime.fast_loop_checkpoint import FastLoopNumpyError
+from hope_models.runtime import brain_mid
+from hope_models.runtime.brain_input import (
+    MAX_ABS_OBSERVATION, MAX_SESSION_CHARS, MAX_SESSIONS, BrainError, observation_values,
+)
+from hope_models.runtime.fast_loop_checkpoint import CheckpointRefused
 from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
 from hope_models.runtime.hook_thread import HookThread
+from hope_models.runtime.mid_loop_numpy import MidLoopNumpy
 from hope_models.runtime.numpy_layers import NumpyWindowState
+from hope_models.runtime.vqvae_numpy import VQVAERuntime
 
 log = logging.getLogger(__name__)
 
-RUNTIMES = {"fast_loop": FastLoopNumpy}  # component -> its torch-free inference runtime
-MAX_SESSIONS = 256
-MAX_SESSION_CHARS = 128
-MAX_OBSERVATION = 4096  # longer lists are refused before any conversion
-# The largest |value| an observation may hold. Robot observations are joint angles (rad),
-# velocities, positions (m), forces: none comes within orders of magnitude of this, so a larger
-# value is a unit or encoding error of the client. The bound also keeps the float32 arithmetic of
-# the tick finite: normalised by a std of at least the default floor (1e-3), a value of 1e6 is
-# 1e9, and its squares stay far below float32's 3.4e38 (values near that limit overflowed to Inf
-# and answered NaN, poisoning the session's recurrent state).
-MAX_ABS_OBSERVATION = 1e6
-
-
-class BrainError(ValueError):
-    """A request BrainService cannot answer; `.status` is the HTTP status that fits (400 bad input,
-    404 unknown component, 503 no model to serve yet, 500 the served model computed a non-finite
-    answer from a valid observation)."""
-
-    def __init__(self, message: str, status: int = 400):
-        super().__init__(message)
-        self.status = status
-
-
+# component -> its torch-free inference runtime
+RUNTIMES = {"vqvae": VQVAERuntime, "fast_loop": FastLoopNumpy, "mid_loop": MidLoopNumpy}
 def _utcnow() -> datetime:
     return datetime.now(timezone.utc)
 
@@ -95,7 +84,7 @@ def _utcnow() -> datetime:
 class _Served:
     """One loaded version of a component: never mutated after it is swapped in (apart from the
     once-only first-inference flag)."""
-    model: FastLoopNumpy
+    model: Any  # one of RUNTIMES' classes
     checkpoint: Path
     pointer: dict[str, Any]
     loaded_at: datetime
@@ -128,7 +117,7 @@ class _Slot:
 
 
 class BrainService:
-    def __init__(self, home: str | Path, *, components: Iterable[str] = ("fast_loop",), poll_s: float = 0.2,
+    def __init__(self, home: str | Path, *, components: Iterable[str] = tuple(RUNTIMES), poll_s: float = 0.2,
                  on_swap: Callable[[str, str, str], Any] | None = None,
                  on_first_inference: Callable[[str, str, str, datetime], Any] | None = None,
                  on_error: Callable[[str, str], Any] | None = None, max_sessions: int = MAX_SESSIONS):
@@ -224,7 +213,7 @@ class BrainService:
         slot.pointer_version = pointer.get("version") if isinstance(pointer.get("version"), str) else None
         try:
             served = self._load(slot, pointer, path)
-        except (FastLoopNumpyError, BrainError) as exc:
+        except (CheckpointRefused, BrainError) as exc:
             self._fail(slot, str(exc))
             return
         if served is None:  # the same weights as served now (e.g. the pointer rewritten): nothing to do
@@ -248,15 +237,15 @@ class BrainService:
         ckpt = model.checkpoint  # a run dir named by hand resolves to its newest complete checkpoint
         if current is not None:
             self._check_fits(slot, current.model, model)
-        # warm: one tick, so the first real request after the swap pays no first-call costs
-        model.step(np.zeros((1, model.obs_dim), np.float32), model.init_state())
+        model.warm()  # so the first real request after the swap pays no first-call costs
         return _Served(model=model, checkpoint=ckpt, pointer=dict(pointer), loaded_at=_utcnow())
 
     @staticmethod
-    def _check_fits(slot: _Slot, old: FastLoopNumpy, new: FastLoopNumpy) -> None:
+    def _check_fits(slot: _Slot, old: Any, new: Any) -> None:
         """The robot sends what the served model reads: a model with another observation or action
-        layout would fail every request, so it is refused while the old one keeps serving."""
-        if new.observation_fields != old.observation_fields or new.action_fields != old.action_fields:
+        layout (the vqvae: observation) would fail every request, so it is refused while the old one
+        keeps serving."""
+        if new.fit_fields != old.fit_fields:
             def fmt(fields):
                 return ", ".join(f"{p}[{n}]" for p, n in fields)
 
@@ -295,8 +284,12 @@ class BrainService:
             log.exception("BrainService: callback %r failed", fn)
 
     # -- inference ------------------------------------------------------------------------------
-    def infer(self, component: Any, observation: Any, session: Any = None, reset: Any = False) -> dict[str, Any]:
-        """One tick of `component` on `observation` (a list of finite numbers, the model's spec order)."""
+    def infer(self, component: Any, observation: Any, session: Any = None, reset: Any = False,
+              action: Any = None) -> dict[str, Any]:
+        """One tick of a session: every served component whose observation layout is `component`'s, on
+        `observation` (a list of finite numbers, the spec order). `component` is the one the caller
+        needs (503 while it is not served). `action`: the action taken on the previous tick (the Mid
+        Loop's input; by default the fast_loop's previous answer). brain_mid: the fields beyond the action."""
         started = time.perf_counter()
         slot = self._slots.get(component) if isinstance(component, str) else None
         if slot is None:
@@ -315,31 +308,57 @@ class BrainService:
         if len(values) != model.obs_dim:
             raise BrainError(f"observation has {len(values)} values, {served.version} needs {model.obs_dim} "
                              f"({model.describe_observation()})")
+        peers = {name: served if name == component else self._peer(name, model.observation_fields)
+                 for name in self._slots}
+        fast, vq, mid = peers.get("fast_loop"), peers.get("vqvae"), peers.get("mid_loop")
+        given = None
+        if action is not None:  # checked before any state moves: a refused request changes no session
+            try:
+                given = brain_mid.action_values(action, (mid or served).model.act_dim)
+            except ValueError as exc:
+                raise BrainError(str(exc)) from None
+        answered = None if fast is None else self._fast_tick(self._slots["fast_loop"], fast, values, session, reset)
+        out = {"action": None if answered is None else [float(v) for v in answered],
+               "model_version": served.version, "latency_ms": 0.0, "session": session,
+               "code": None if vq is None else [int(c) for c in vq.model.codes_of(np.asarray(values))]}
+        out.update(brain_mid.EMPTY if mid is None else
+                   brain_mid.answer(self._slots["mid_loop"], mid, np.asarray(values), session, reset, given, answered,
+                                    fast.model if fast else None, self.max_sessions))
+        out["versions"] = {name: p.version if p is not None else None for name, p in peers.items()}
+        out["latency_ms"] = round((time.perf_counter() - started) * 1000.0, 4)
+        for name, p in peers.items():
+            if p is not None and not p.first_inference_done:
+                self._first_inference(self._slots[name], p)
+        return out
+
+    def _peer(self, name: str, fields: list) -> _Served | None:
+        """The served model of `name` when it reads the observation layout `fields`, else None."""
+        p = self._slots[name].served
+        return p if p is not None and p.model.observation_fields == fields else None
+
+    def _fast_tick(self, slot: _Slot, served: _Served, values: list[float], session: str | None,
+                   reset: bool) -> np.ndarray:
+        model = served.model
         xn = model.normalise(np.asarray(values, dtype=np.float64))
         if session is None:
             a, state = model.tick(xn, model.init_state())
             action = model.denormalise(a)
             if not _finite(action, state):
                 self._non_finite(slot, served, session, values)
-        else:
-            sess = self._session(slot, session, served.version, model, reset)
-            with sess.lock:
-                if sess.version != served.version:  # a swap happened since: start afresh on these weights
-                    sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
-                a, state = model.tick(xn, sess.state)
-                action = model.denormalise(a)
-                # Committed only when finite: one bad tick must not leave NaN in the recurrent state,
-                # which every later tick of the session would read (K ticks of NaN answers).
-                if not _finite(action, state):
-                    self._non_finite(slot, served, session, values)
-                sess.state = state
-                sess.ticks += 1
-        latency_ms = (time.perf_counter() - started) * 1000.0
-        out = {"action": [float(v) for v in action], "model_version": served.version,
-               "latency_ms": round(latency_ms, 4), "session": session}
-        if not served.first_inference_done:
-            self._first_inference(slot, served)
-        return out
+            return action
+        sess = self._session(slot, session, served.version, model, reset)
+        with sess.lock:
+            if sess.version != served.version:  # a swap happened since: start afresh on these weights
+                sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
+            a, state = model.tick(xn, sess.state)
+            action = model.denormalise(a)
+            # Committed only when finite: one bad tick must not leave NaN in the recurrent state,
+            # which every later tick of the session would read (K ticks of NaN answers).
+            if not _finite(action, state):
+                self._non_finite(slot, served, session, values)
+            sess.state = state
+            sess.ticks += 1
+        return action
 
     @staticmethod
     def _non_finite(slot: _Slot, served: _Served, session: str | None, values: list[float]) -> None:
@@ -387,6 +406,7 @@ class BrainService:
     # -- status ---------------------------------------------------------------------------------
     def status(self) -> dict[str, dict[str, Any]]:
         out = {}
+        vq = self._slots["vqvae"].served if "vqvae" in self._slots else None
         for name, slot in self._slots.items():
             served = slot.served
             model = served.model if served else None
@@ -402,6 +422,7 @@ class BrainService:
                 "act_dim": model.act_dim if model else None,
                 "observation_fields": model.spec.observation.dim_names() if model else None,
                 "action_fields": model.spec.action.dim_names() if model else None,
+                **brain_mid.status_extra(model, vq.model if vq else None),
             }
         return out
 
@@ -414,32 +435,6 @@ def _finite(action: np.ndarray, state: NumpyWindowState) -> bool:
     # The whole state, not only the action: a NaN can sit in the ring for K ticks before it
     # reaches an action. K x N floats: about a microsecond.
     return bool(np.isfinite(action).all() and np.isfinite(state.h).all() and np.isfinite(state.ring).all())
-
-
-def observation_values(observation: Any) -> list[float]:
-    """A JSON list of finite numbers within +-MAX_ABS_OBSERVATION -> floats; BrainError(400)
-    naming what is wrong otherwise."""
-    if not isinstance(observation, (list, tuple)):
-        raise BrainError(f"observation must be a list of numbers, got {type(observation).__name__}")
-    if not observation:
-        raise BrainError("observation is empty; it must be a list of numbers")
-    if len(observation) > MAX_OBSERVATION:
-        raise BrainError(f"observation has {len(observation)} values; at most {MAX_OBSERVATION} are accepted")
-    values = []
-    for i, v in enumerate(observation):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise BrainError(f"observation[{i}] = {v!r} is not a number")
-        try:
-            f = float(v)
-        except OverflowError:  # a huge JSON integer
-            raise BrainError(f"observation[{i}] is too large for a float") from None
-        if not math.isfinite(f):
-            raise BrainError(f"observation[{i}] = {f} is not finite (NaN and Inf are refused)")
-        if abs(f) > MAX_ABS_OBSERVATION:
-            raise BrainError(f"observation[{i}] = {f:g} is outside the accepted range [-{MAX_ABS_OBSERVATION:g}, "
-                             f"{MAX_ABS_OBSERVATION:g}] (robot observations are far smaller: check the units)")
-        values.append(f)
-    return values
 
 
 __all__ = ["BrainService", "BrainError", "RUNTIMES", "MAX_ABS_OBSERVATION", "MAX_SESSIONS", "observation_values"]

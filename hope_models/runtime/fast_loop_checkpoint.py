@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,7 +36,11 @@ MODEL_CONFIG_KEYS = ("obs_dim", "act_dim", "window_k", "d_model", "d_state", "ml
                      "max_timescale", "n_codes")
 
 
-class FastLoopNumpyError(ValueError):
+class CheckpointRefused(ValueError):
+    """A checkpoint the NumPy runtime cannot run (any component); the message names the file and why."""
+
+
+class FastLoopNumpyError(CheckpointRefused):
     """This checkpoint cannot be run by the NumPy fast_loop; the message names the file and why."""
 
 
@@ -59,6 +63,20 @@ def read_fast_loop(path: str | Path, *, expected_sha256: str | None = None,
     dir is resolved to its newest complete checkpoint and every file is checked against the
     manifest (train/checkpoint.open_checkpoint), the bytes loaded being those hashed; without it,
     a bare checkpoint dir needs no manifest (what a test or a tool wrote by hand)."""
+    def tensors_ok(t: dict[str, np.ndarray], config: dict[str, Any], where: Path) -> None:
+        check_tensors(t, config["model_config"], where, groups=vqvae_groups(config))
+
+    return read_component(path, check_config, tensors_ok, FastLoopNumpyError, expected_sha256=expected_sha256,
+                          verify_manifest=verify_manifest)
+
+
+def read_component(path: str | Path, config_check: Callable[[Any, Path], FeatureSpec],
+                   tensors_check: Callable[[dict[str, np.ndarray], dict[str, Any], Path], None],
+                   error: type[CheckpointRefused], *, expected_sha256: str | None = None,
+                   verify_manifest: bool = False) -> FastLoopCheckpoint:
+    """read_fast_loop for any component: config_check(config, where) -> its feature spec and
+    tensors_check(tensors, config, where) raise `error` (a CheckpointRefused) naming the file; the
+    manifest, the sha256 against the pointer's and the safetensors reading are the same for all."""
     ckpt = Path(path)
     cfg_path, weights_path = ckpt / CONFIG_FILE, ckpt / MODEL_FILE
     if verify_manifest:
@@ -69,37 +87,37 @@ def read_fast_loop(path: str | Path, *, expected_sha256: str | None = None,
             ckpt, cfg_path, weights_path = verified.path, verified.path / CONFIG_FILE, verified.path / MODEL_FILE
             config = verified.json(CONFIG_FILE)
         except CheckpointError as exc:
-            raise FastLoopNumpyError(str(exc)) from None
-        spec = check_config(config, cfg_path)
+            raise error(str(exc)) from None
+        spec = config_check(config, cfg_path)
         data, sha = verified.data[MODEL_FILE], verified.sha256[MODEL_FILE]
     else:
         if not ckpt.is_dir():
-            raise FastLoopNumpyError(f"{ckpt}: checkpoint dir not found")
-        config = _read_config(cfg_path)
-        spec = check_config(config, cfg_path)
+            raise error(f"{ckpt}: checkpoint dir not found")
+        config = _read_config(cfg_path, error)
+        spec = config_check(config, cfg_path)
         try:
             data = weights_path.read_bytes()
         except FileNotFoundError:
-            raise FastLoopNumpyError(f"{weights_path}: weights file not found") from None
+            raise error(f"{weights_path}: weights file not found") from None
         except OSError as exc:
-            raise FastLoopNumpyError(f"{weights_path}: cannot read: {exc.strerror or exc}") from None
+            raise error(f"{weights_path}: cannot read: {exc.strerror or exc}") from None
         sha = sha256_hex(data)
     if expected_sha256 is not None and sha != expected_sha256:
-        raise FastLoopNumpyError(f"{weights_path}: sha256 {sha[:12]}... does not match the promoted "
-                                 f"{expected_sha256[:12]}... (the file changed after promotion)")
-    tensors = load_tensors(data, weights_path)
-    check_tensors(tensors, config["model_config"], weights_path)
+        raise error(f"{weights_path}: sha256 {sha[:12]}... does not match the promoted "
+                    f"{expected_sha256[:12]}... (the file changed after promotion)")
+    tensors = load_tensors(data, weights_path, error)
+    tensors_check(tensors, config, weights_path)
     return FastLoopCheckpoint(ckpt, config, spec, tensors, sha, version_name(ckpt, sha, config))
 
 
-def _read_config(cfg_path: Path) -> dict[str, Any]:
+def _read_config(cfg_path: Path, error: type[CheckpointRefused] = FastLoopNumpyError) -> dict[str, Any]:
     try:
         return read_json_object(cfg_path)  # untrusted: size, depth and type bounded there
     except FileNotFoundError:
-        raise FastLoopNumpyError(f"{cfg_path}: not found (a checkpoint dir holds {MODEL_FILE} + "
+        raise error(f"{cfg_path}: not found (a checkpoint dir holds {MODEL_FILE} + "
                                  f"{CONFIG_FILE})") from None
     except CheckpointError as exc:
-        raise FastLoopNumpyError(str(exc)) from None
+        raise error(str(exc)) from None
 
 
 def _check_model_config(mc: Any, where: Path) -> None:
@@ -121,6 +139,9 @@ def _check_model_config(mc: Any, where: Path) -> None:
                                  f"{MAX_K} points")
 
 
+MAX_GROUPS = 64  # far above any useful product of codebooks; bounds what an untrusted config sizes
+
+
 def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> None:
     vq = config.get("vqvae")
     vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
@@ -130,6 +151,9 @@ def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> Non
         raise FastLoopNumpyError(f"{where}: this fast_loop reads codes of a VQ-VAE with input "
                                  f"{vq_cfg.get('input')!r} (camera frames); the inference runtime runs "
                                  "state-only fast_loops (observation vectors)")
+    groups = vq_cfg.get("groups", 1)
+    if isinstance(groups, bool) or not isinstance(groups, int) or not 1 <= groups <= MAX_GROUPS:
+        raise FastLoopNumpyError(f"{where}: vqvae.model_config.groups={groups!r} must be an integer in 1-{MAX_GROUPS}")
     if vq_cfg.get("obs_dim") != mc["obs_dim"] or vq_cfg.get("n_codes") != mc["n_codes"]:
         raise FastLoopNumpyError(f"{where}: the VQ-VAE's obs_dim/n_codes ({vq_cfg.get('obs_dim')}/"
                                  f"{vq_cfg.get('n_codes')}) do not fit the fast_loop's "
@@ -164,21 +188,22 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
     return spec
 
 
-def load_tensors(data: bytes, where: Path) -> dict[str, np.ndarray]:
+def load_tensors(data: bytes, where: Path,
+                 error: type[CheckpointRefused] = FastLoopNumpyError) -> dict[str, np.ndarray]:
     """The tensors of a safetensors file's bytes (pickle refused by its first bytes, never parsed)."""
     from safetensors import SafetensorError
     from safetensors.numpy import load
 
     problem = safetensors_problem(data[:9])
     if problem is not None:
-        raise FastLoopNumpyError(f"{where}: {problem}")
+        raise error(f"{where}: {problem}")
     try:
         return load(data)
     except (SafetensorError, ValueError, TypeError) as exc:
-        raise FastLoopNumpyError(f"{where}: not a readable safetensors file: {exc}") from None
+        raise error(f"{where}: not a readable safetensors file: {exc}") from None
 
 
-def expected_shapes(mc: dict[str, Any], vq_cfg: dict[str, Any] | None = None) -> dict[str, tuple[int, ...]]:
+def expected_shapes(mc: dict[str, Any], groups: int = 1) -> dict[str, tuple[int, ...]]:
     """Tensor name -> shape of every weight the NumPy form reads."""
     d, n, hidden = mc["d_model"], mc["d_state"], mc["mlp_ratio"] * mc["d_model"]
     shapes: dict[str, tuple[int, ...]] = {
@@ -193,11 +218,18 @@ def expected_shapes(mc: dict[str, Any], vq_cfg: dict[str, Any] | None = None) ->
                        f"{name}.w_up.weight": (hidden, d), f"{name}.w_up.bias": (hidden,),
                        f"{name}.w_out.weight": (d, hidden), f"{name}.w_out.bias": (d,)})
     if mc["n_codes"]:
-        shapes["code_in.weight"] = (mc["n_codes"], d)
+        shapes["code_in.weight"] = (mc["n_codes"] * groups, d)  # one row per code of every group
     return shapes
 
 
-def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+def vqvae_groups(config: dict[str, Any]) -> int:
+    """The code groups of a checkpoint's VQ-VAE (1 without one, or one saved before groups existed);
+    check_config has checked the value."""
+    vq = config.get("vqvae")
+    return int(vq["model_config"].get("groups", 1)) if isinstance(vq, dict) else 1
+
+
+def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any], groups: int) -> dict[str, tuple[int, ...]]:
     """The vector VQ-VAE encoder and codebook the codes need; its widths are the file's own."""
     w0 = t.get("vqvae.encoder.0.0.weight")
     w4 = t.get("vqvae.encoder.0.4.weight")
@@ -206,16 +238,16 @@ def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any]) -> dict[str, tup
     return {"vqvae.encoder.0.0.weight": (hidden, mc["obs_dim"]), "vqvae.encoder.0.0.bias": (hidden,),
             "vqvae.encoder.0.2.weight": (hidden, hidden), "vqvae.encoder.0.2.bias": (hidden,),
             "vqvae.encoder.0.4.weight": (code_dim, hidden), "vqvae.encoder.0.4.bias": (code_dim,),
-            "vqvae.codebook": (mc["n_codes"], code_dim)}
+            "vqvae.codebook": (mc["n_codes"] * groups, code_dim // groups if code_dim % groups == 0 else -1)}
 
 
-def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path) -> None:
+def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1) -> None:
     """The weights are exactly the float32 tensors config.json describes, finite, and a VQ-VAE
     they read codes of was trained."""
-    want = expected_shapes(mc)
+    want = expected_shapes(mc, groups)
     n_codes = mc["n_codes"]
     if n_codes:
-        want.update(_vqvae_shapes(t, mc))
+        want.update(_vqvae_shapes(t, mc, groups))
     # names the runtime does not read: the VQ-VAE's decoder and EMA buffers are fine, anything else
     # means the file describes another model than config.json does
     ignore = [k for k in t if n_codes and k.startswith("vqvae.")]
@@ -233,5 +265,6 @@ def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path) -> 
             raise FastLoopNumpyError(f"{where}: the fast_loop's VQ-VAE was never trained (codebook not initialised)")
 
 
-__all__ = ["FastLoopNumpyError", "FastLoopCheckpoint", "read_fast_loop", "check_config", "check_tensors",
+__all__ = ["CheckpointRefused", "FastLoopNumpyError", "FastLoopCheckpoint", "read_fast_loop", "read_component",
+           "check_config", "check_tensors",
            "expected_shapes", "load_tensors", "MODEL_CONFIG_KEYS"]

@@ -45,8 +45,9 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import FeatureSpec
-from hope_models.runtime.fast_loop_checkpoint import FastLoopNumpyError, read_fast_loop
-from hope_models.runtime.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm, silu
+from hope_models.runtime.fast_loop_checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_groups
+from hope_models.runtime.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
+from hope_models.runtime.vqvae_numpy import VQVAENumpy
 
 RATE_MIN = 1e-4  # WindowSSM.RATE_MIN / RATE_MAX: the clamp on the decay rate
 RATE_MAX = 20.0
@@ -61,6 +62,14 @@ def _reacher_bounds(spec: FeatureSpec) -> tuple[float, float] | None:
     if obs == [tuple(x) for x in OBS_FIELDS] and act == [tuple(ACTION_FIELD)]:
         return (ACTION_LOW, ACTION_HIGH)
     return None
+
+
+def _grid_step(config: dict[str, Any]) -> float | None:
+    """The window's grid step (s): the control period the fast_loop is ticked at (None if unknown)."""
+    w = config.get("window")
+    d, k = (w.get("duration_s"), w.get("k")) if isinstance(w, dict) else (None, None)
+    ok = isinstance(d, (int, float)) and isinstance(k, int) and not isinstance(k, bool) and k > 0 and d > 0
+    return float(d) / k if ok and math.isfinite(d) else None
 
 
 def centred(w: np.ndarray, b: np.ndarray | None = None):
@@ -91,6 +100,10 @@ class FastLoopNumpy:
         self.observation_fields = [(f.path, f.size) for f in spec.observation.fields]
         self.action_fields = [(f.path, f.size) for f in spec.action.fields]
         self.action_bounds = _reacher_bounds(spec)
+        self.fit_fields = (self.observation_fields, self.action_fields)  # what a replacement must read alike
+        vq_ref = config.get("vqvae")  # the VQ-VAE it was trained with (BrainService's consistency check)
+        self.vqvae_sha256 = vq_ref.get("weights_sha256") if isinstance(vq_ref, dict) else None
+        self.control_period_s = _grid_step(config)
         t = tensors
 
         def lin(prefix: str) -> Linear:
@@ -103,11 +116,10 @@ class FastLoopNumpy:
         self._out = Linear(*fold_ln(t["out_ln.weight"], t["out_ln.bias"], t["out.weight"], t["out.bias"]))
         self._mean_d = np.full(self.d_model, 1.0 / self.d_model, np.float32)  # x @ this = the mean over d
         self._code_in = t.get("code_in.weight")
-        if self.n_codes:
-            self._vq_layers = [lin(f"vqvae.encoder.0.{i}") for i in (0, 2, 4)]
-            self._codebook = t["vqvae.codebook"]
-            self._codebook_sq = (self._codebook * self._codebook).sum(1)
-            self._mean_code = np.full(self._codebook.shape[1], 1.0 / self._codebook.shape[1], np.float32)
+        if self.n_codes:  # the frozen VQ-VAE's encoder and codebook (vqvae_numpy.py)
+            self.groups = vqvae_groups(config)
+            self._vq = VQVAENumpy(t, groups=self.groups, n_codes=self.n_codes, prefix="vqvae.", decoder=False)
+            self._offsets = np.arange(self.groups) * self.n_codes
         # The SSM: the decay constants as WindowSSM._consts computes them (float32 log_a; the powers
         # and the gain from it), the gain folded into B^T, then C^T and D.
         log_rate = np.clip(t["ssm.log_rate"], np.float32(math.log(RATE_MIN)), np.float32(math.log(RATE_MAX)))
@@ -200,20 +212,18 @@ class FastLoopNumpy:
 
     # -- pointwise parts of the batched path (one grid point each) --------------------------------
     def codes(self, obs_n: np.ndarray) -> np.ndarray:
-        """Nearest codebook row of the frozen vector VQ-VAE for normalised obs [..., obs_dim]."""
-        z = obs_n
-        for i, layer in enumerate(self._vq_layers):
-            z = layer(z)
-            if i < len(self._vq_layers) - 1:
-                z = silu(z)
-        z = layer_norm(z, self._mean_code)  # the encoder's closing LayerNorm has no parameters
-        d = (z * z).sum(-1, keepdims=True) - np.float32(2.0) * (z @ self._codebook.T) + self._codebook_sq
-        return d.argmin(-1)
+        """Nearest row of each group's codebook of the frozen vector VQ-VAE for normalised obs
+        [..., obs_dim] -> group-local codes [..., G], as FastLoop.codes."""
+        return self._vq.codes(obs_n)
+
+    def _rows(self, obs_n: np.ndarray) -> np.ndarray:
+        """The rows of code_in the codes select (group g's code c is row g * n_codes + c) [..., G]."""
+        return self._vq.codes(obs_n) + self._offsets
 
     def _encode(self, obs_n: np.ndarray, norm) -> np.ndarray:
         e = self._obs_in(obs_n)
         if self.n_codes:
-            e += self._code_in[self.codes(obs_n)]
+            e += self._code_in[self._rows(obs_n)].sum(-2)
         x = self._enc(norm(e))
         x += e
         return x
@@ -332,12 +342,16 @@ class FastLoopNumpy:
         e = obs_n.dot(self._e_w)
         e += self._e_b
         if self.n_codes:
-            e += self._code_in_c[self.codes(obs_n)]
+            e += self._code_in_c[self._rows(obs_n)].sum(-2)
         y, r, state = self._core(e, float(e.dot(e)), state)
         a = y.dot(self._out.w_t)
         a *= r
         a += self._out.b
         return a, state
+
+    def warm(self) -> None:
+        """One tick, so the first real request after a swap pays no first-call costs."""
+        self.step(np.zeros((1, self.obs_dim), np.float32), self.init_state())
 
     def __repr__(self) -> str:
         codes = f" + codes of {self.n_codes}" if self.n_codes else ""

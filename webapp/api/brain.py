@@ -5,9 +5,19 @@
              "components": {name: {"serving": BrainService.status()[name] | null,
                                    "promoted": Model | null, "pointer": pointer file | null,
                                    "pointer_error": str | null, "history": [Model, ...]}}}
-    POST /api/brain/infer     {"component": "fast_loop", "observation": [floats], "session"?: str,
-                               "reset"?: bool}
-         -> {"action": [floats], "model_version": str, "latency_ms": float, "session": str | null}
+    POST /api/brain/infer     {"component": "fast_loop" | "mid_loop" | "vqvae", "observation": [floats],
+                               "session"?: str, "reset"?: bool, "action"?: [floats]}
+         -> {"action": [floats] | null, "model_version": str, "latency_ms": float, "session": str | null,
+             "code": [ints] | null, "prediction": {"0.5s": [floats], ...} | null, "surprise": float | null,
+             "surprise_by_horizon": {"0.5s": float | null, ...} | null, "mid_tick": int | null,
+             "mid_grid_point": int | null, "versions": {"vqvae": str | null, "fast_loop": ..., "mid_loop": ...}}
+            One request is one control tick of the session; every served component that reads the
+            observation's layout answers (hope_models/runtime/brain_mid.py: `code`, the Mid Loop's
+            grid points, `prediction` in raw units and `surprise` in nats, defined in
+            docs/training.md "Surprise at inference"). `component` is the one the caller needs:
+            503 while it is not promoted (an action needs the fast_loop; a prediction the mid_loop).
+            `action`: the action the robot actually took on the previous tick (the Mid Loop's
+            input; by default the fast_loop's previous answer).
             400 an observation value that is not a number, not finite or beyond +-1e6
                 (brain_service.MAX_ABS_OBSERVATION; the message gives the range)
             500 the served model computed NaN/Inf from a valid observation (its fault, logged; the
@@ -115,17 +125,19 @@ def status():
 def infer():
     from hope_models.runtime.brain_service import BrainError
 
-    body = json_body(allowed=("component", "observation", "session", "reset"), required=("component", "observation"))
+    body = json_body(allowed=("component", "observation", "session", "reset", "action"),
+                     required=("component", "observation"))
     component = get_str(body, "component", max_len=64)
     observation = get_numbers(body, "observation", max_len=MAX_OBSERVATION)
     session = get_str(body, "session", max_len=MAX_SESSION)
     reset = get_bool(body, "reset")
+    action = get_numbers(body, "action", max_len=MAX_OBSERVATION) if body.get("action") is not None else None
     brain = _state().brain
     if brain is None:
         raise ApiError("inference is not available: BrainService is not running in this process "
                        "(start the webapp with `run_trainer.py serve` or `run_trainer.py webapp`)", 503)
     try:
-        return jsonify(brain.infer(component, observation, session=session, reset=reset))
+        return jsonify(brain.infer(component, observation, session=session, reset=reset, action=action))
     except BrainError as exc:
         raise ApiError(str(exc), int(getattr(exc, "status", 400))) from None
 

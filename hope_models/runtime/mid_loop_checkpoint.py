@@ -1,0 +1,131 @@
+"""What the NumPy runtime accepts as a mid_loop checkpoint (read with each file hashed once).
+
+    ck = read_mid_loop(path, expected_sha256=pointer["sha256"], verify_manifest=True)
+
+config.json must describe a mid_loop (format hope.component_config/1): integer dims in range,
+horizon_steps positive whole grid steps, a window {"k", "duration_s"} of at most MAX_K points, a
+feature spec with the model's action size, and under "vqvae" the vector VQ-VAE it reads (its
+model_config: groups, n_codes equal to the Mid Loop's, obs_dim equal to the spec's). The weights
+must be exactly the float32 tensors of those shapes, finite, with the frozen VQ-VAE under vqvae.*
+trained. Not read, so not refused: the baselines' buffers (code_counts, stay_counts), the VQ-VAE's
+EMA buffers, and any tensor named wm_* (a world model's action-conditioned heads, which another
+model may add). Anything else is MidLoopNumpyError naming the file and the reason. Torch-free.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.checkpoint_format import CONFIG_FORMAT, weights_misfit
+from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.windows import MAX_K
+from hope_models.runtime.fast_loop_checkpoint import CheckpointRefused, FastLoopCheckpoint, read_component
+from hope_models.runtime.vqvae_numpy import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
+
+MAX_LAYERS = 64
+MAX_HORIZONS = 16
+IGNORED = ("code_counts", "stay_counts")  # baseline statistics, not read at inference
+
+
+class MidLoopNumpyError(CheckpointRefused):
+    """This checkpoint cannot be run by the NumPy Mid Loop; the message names the file and why."""
+
+
+def _int(mc: dict[str, Any], key: str, where: Path, lo: int, hi: int) -> int:
+    v = mc.get(key)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise MidLoopNumpyError(f"{where}: model_config.{key}={v!r} must be an integer in {lo}-{hi}")
+    return v
+
+
+def _check_model(mc: Any, window: Any, where: Path) -> None:
+    if not isinstance(mc, dict):
+        raise MidLoopNumpyError(f"{where}: 'model_config' is missing or not an object")
+    for key in ("act_dim", "d_model", "d_state", "mlp_ratio"):
+        _int(mc, key, where, 1, MAX_WIDTH)
+    _int(mc, "n_codes", where, 2, MAX_WIDTH)
+    _int(mc, "n_layers", where, 1, MAX_LAYERS)
+    hs = mc.get("horizon_steps")
+    if (not isinstance(hs, list) or not 1 <= len(hs) <= MAX_HORIZONS
+            or any(isinstance(s, bool) or not isinstance(s, int) or not 1 <= s <= MAX_K for s in hs)):
+        raise MidLoopNumpyError(f"{where}: model_config.horizon_steps={hs!r} must be 1-{MAX_HORIZONS} whole grid "
+                                f"steps in 1-{MAX_K}")
+    if not isinstance(window, dict):
+        raise MidLoopNumpyError(f"{where}: 'window' is missing (its k and duration_s give the grid step)")
+    k, dur = window.get("k"), window.get("duration_s")
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_K:
+        raise MidLoopNumpyError(f"{where}: window.k={k!r} must be an integer in 1-{MAX_K}")
+    if isinstance(dur, bool) or not isinstance(dur, (int, float)) or not math.isfinite(dur) or dur <= 0:
+        raise MidLoopNumpyError(f"{where}: window.duration_s={dur!r} must be a positive number of seconds")
+
+
+def check_config(config: Any, where: Path) -> FeatureSpec:
+    """The feature spec of a mid_loop config.json this runtime can run (see the module doc)."""
+    if not isinstance(config, dict):
+        raise MidLoopNumpyError(f"{where}: must be a JSON object")
+    if config.get("format") != CONFIG_FORMAT:
+        raise MidLoopNumpyError(f"{where}: format {config.get('format')!r} is not {CONFIG_FORMAT!r}")
+    if config.get("component") != "mid_loop":
+        raise MidLoopNumpyError(f"{where}: component is {config.get('component')!r}; this runtime serves a mid_loop "
+                                "checkpoint here")
+    mc = config.get("model_config")
+    _check_model(mc, config.get("window"), where)
+    try:
+        spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
+    except FeatureSpecError as exc:
+        raise MidLoopNumpyError(str(exc)) from None
+    if spec.act_dim != mc["act_dim"]:
+        raise MidLoopNumpyError(f"{where}: the feature spec has {spec.act_dim} action values, model_config says "
+                                f"act_dim={mc['act_dim']}")
+    ref = config.get("vqvae")
+    if not isinstance(ref, dict):
+        raise MidLoopNumpyError(f"{where}: 'vqvae' does not describe the VQ-VAE the Mid Loop reads")
+    check_vqvae_ref(ref.get("model_config"), spec.obs_dim, where, MidLoopNumpyError, n_codes=mc["n_codes"])
+    return spec
+
+
+def expected_shapes(mc: dict[str, Any], groups: int) -> dict[str, tuple[int, ...]]:
+    """Tensor name -> shape of every Mid Loop weight the NumPy form reads (the VQ-VAE's apart)."""
+    d, n, hid = mc["d_model"], mc["d_state"], mc["mlp_ratio"] * mc["d_model"]
+    out = len(mc["horizon_steps"]) * groups * mc["n_codes"]
+    shapes: dict[str, tuple[int, ...]] = {
+        "code_in.weight": (groups * mc["n_codes"], d), "act_in.weight": (d, mc["act_dim"]), "act_in.bias": (d,),
+        "ssm.ln_f.weight": (d,), "ssm.ln_f.bias": (d,), "head.weight": (out, d), "head.bias": (out,)}
+    for i in range(mc["n_layers"]):
+        p = f"ssm.blocks.{i}"
+        shapes.update({f"{p}.ln1.weight": (d,), f"{p}.ln1.bias": (d,), f"{p}.ln2.weight": (d,), f"{p}.ln2.bias": (d,),
+                       f"{p}.ssm.B": (n, d), f"{p}.ssm.C": (d, n), f"{p}.ssm.D": (d,), f"{p}.ssm.log_rate": (n,),
+                       f"{p}.mlp.w_gate.weight": (hid, d), f"{p}.mlp.w_gate.bias": (hid,),
+                       f"{p}.mlp.w_up.weight": (hid, d), f"{p}.mlp.w_up.bias": (hid,),
+                       f"{p}.mlp.w_out.weight": (d, hid), f"{p}.mlp.w_out.bias": (d,)})
+    return shapes
+
+
+def check_tensors(t: dict[str, np.ndarray], config: dict[str, Any], where: Path) -> None:
+    """The weights are exactly the float32 tensors config.json describes, finite, the VQ-VAE trained."""
+    mc, vq_cfg = config["model_config"], config["vqvae"]["model_config"]
+    want = expected_shapes(mc, int(vq_cfg.get("groups", 1)))
+    ignore = [k for k in t if k.startswith(("vqvae.", "wm_")) or k in IGNORED]
+    misfit = weights_misfit({k: f"{list(s)} float32" for k, s in want.items()},
+                            {k: f"{list(v.shape)} {v.dtype}" for k, v in t.items()}, ignore=ignore)
+    if misfit:
+        raise MidLoopNumpyError(f"{where}: weights do not fit the mid_loop config.json describes ({misfit})")
+    bad = [k for k in want if not np.isfinite(t[k]).all()]
+    if bad:
+        raise MidLoopNumpyError(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}"
+                                f"{' ...' if len(bad) > 5 else ''}")
+    check_vqvae_tensors(t, vq_cfg, where, "vqvae.", MidLoopNumpyError)
+
+
+def read_mid_loop(path: str | Path, *, expected_sha256: str | None = None,
+                  verify_manifest: bool = False) -> FastLoopCheckpoint:
+    """Read and check <path>/config.json + model.safetensors (fast_loop_checkpoint.read_component:
+    the manifest, the sha256 against the pointer's)."""
+    return read_component(path, check_config, check_tensors, MidLoopNumpyError, expected_sha256=expected_sha256,
+                          verify_manifest=verify_manifest)
+
+
+__all__ = ["MidLoopNumpyError", "read_mid_loop", "check_config", "check_tensors", "expected_shapes"]

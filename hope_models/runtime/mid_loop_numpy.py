@@ -1,0 +1,199 @@
+"""The Mid Loop in NumPy: a K-point window of codes and previous actions -> code logits per horizon.
+
+    model = MidLoopNumpy.from_checkpoint(ckpt, expected_sha256=..., verify_manifest=True)
+    rows = model.rows_of(raw_observation)                 # its own VQ-VAE's codes, as code_in rows [G]
+    logits = model.forward(rows_window [L, G], prev_act_n [L, A])    # [L, H, G, n_codes], L <= K
+    logits = model.forward(..., last_only=True)           # [1, H, G, n]: what serving needs
+    model.prediction(logits[-1])                          # [H, obs_dim] expected observation, raw units
+
+The arithmetic is hope_models/models/mid_loop.py and SSMStack/SSMBlock/DiagonalSSM in
+models/ssm.py, float32 (tests/test_brain_whole.py checks forward against MidLoop.forward in eval
+mode within 1e-4): x = code_in(rows).sum(G) + act_in(prev_act); per block u = LN1(x),
+h_t = sum_{s<=t} a^(t-s) g (B u_s) (the parallel form over the window, from a zero state),
+x += C h + D u, x += GatedMLP(LN2(x)); then ln_f and the head. Dropout is the identity at
+inference. The checkpoint's own frozen VQ-VAE (tensors vqvae.*) encodes observations and decodes
+the prediction: a Mid Loop carries the VQ-VAE it was trained with. code_counts/stay_counts (the
+baselines' statistics) and any `wm_*` tensor (a world model's action-conditioned heads) are not
+read. What is refused, and why, is mid_loop_checkpoint.py's.
+
+Why the window form and not step(): the stepped SSMStack remembers everything since init_state
+(mid_loop.py), while training saw K-point windows, so each prediction is computed from the
+session's last K grid points (bench/inference.py measures forward against re-stepping K points:
+docs/benchmarks.md). step() is kept for that comparison and the tests. Torch-free.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.data.features import FeatureSpec
+from hope_models.runtime.mid_loop_checkpoint import read_mid_loop
+from hope_models.runtime.numpy_layers import Linear, NormMLP, layer_norm
+from hope_models.runtime.vqvae_numpy import Normaliser, VQVAENumpy
+
+
+class _Block:
+    """One SSMBlock's weights, with DiagonalSSM's constants computed as torch does (float32)."""
+
+    def __init__(self, t: dict[str, np.ndarray], p: str, k: int):
+        self.ln1_w, self.ln1_b = t[f"{p}.ln1.weight"], t[f"{p}.ln1.bias"]
+        self.mlp = NormMLP.fold(t, f"{p}.ln2", f"{p}.mlp")
+        log_a = -np.exp(t[f"{p}.ssm.log_rate"].astype(np.float32))  # DiagonalSSM.log_a: no clamp
+        gain = np.sqrt(-np.expm1(np.float32(2.0) * log_a)).astype(np.float32)
+        self.a = np.exp(log_a).astype(np.float32)
+        self.bg_t = np.ascontiguousarray(t[f"{p}.ssm.B"].T * gain[None, :])  # [d, N]
+        self.c_t = np.ascontiguousarray(t[f"{p}.ssm.C"].T)  # [N, d]
+        self.d = t[f"{p}.ssm.D"]
+        lag = np.arange(k, dtype=np.float32)[:, None] - np.arange(k, dtype=np.float32)[None, :]
+        causal = lag >= 0
+        # kernel[t, s] = a^(t-s) for s <= t: DiagonalSSM._chunk's, which depends on t - s only, so
+        # the top-left [L, L] corner is the kernel of an L-point window
+        self.kernel = (np.exp(np.where(causal, lag, 0.0)[..., None] * log_a) * causal[..., None]).astype(np.float32)
+
+    def ln1(self, x: np.ndarray, mean: np.ndarray) -> np.ndarray:
+        u = layer_norm(x, mean)
+        u *= self.ln1_w
+        u += self.ln1_b
+        return u
+
+
+class MidLoopNumpy:
+    """One mid_loop checkpoint, runnable on windows of grid points. Immutable after load."""
+
+    name = "mid_loop"
+
+    def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
+                 tensors: dict[str, np.ndarray], sha256: str, version: str):
+        self.checkpoint, self.config, self.spec, self.sha256, self.version = checkpoint, config, spec, sha256, version
+        mc, window, vq_ref = config["model_config"], config["window"], config["vqvae"]
+        self.obs_dim, self.act_dim = spec.obs_dim, spec.act_dim
+        self.n_codes, self.n_layers = int(mc["n_codes"]), int(mc["n_layers"])
+        self.horizon_steps = [int(s) for s in mc["horizon_steps"]]
+        self.window_k = int(window["k"])
+        self.grid_step_s = float(window["duration_s"]) / self.window_k
+        self.horizons_s = [s * self.grid_step_s for s in self.horizon_steps]
+        self.horizon_names = [f"{round(h, 6):g}s" for h in self.horizons_s]  # "0.5s", "1s"
+        self.observation_fields = [(f.path, f.size) for f in spec.observation.fields]
+        self.action_fields = [(f.path, f.size) for f in spec.action.fields]
+        self.fit_fields = (self.observation_fields, self.action_fields)
+        self.vqvae_sha256 = vq_ref.get("weights_sha256")
+        self.vq = VQVAENumpy(tensors, groups=int(vq_ref["model_config"].get("groups", 1)), n_codes=self.n_codes,
+                             prefix="vqvae.")
+        self.groups = self.vq.groups
+        self.norm = Normaliser(spec)
+        t = tensors
+        self._code_in = t["code_in.weight"]  # [G * n, d]
+        self._act_in = Linear(np.ascontiguousarray(t["act_in.weight"].T), t["act_in.bias"])
+        self._blocks = [_Block(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
+        self._lnf_w, self._lnf_b = t["ssm.ln_f.weight"], t["ssm.ln_f.bias"]
+        self._head = Linear(np.ascontiguousarray(t["head.weight"].T), t["head.bias"])
+        d = self._code_in.shape[1]
+        self.d_model = d
+        self._mean = np.full(d, 1.0 / d, np.float32)
+        self._offsets = np.arange(self.groups) * self.n_codes
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, *, expected_sha256: str | None = None,
+                        verify_manifest: bool = False) -> "MidLoopNumpy":
+        ck = read_mid_loop(path, expected_sha256=expected_sha256, verify_manifest=verify_manifest)
+        return cls(checkpoint=ck.path, config=ck.config, spec=ck.spec, tensors=ck.tensors, sha256=ck.sha256,
+                   version=ck.version)
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def codes_of(self, values: np.ndarray) -> np.ndarray:
+        """Raw observation [obs_dim] -> group-local codes [G] of its own VQ-VAE (its own normalisation)."""
+        return self.vq.codes(self.norm.obs(values))
+
+    def rows(self, codes: np.ndarray) -> np.ndarray:
+        """Group-local codes [..., G] -> rows of code_in (VQVAE.rows)."""
+        return codes + self._offsets
+
+    def _inputs(self, rows: np.ndarray, prev_act_n: np.ndarray) -> np.ndarray:
+        x = self._act_in(prev_act_n)
+        x += self._code_in[rows].sum(-2)
+        return x
+
+    def _mlp(self, blk: _Block, x: np.ndarray) -> np.ndarray:
+        x = x + blk.mlp(layer_norm(x, self._mean))
+        return x
+
+    def _logits(self, x: np.ndarray) -> np.ndarray:
+        y = layer_norm(x, self._mean)
+        y *= self._lnf_w
+        y += self._lnf_b
+        return self._head(y).reshape(*x.shape[:-1], len(self.horizon_steps), self.groups, self.n_codes)
+
+    # -- the two forms --------------------------------------------------------------------------
+    def forward(self, rows: np.ndarray, prev_act_n: np.ndarray, last_only: bool = False) -> np.ndarray:
+        """A window from a zero state: rows [L, G] (code_in rows), normalised previous actions [L, A],
+        L <= K -> logits [L, H, G, n] (last_only: [1, H, G, n], the last point's; the last block's
+        MLP, ln_f and the head then run on that point only)."""
+        length = rows.shape[0]
+        if not 0 < length <= self.window_k:
+            raise ValueError(f"a window holds 1 to {self.window_k} grid points, got {length}")
+        x = self._inputs(rows, np.asarray(prev_act_n, dtype=np.float32))
+        for i, blk in enumerate(self._blocks):
+            u = blk.ln1(x, self._mean)
+            v = u.dot(blk.bg_t)  # [L, N]
+            h = (blk.kernel[:length, :length] * v[None]).sum(1)  # [L, N]: sum_{s<=t} a^(t-s) v_s
+            y = h.dot(blk.c_t)
+            y += u * blk.d
+            x = x + y
+            if last_only and i == self.n_layers - 1:
+                x = x[-1:]
+            x = self._mlp(blk, x)
+        return self._logits(x)
+
+    def init_state(self) -> np.ndarray:
+        return np.zeros((self.n_layers, self._blocks[0].a.shape[0]), np.float32)
+
+    def step(self, rows: np.ndarray, prev_act_n: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One grid point (rows [G], previous action [A]) -> (logits [H, G, n], new state [n_layers, N]).
+        Remembers everything since init_state (not window-exact: see the module doc)."""
+        x = self._inputs(rows, np.asarray(prev_act_n, dtype=np.float32))
+        new = np.empty_like(state)
+        for i, blk in enumerate(self._blocks):
+            u = blk.ln1(x, self._mean)
+            h = blk.a * state[i] + u.dot(blk.bg_t)
+            new[i] = h
+            x = x + h.dot(blk.c_t) + u * blk.d
+            x = self._mlp(blk, x)
+        return self._logits(x), new
+
+    # -- outputs --------------------------------------------------------------------------------
+    def log_probs(self, logits: np.ndarray) -> np.ndarray:
+        """log softmax over the codes, float64 (surprise sums these; no underflow to -inf)."""
+        z = logits.astype(np.float64)
+        z -= z.max(-1, keepdims=True)
+        z -= np.log(np.exp(z).sum(-1, keepdims=True))
+        return z
+
+    def prediction_n(self, logp: np.ndarray) -> np.ndarray:
+        """Log-probabilities [..., G, n] -> the expected observation, normalised [..., obs_dim]
+        (MidLoop.predicted_observation: the decoder at the expected z_q)."""
+        return self.vq.decode_expected(np.exp(logp).astype(np.float32))
+
+    def prediction(self, logp: np.ndarray) -> np.ndarray:
+        """As prediction_n, in raw units (the mid_loop's feature spec, spec order), float64."""
+        return self.norm.raw_obs(self.prediction_n(logp))
+
+    def warm(self) -> None:
+        """A full window and a one-point one, so the first request after a swap pays no first-call costs."""
+        zeros = np.zeros((self.window_k, self.groups), np.int64)
+        acts = np.zeros((self.window_k, self.act_dim), np.float32)
+        self.prediction(self.log_probs(self.forward(zeros + self._offsets, acts, last_only=True)[-1]))
+        self.forward(zeros[:1] + self._offsets, acts[:1], last_only=True)
+        self.codes_of(np.zeros(self.obs_dim))
+
+    def describe_observation(self, limit: int = 12) -> str:
+        names = self.spec.observation.dim_names()
+        return ", ".join(names[:limit]) + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
+
+    def __repr__(self) -> str:
+        return (f"MidLoopNumpy({self.version}, {self.groups} x {self.n_codes} codes + act {self.act_dim}, "
+                f"K={self.window_k}, horizons {self.horizon_names})")
+
+
+__all__ = ["MidLoopNumpy"]

@@ -1,0 +1,238 @@
+"""The vector VQ-VAE in NumPy: encode, decode and decode_expected, and the promoted vqvae's runtime.
+
+    vq = VQVAENumpy(tensors, groups=2, n_codes=16)          # prefix "vqvae." inside a fast/mid loop
+    vq.codes(obs_n)              # normalised obs [..., obs_dim] -> group-local codes [..., G]
+    vq.decode(codes)             # codes [..., G] -> reconstruction [..., obs_dim] (normalised)
+    vq.decode_expected(probs)    # per-group code probabilities [..., G, n_codes] -> [..., obs_dim]
+
+    model = VQVAERuntime.from_checkpoint(ckpt, expected_sha256=..., verify_manifest=True)
+    model.codes_of(raw_observation)                          # what BrainService answers as `code`
+
+The arithmetic is hope_models/models/vqvae.py for input "vector" (tests/test_brain_whole.py checks
+it equal to torch within 1e-5, codes exactly): encoder = Linear-SiLU-Linear-SiLU-Linear then a
+LayerNorm without parameters; z cut into G slices, each the nearest row of its own codebook (rows
+g * n_codes .. of the one [G * n_codes, code_dim / G] table; ties: the lowest index); decoder =
+Linear-SiLU-Linear-SiLU-Linear of the G rows side by side, and decode_expected feeds it each
+group's probability-weighted row. Frame VQ-VAEs (a conv stack) are refused: the robot sends
+observation vectors. FastLoopNumpy and MidLoopNumpy hold one of these for their frozen VQ-VAE.
+Torch-free.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.checkpoint_format import CONFIG_FORMAT, weights_misfit
+from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.runtime.fast_loop_checkpoint import MAX_GROUPS, CheckpointRefused, read_component
+from hope_models.runtime.numpy_layers import Linear, layer_norm, silu
+
+MAX_WIDTH = 1 << 14  # bounds what an untrusted config sizes (the reacher's VQ-VAE is 256 wide)
+
+
+class VQVAENumpyError(CheckpointRefused):
+    """This checkpoint's VQ-VAE cannot be run by the NumPy runtime; the message names the file and why."""
+
+
+class VQVAENumpy:
+    """The arithmetic of a trained vector VQ-VAE (its tensors under `prefix`). Immutable."""
+
+    def __init__(self, tensors: dict[str, np.ndarray], *, groups: int, n_codes: int, prefix: str = "",
+                 decoder: bool = True):
+        t = tensors
+
+        def lin(name: str) -> Linear:
+            return Linear(np.ascontiguousarray(t[f"{prefix}{name}.weight"].T), t[f"{prefix}{name}.bias"])
+
+        self.groups, self.n_codes = int(groups), int(n_codes)
+        self._enc = [lin(f"encoder.0.{i}") for i in (0, 2, 4)]
+        # the decoder is optional: a fast_loop reads codes only (its checkpoint need not carry one)
+        self._dec = [lin(f"decoder.{i}") for i in (0, 2, 4)] if decoder else None
+        book = t[f"{prefix}codebook"]  # [G * n_codes, d]: group g owns rows g * n_codes ..
+        self.codebook = np.ascontiguousarray(book.reshape(self.groups, self.n_codes, -1))  # [G, n, d]
+        self._book_sq = (self.codebook * self.codebook).sum(-1)  # [G, n]
+        self.code_dim = book.shape[1] * self.groups
+        self._mean_code = np.full(self.code_dim, 1.0 / self.code_dim, np.float32)
+        self.obs_dim = self._enc[0].w_t.shape[0]
+
+    def encode(self, obs_n: np.ndarray) -> np.ndarray:
+        """Normalised obs [..., obs_dim] -> z_e [..., code_dim] (after the parameter-free LayerNorm)."""
+        z = obs_n
+        for i, layer in enumerate(self._enc):
+            z = layer(z)
+            if i < 2:
+                z = silu(z)
+        return layer_norm(z, self._mean_code)
+
+    def codes(self, obs_n: np.ndarray) -> np.ndarray:
+        """Normalised obs [..., obs_dim] -> the nearest row of each group's codebook, group-local [..., G]."""
+        z = self.encode(obs_n)
+        zg = z.reshape(*z.shape[:-1], self.groups, 1, -1)  # [..., G, 1, d]
+        d = (zg * zg).sum(-1) - np.float32(2.0) * (zg * self.codebook).sum(-1) + self._book_sq  # [..., G, n]
+        return d.argmin(-1)
+
+    def _decode_z(self, z: np.ndarray) -> np.ndarray:
+        if self._dec is None:
+            raise ValueError("this VQ-VAE was loaded without its decoder")
+        for i, layer in enumerate(self._dec):
+            z = layer(z)
+            if i < 2:
+                z = silu(z)
+        return z
+
+    def decode(self, codes: np.ndarray) -> np.ndarray:
+        """Group-local codes [..., G] -> the reconstruction [..., obs_dim] (normalised units)."""
+        rows = self.codebook[np.arange(self.groups), np.asarray(codes)]  # [..., G, d]
+        return self._decode_z(rows.reshape(*rows.shape[:-2], self.code_dim))
+
+    def decode_expected(self, probs: np.ndarray) -> np.ndarray:
+        """Per-group code probabilities [..., G, n_codes] -> the decoder at the expected z_q [..., obs_dim]."""
+        p = np.asarray(probs, dtype=np.float32)
+        zq = (p[..., None] * self.codebook).sum(-2)  # [..., G, d]: each group's probability-weighted row
+        return self._decode_z(zq.reshape(*zq.shape[:-2], self.code_dim))
+
+
+class Normaliser:
+    """A feature spec's statistics as the dataset cache applies them: float32 x * 1/std - mean/std."""
+
+    def __init__(self, spec: FeatureSpec):
+        obs_mean, obs_std, act_mean, act_std = spec.normalizer()
+        self.obs_inv_std = (1.0 / obs_std).astype(np.float32)
+        self.obs_shift = (obs_mean * self.obs_inv_std).astype(np.float32)
+        self.obs_mean, self.obs_std = obs_mean.astype(np.float64), obs_std.astype(np.float64)
+        self.act_inv_std = (1.0 / act_std).astype(np.float32)
+        self.act_shift = (act_mean * self.act_inv_std).astype(np.float32)
+
+    def obs(self, x: np.ndarray) -> np.ndarray:
+        x32 = np.asarray(x, dtype=np.float32) * self.obs_inv_std
+        x32 -= self.obs_shift
+        return x32
+
+    def act(self, a: np.ndarray) -> np.ndarray:
+        a32 = np.asarray(a, dtype=np.float32) * self.act_inv_std
+        a32 -= self.act_shift
+        return a32
+
+    def raw_obs(self, x_n: np.ndarray) -> np.ndarray:
+        """Normalised observation -> raw units (float64), the inverse of obs()."""
+        return np.asarray(x_n, dtype=np.float64) * self.obs_std + self.obs_mean
+
+
+def check_vqvae_ref(vq_cfg: Any, obs_dim: int, where: Path, error: type[CheckpointRefused],
+                    n_codes: int | None = None) -> tuple[int, int]:
+    """A VQ-VAE model_config this runtime can run for observations of obs_dim values -> (groups, n_codes)."""
+    if not isinstance(vq_cfg, dict):
+        raise error(f"{where}: the VQ-VAE's model_config is missing or not an object")
+    if vq_cfg.get("input") != "vector":
+        raise error(f"{where}: a VQ-VAE with input {vq_cfg.get('input')!r} (camera frames); the inference "
+                    "runtime reads observation vectors only")
+    groups, n, d = vq_cfg.get("groups", 1), vq_cfg.get("n_codes"), vq_cfg.get("code_dim")
+    for key, v, hi in (("groups", groups, MAX_GROUPS), ("n_codes", n, MAX_WIDTH), ("code_dim", d, MAX_WIDTH)):
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
+            raise error(f"{where}: vqvae model_config.{key}={v!r} must be an integer in 1-{hi}")
+    if d % groups:
+        raise error(f"{where}: vqvae code_dim={d} is not a multiple of groups={groups}")
+    if vq_cfg.get("obs_dim") != obs_dim or (n_codes is not None and n != n_codes):
+        raise error(f"{where}: the VQ-VAE's obs_dim/n_codes ({vq_cfg.get('obs_dim')}/{n}) do not fit "
+                    f"({obs_dim}/{n_codes if n_codes is not None else n})")
+    return groups, n
+
+
+def check_vqvae_tensors(t: dict[str, np.ndarray], vq_cfg: dict[str, Any], where: Path, prefix: str,
+                        error: type[CheckpointRefused]) -> dict[str, tuple[int, ...]]:
+    """The VQ-VAE tensors under prefix: the shapes the NumPy form reads (returned, for the caller's
+    misfit check), finite, and a trained codebook."""
+    w0 = t.get(f"{prefix}encoder.0.0.weight")
+    hidden = w0.shape[0] if w0 is not None and w0.ndim == 2 else -1
+    g, n, d, obs = vq_cfg.get("groups", 1), vq_cfg["n_codes"], vq_cfg["code_dim"], vq_cfg["obs_dim"]
+    shapes = {"encoder.0.0": (hidden, obs), "encoder.0.2": (hidden, hidden), "encoder.0.4": (d, hidden),
+              "decoder.0": (hidden, d), "decoder.2": (hidden, hidden), "decoder.4": (obs, hidden)}
+    want = {}
+    for name, (o, i) in shapes.items():
+        want[f"{prefix}{name}.weight"], want[f"{prefix}{name}.bias"] = (o, i), (o,)
+    want[f"{prefix}codebook"] = (g * n, d // g)
+    have = {k: v for k, v in t.items() if k in want}
+    missing = [k for k in want if k not in t or tuple(t[k].shape) != want[k] or t[k].dtype != np.float32]
+    if missing:
+        got = {k: f"{list(v.shape)} {v.dtype}" for k, v in have.items()}
+        raise error(f"{where}: the VQ-VAE's weights do not fit its config "
+                    f"({weights_misfit({k: f'{list(s)} float32' for k, s in want.items()}, got)})")
+    bad = [k for k in want if not np.isfinite(t[k]).all()]
+    if bad:
+        raise error(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}")
+    init = t.get(f"{prefix}initialized")
+    if init is None or int(np.asarray(init).reshape(-1)[0]) != 1:
+        raise error(f"{where}: the VQ-VAE was never trained (codebook not initialised)")
+    return want
+
+
+def _check_config(config: Any, where: Path) -> FeatureSpec:
+    if not isinstance(config, dict):
+        raise VQVAENumpyError(f"{where}: must be a JSON object")
+    if config.get("format") != CONFIG_FORMAT:
+        raise VQVAENumpyError(f"{where}: format {config.get('format')!r} is not {CONFIG_FORMAT!r}")
+    if config.get("component") != "vqvae":
+        raise VQVAENumpyError(f"{where}: component is {config.get('component')!r}; this runtime serves a vqvae "
+                              "checkpoint here")
+    try:
+        spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
+    except FeatureSpecError as exc:
+        raise VQVAENumpyError(str(exc)) from None
+    check_vqvae_ref(config.get("model_config"), spec.obs_dim, where, VQVAENumpyError)
+    return spec
+
+
+def _check_tensors(t: dict[str, np.ndarray], config: dict[str, Any], where: Path) -> None:
+    want = check_vqvae_tensors(t, config["model_config"], where, "", VQVAENumpyError)
+    # buffers of the EMA codebook and its counters are fine; anything else is another model
+    extra = [k for k in t if k not in want and k not in ("ema_count", "ema_sum", "unused_steps", "idle_steps",
+                                                         "initialized", "restarts")]
+    if extra:
+        raise VQVAENumpyError(f"{where}: weights the VQ-VAE config.json does not describe: {', '.join(extra[:5])}")
+
+
+class VQVAERuntime:
+    """The promoted vqvae component: raw observation -> its codes. Immutable after load."""
+
+    name = "vqvae"
+
+    def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
+                 tensors: dict[str, np.ndarray], sha256: str, version: str):
+        self.checkpoint, self.config, self.spec, self.sha256, self.version = checkpoint, config, spec, sha256, version
+        mc = config["model_config"]
+        self.vq = VQVAENumpy(tensors, groups=int(mc.get("groups", 1)), n_codes=int(mc["n_codes"]))
+        self.groups, self.n_codes = self.vq.groups, self.vq.n_codes
+        self.obs_dim, self.act_dim = spec.obs_dim, spec.act_dim
+        self.observation_fields = [(f.path, f.size) for f in spec.observation.fields]
+        self.action_fields = [(f.path, f.size) for f in spec.action.fields]
+        self.fit_fields = (self.observation_fields,)  # what a replacement must read alike
+        self.norm = Normaliser(spec)
+        self.vqvae_sha256 = None  # it is the VQ-VAE
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, *, expected_sha256: str | None = None,
+                        verify_manifest: bool = False) -> "VQVAERuntime":
+        ck = read_component(path, _check_config, _check_tensors, VQVAENumpyError, expected_sha256=expected_sha256,
+                            verify_manifest=verify_manifest)
+        return cls(checkpoint=ck.path, config=ck.config, spec=ck.spec, tensors=ck.tensors, sha256=ck.sha256,
+                   version=ck.version)
+
+    def codes_of(self, values: np.ndarray) -> np.ndarray:
+        """Raw observation [obs_dim] -> group-local codes [G]."""
+        return self.vq.codes(self.norm.obs(values))
+
+    def warm(self) -> None:
+        self.codes_of(np.zeros(self.obs_dim))
+
+    def describe_observation(self, limit: int = 12) -> str:
+        names = self.spec.observation.dim_names()
+        return ", ".join(names[:limit]) + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
+
+    def __repr__(self) -> str:
+        return f"VQVAERuntime({self.version}, obs {self.obs_dim} -> {self.groups} x {self.n_codes} codes)"
+
+
+__all__ = ["VQVAENumpy", "VQVAERuntime", "VQVAENumpyError", "Normaliser", "check_vqvae_ref", "check_vqvae_tensors",
+           "MAX_WIDTH"]
