@@ -145,8 +145,8 @@ class TrainConfig:
                                           help="model config overrides, e.g. '{\"d_model\": 64}'")
     control_interval_s: float = option(0.2, kind="float", minimum=0, doors=(),
                                        help="how often the control hook and the memory guard run (0: between every step)")
-    val_batches: int = option(4, kind="int", minimum=1, maximum=1000, doors=(),
-                              help="validation batches evaluated at the end of a completed job")
+    val_batches: int = option(8, kind="int", minimum=1, maximum=1000, doors=(),
+                              help="validation batches evaluated at the end of a completed job (and by the gate)")
 
     def to_json_obj(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}

@@ -35,7 +35,7 @@ class ValidationSetup:
     seed: int = 0
     imagined_ratio: float = 0.0
     val_fraction: float = 0.1
-    batches: int = 4  # TrainConfig.val_batches
+    batches: int = 8  # TrainConfig.val_batches: 512 anchors at batch 64, enough for the gate to decide
 
     @classmethod
     def from_train_config(cls, cfg: Any, where: str = "the training config") -> "ValidationSetup":
