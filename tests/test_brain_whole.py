@@ -278,3 +278,26 @@ def test_refused_mid_loop_and_vqvae_keep_the_old_one_serving(runs, home, tmp_pat
         wait_for(lambda: brain.status()["mid_loop"]["version"] == version(wm_mid), 3.0, "the wm_* checkpoint")
         assert brain.status()["mid_loop"]["last_error"] is None
     assert json.loads((home / "promoted" / "mid_loop.json").read_text())["checkpoint"] == str(wm_mid.resolve())
+
+
+# -- over HTTP ---------------------------------------------------------------------------------------------
+
+def test_post_infer_answers_the_whole_fields_and_takes_the_action(runs, tmp_path):
+    from hope_models.settings import load_settings
+    from test_api import App
+
+    settings = load_settings(env={"HOPE_HOME": str(tmp_path / "home"), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": ""})
+    promote_all(settings.home, runs)
+    api = App(settings)
+    try:
+        body = {"component": "fast_loop", "observation": OBS6, "session": "http", "action": [0.1, -0.1]}
+        out = api.post("/api/brain/infer", body).get_json()
+        assert {"action", "code", "prediction", "surprise", "surprise_by_horizon", "mid_tick", "mid_grid_point",
+                "versions"} <= set(out)
+        assert len(out["code"]) == 2 and set(out["prediction"]) == {"0.5s", "1s"}
+        bad = api.post("/api/brain/infer", {**body, "action": [0.1]})
+        assert bad.status_code == 400 and "action must be a list of 2 numbers" in bad.get_json()["error"]
+        bad = api.post("/api/brain/infer", {**body, "action": ["x", 1]})
+        assert bad.status_code == 400
+    finally:
+        api.close()
