@@ -301,3 +301,28 @@ def test_post_infer_answers_the_whole_fields_and_takes_the_action(runs, tmp_path
         assert bad.status_code == 400
     finally:
         api.close()
+
+
+def test_infer_cli_prints_code_prediction_and_surprise_and_checks_action(runs, home):
+    import os
+    import subprocess
+    import sys
+
+    promote_all(home, runs)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
+    env["HOPE_HOME"] = str(home)
+    repo = Path(__file__).resolve().parents[1]
+
+    def infer(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, str(repo / "run_trainer.py"), "infer", "--local", *args], cwd=repo,
+                              env=env, capture_output=True, text=True, timeout=120)
+
+    obs = json.dumps([0.1, -0.2, 0.3, 0.05, -0.4, 0.2])
+    proc = infer("--observation", obs, "--action", "[0.1, -0.1]")
+    assert proc.returncode == 0, proc.stderr
+    assert "code [" in proc.stdout and "prediction +0.5s: [" in proc.stdout and "prediction +1s: [" in proc.stdout
+    assert "surprise: none yet" in proc.stdout  # one tick of a fresh session: no prediction is due
+    out = json.loads(infer("--observation", obs, "--json").stdout)
+    assert len(out["code"]) == 2 and set(out["prediction"]) == {"0.5s", "1s"} and out["surprise"] is None
+    proc = infer("--observation", obs, "--action", "[0.1, NaN]", "--json")
+    assert proc.returncode == 2 and json.loads(proc.stdout)["error"].startswith("--action"), proc.stdout

@@ -1,7 +1,7 @@
-"""`hope-trainer infer`: one tick of the promoted model, from the shell.
+"""`hope-trainer infer`: one tick of the promoted models, from the shell.
 
     hope-trainer infer --observation '[0.1, -0.2, 0.3, 0.05, -0.4, 0.2]' [--component fast_loop]
-                         [--session S] [--reset] [--json] [--local] [--timeout 5]
+                         [--session S] [--reset] [--action '[0.2, -0.1]'] [--json] [--local] [--timeout 5]
 
 By default it asks the running service (`hope-trainer serve` or `webapp`): POST /api/brain/infer
 on the configured host/port with the token from $HOPE_HOME/token, so the answer comes from the
@@ -10,8 +10,13 @@ When nothing answers it says so and suggests `serve`, or --local, which loads Br
 process from the promotion pointer and answers one tick (torch-free, like the service; a --session
 then lasts only this command, so every --local call is an episode's first tick).
 
-Prints the action, the model version that produced it and the latency (--json: the service's
-answer {"action", "model_version", "latency_ms", "session"} plus "via": "http" | "local").
+Prints the action, the model version that produced it and the latency, and, when a vqvae and a
+mid_loop are promoted, the observation's code, the Mid Loop's prediction at each horizon and the
+surprise (hope_models/runtime/brain_mid.py defines it; it needs a --session ticked for one horizon
+on the service). --action is the action the robot actually took on the previous tick (the Mid
+Loop's input; default: the fast_loop's previous answer). --json: the service's answer ("action",
+"model_version", "latency_ms", "session", "code", "prediction", "surprise", ...) plus "via":
+"http" | "local".
 Exit 0 answered; 1 nothing could answer (no service running, no promoted model yet, or the model
 computed a non-finite action: a 500); 2 bad input (the message says what is wrong: wrong length,
 NaN, a value beyond +-1e6, not a list of numbers, unknown component).
@@ -44,31 +49,34 @@ def _timeout_s(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--component", default="fast_loop", metavar="C",
-                        help="the component to run (default fast_loop, the one with an inference runtime)")
+                        help="the component whose answer is needed (default fast_loop; every other promoted "
+                             "component with the same observation layout answers too)")
     parser.add_argument("--observation", required=True, metavar="JSON",
                         help="the observation as a JSON list of numbers, in the model's feature order "
                              "(GET /api/brain or `infer --json` of a wrong length lists the fields)")
     parser.add_argument("--session", default=None, metavar="S",
                         help="keep recurrent state under this name between calls (on the service)")
     parser.add_argument("--reset", action="store_true", help="start the session's episode again with this tick")
+    parser.add_argument("--action", default=None, metavar="JSON",
+                        help="the action taken on the previous tick, a JSON list (the Mid Loop's input)")
     parser.add_argument("--local", action="store_true",
                         help="answer in this process from the promoted pointer instead of asking the service")
     parser.add_argument("--timeout", type=_timeout_s, default=5.0, help="HTTP timeout in seconds (default 5)")
     parser.add_argument("--json", action="store_true", help="print the answer as JSON on stdout")
 
 
-def _observation(text: str) -> list[float]:
+def _observation(text: str, flag: str = "--observation") -> list[float]:
     from hope_models.runtime.brain_service import BrainError, observation_values
 
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InferFailure(f"--observation is not valid JSON ({exc}); give a list like '[0.1, -0.2]'",
+        raise InferFailure(f"{flag} is not valid JSON ({exc}); give a list like '[0.1, -0.2]'",
                            USAGE_EXIT) from None
     try:
         return observation_values(obj)
     except BrainError as exc:
-        raise InferFailure(f"--observation: {exc}", USAGE_EXIT) from None
+        raise InferFailure(f"{flag}: {exc}", USAGE_EXIT) from None
 
 
 def _base_url(settings) -> str:
@@ -143,7 +151,8 @@ def _via_local(settings, body: dict[str, Any]) -> dict[str, Any]:
         raise InferFailure(str(exc), USAGE_EXIT) from None
     brain.check_now()  # load the promoted model once; no watcher thread for one answer
     try:
-        return brain.infer(body["component"], body["observation"], body.get("session"), body.get("reset", False))
+        return brain.infer(body["component"], body["observation"], body.get("session"), body.get("reset", False),
+                           action=body.get("action"))
     except BrainError as exc:
         raise InferFailure(str(exc), NOT_ANSWERED_EXIT if exc.status >= 500 else USAGE_EXIT) from None
     finally:
@@ -160,6 +169,8 @@ def run(args: argparse.Namespace) -> int:
             body["session"] = args.session
         if args.reset:
             body["reset"] = True
+        if args.action is not None:
+            body["action"] = _observation(args.action, "--action")
         via = "local" if args.local else "http"
         out = _via_local(settings, body) if args.local else _via_http(settings, body, args.timeout)
     except SettingsError as exc:
@@ -170,10 +181,23 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out), flush=True)
     else:
-        action = ", ".join(f"{v:.6g}" for v in out.get("action", []))
-        print(f"action [{action}]  version {out.get('model_version')}  latency {out.get('latency_ms', 0):.3f} ms"
-              f"  ({'in this process' if via == 'local' else 'from the service'})")
+        print(_text(out, via))
     return 0
+
+
+def _text(out: dict[str, Any], via: str) -> str:
+    action = "none (no fast_loop answered)" if out.get("action") is None else \
+        "[" + ", ".join(f"{v:.6g}" for v in out["action"]) + "]"
+    lines = [f"action {action}  version {out.get('model_version')}  latency {out.get('latency_ms') or 0:.3f} ms"
+             f"  ({'in this process' if via == 'local' else 'from the service'})"]
+    if out.get("code") is not None:
+        lines.append(f"code {out['code']}")
+    for label, obs in (out.get("prediction") or {}).items():
+        lines.append(f"prediction +{label}: [{', '.join(f'{v:.6g}' for v in obs)}]")
+    if out.get("prediction") is not None:
+        s = out.get("surprise")
+        lines.append("surprise: none yet (tick a --session for one horizon)" if s is None else f"surprise {s:.4g} nats")
+    return "\n".join(lines)
 
 
 def _fail(args: argparse.Namespace, message: str, code: int) -> int:

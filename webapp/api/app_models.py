@@ -15,9 +15,9 @@ The list is, per component (vqvae, fast_loop, mid_loop), the promoted model firs
 component's other candidates newest first (daemon/promotion.history: the rows the promotion gate
 recorded, refused ones included, so the app shows why a version is not served). `id` is the
 registry's model row id as a string, because the app's Dart code passes it on as a String.
-`backend` says what runs the weights when they are served: BrainService runs the fast_loop with
-NumPy in this process (hope_models/runtime/brain_service.RUNTIMES), the other components are
-torch checkpoints (the trainer and the gate load them).
+`backend` says what runs the weights when they are served: BrainService runs each component in
+hope_models/runtime/brain_service.RUNTIMES with NumPy in this process (today all three); one
+outside it would be a torch checkpoint only the trainer and the gate load.
 
 Activation follows the rule of `promote` and `rollback` (daemon/promotion.py): a version that was
 promoted before (served now, demoted, or rolled away from) is served again without a new gate,
