@@ -44,7 +44,7 @@ HOPE_MODELS_TIERS: tuple[tuple[str, ...], ...] = (
     ("data", "sim"),
     ("models",),
     ("train",),
-    ("promote", "runtime"),
+    ("promote", "runtime", "imagine"),
     ("cli",),
 )
 

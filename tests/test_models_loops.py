@@ -273,3 +273,66 @@ def test_mid_loop_decoded_prediction_against_copy_last_observation():
     assert abs(m["copy_last_obs_mse"] - float(((obs[0, :4] - obs[0, 2:]) ** 2).mean())) < 1e-5
     _, m = mid_loop_loss(model, logits, codes, mask, obs=obs, training=True)
     assert "obs_mse" not in m  # training batches skip the decoding
+
+
+# -- the Mid Loop's action-conditioned world model (wm_*) ------------------------------------------
+
+def _mid_wm(horizon=3):
+    vq = _trained_looking_vq()
+    return MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2,), wm_horizon=horizon, wm_hidden=16), vq).eval()
+
+
+def test_world_model_parameters_are_all_wm_and_leave_the_rest_as_it_was():
+    with_wm, without = _mid_wm(), MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2,), wm_horizon=0),
+                                          _trained_looking_vq())
+    extra = set(with_wm.state_dict()) - set(without.state_dict())
+    assert extra and all(k.startswith("wm_") for k in extra)  # the torch-free runtime skips exactly these
+    assert set(without.state_dict()) <= set(with_wm.state_dict()) and not without.has_world_model
+    # a frame VQ-VAE gets no world model (it predicts observation vectors)
+    frame = MidLoop(MidLoopConfig(act_dim=6, n_codes=16, horizon_steps=(2,)), _trained_looking_vq(input="frame"))
+    assert not frame.has_world_model and not any(k.startswith("wm_") for k in frame.state_dict())
+
+
+def test_world_model_is_causal_in_the_actions_and_forward_is_heads_of_context():
+    torch.manual_seed(0)
+    model = _mid_wm()
+    obs, act = torch.randn(2, 8, 20), torch.randn(2, 8, 6)
+    codes = model.codes(obs)
+    y = model.context(codes, previous_actions(act))
+    assert torch.allclose(model(codes, previous_actions(act)), model.heads(y))
+    acts = torch.randn(2, 3, 6)
+    pred = model.wm_predict(y[:, -1], obs[:, -1], acts)
+    assert pred.shape == (2, 3, 20)
+    later = acts.clone()
+    later[:, 1:] = torch.randn(2, 2, 6)  # other actions after the first: the first prediction must not move
+    pred2 = model.wm_predict(y[:, -1], obs[:, -1], later)
+    assert torch.equal(pred[:, 0], pred2[:, 0]) and not torch.allclose(pred[:, 1], pred2[:, 1])
+    # the planner's path (encode once, unroll many candidates) is wm_predict
+    h = model.wm_encode(y[:, -1], obs[:, -1])[:, None]
+    many = model.wm_unroll(h, obs[:, -1, None], torch.stack([acts, later], 1))
+    assert torch.allclose(many[:, 0], pred, atol=TOL) and torch.allclose(many[:, 1], pred2, atol=TOL)
+
+
+def test_world_model_loss_targets_by_hand_and_it_never_trains_the_ssm():
+    from hope_models.models.mid_loop_metrics import world_model_loss
+
+    torch.manual_seed(0)
+    model = _mid_wm(horizon=3).train()
+    obs, act = torch.randn(2, 6, 20), torch.randn(2, 6, 6)
+    mask = torch.ones(2, 6, dtype=torch.bool)
+    mask[1, :2] = False  # the pre-episode prefix: points 2..5 are real
+    y = model.context(model.codes(obs), previous_actions(act), mask)
+    loss, m = world_model_loss(model, y, obs, act, mask, grid_step_s=0.1)
+    assert m["wm_targets"] == 3 + 1  # points k with k+3 in the window: 0,1,2 and, in the second row, 2
+    assert set(m) >= {"wm_obs_mse", "wm_copy_obs_mse", "wm_obs_mse_0.1s", "wm_obs_mse_0.3s", "wm_copy_obs_mse_0.2s"}
+    # the first target by hand: obs at 1..3 from obs 0, actions 0..2
+    pred = model.wm_predict(y[0, 0], obs[0, 0], act[0, :3])
+    assert m["wm_copy_obs_mse_0.1s"] == pytest.approx(float(((torch.cat([obs[0, :3], obs[1, 2:3]])
+                                                              - torch.cat([obs[0, 1:4], obs[1, 3:4]])) ** 2).mean()),
+                                                      rel=1e-5)
+    assert torch.isfinite(pred).all()
+    loss.backward()
+    assert all(p.grad is None for p in model.ssm.parameters())  # the context is detached
+    assert all(p.grad is not None for n, p in model.named_parameters() if n.startswith("wm_"))
+    short, m = world_model_loss(model, y[:, :3], obs[:, :3], act[:, :3], mask[:, :3])
+    assert m["wm_targets"] == 0 and float(short.detach()) == 0.0

@@ -99,7 +99,7 @@ class MidLoopConfig:
     # point, the exact observation there and the actions held over the next wm_horizon grid steps,
     # the observation after each of them. 0 = none. A vector VQ-VAE only (it predicts vectors).
     wm_horizon: int = 4
-    wm_hidden: int = 256
+    wm_hidden: int = 128
     wm_weight: float = 1.0  # of its MSE (normalised units) beside the codes' NLL in the loss
 
     def ssm_config(self) -> SSMConfig:

@@ -33,14 +33,16 @@ spread evenly) and code frequency (each group's code drawn from its training fre
 World model (wm_*, when cfg.wm_horizon > 0 and the VQ-VAE reads vectors): the same model
 conditioned on the actions still to be taken. At grid point k,
 
-    [context y_k (the SSM's output, detached), obs_k, act_k .. act_{k+M-1}] --MLP--> obs_{k+1..k+M} - obs_k
+    h = enc(context y_k (the SSM's output, detached), obs_k); then for i = 0 .. M-1:
+    h <- h + cell(h, act_{k+i});  obs_{k+i+1} = obs_k + out(h)
 
 with M = wm_horizon and act_j the action held at point j (normalised units throughout). The context
 is detached so the world model never changes what the unconditional heads learn (their metrics and
 the gate's baselines stay exactly as they were); the exact observation is an input because the
 codes keep only ~95 % of its variance and a planner needs the target offset to the centimetre.
-Direct multi-step prediction (not a one-step model rolled out) so that a planner scores a held
-action sequence with one pass and no error compounds through the tokenizer. Targets: every point
+Multi-step prediction in a latent (not a one-step model fed its own outputs): trained on all M
+steps at once, a planner scores a held action sequence in one pass and no error compounds
+through the tokenizer; causal in the actions (see wm_predict). Targets: every point
 of the window with M real points after it (world_model_loss, mid_loop_metrics.py). Its parameters
 are all named wm_*: the torch-free inference runtime ignores them.
 
@@ -88,11 +90,12 @@ class MidLoop(nn.Module):
         self.drop = nn.Dropout(cfg.dropout)
         self.head = nn.Linear(cfg.d_model, h * g * n)
         self.obs_dim = vqvae.cfg.obs_dim if vqvae.cfg.input == "vector" else 0
-        self.wm_net = None
+        self.wm_enc = self.wm_cell = self.wm_out = None
         if cfg.wm_horizon > 0 and self.obs_dim > 0:
-            m, d, w = cfg.wm_horizon, self.obs_dim, cfg.wm_hidden
-            self.wm_net = nn.Sequential(nn.Linear(cfg.d_model + d + m * cfg.act_dim, w), nn.SiLU(),
-                                        nn.Linear(w, w), nn.SiLU(), nn.Linear(w, m * d))
+            d, w = self.obs_dim, cfg.wm_hidden
+            self.wm_enc = nn.Sequential(nn.Linear(cfg.d_model + d, w), nn.SiLU(), nn.Linear(w, w))
+            self.wm_cell = nn.Sequential(nn.Linear(w + cfg.act_dim, w), nn.SiLU(), nn.Linear(w, w))
+            self.wm_out = nn.Linear(w, d)
         self.vqvae = vqvae.requires_grad_(False)  # frozen, saved with our weights (see fast_loop.py)
         # The baselines' statistics, counted on training targets (mid_loop_metrics.count_targets).
         self.register_buffer("code_counts", torch.zeros(g, n, dtype=torch.float64))
@@ -141,15 +144,32 @@ class MidLoop(nn.Module):
 
     @property
     def has_world_model(self) -> bool:
-        return self.wm_net is not None
+        return self.wm_enc is not None
 
     def wm_predict(self, y: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """World model: context [..., d_model], observation [..., D], actions held at the next
-        wm_horizon points [..., M, A] -> the observations after each [..., M, D] (normalised)."""
-        if self.wm_net is None:
+        """World model: context [..., d_model], observation [..., D], the actions held at the next
+        j <= wm_horizon points [..., j, A] -> the observations after each [..., j, D] (normalised).
+
+        Causal in the actions: the observation after step i reads actions 0..i only. A head fed
+        the whole sequence at once would learn, from demos whose actions are the expert's reply
+        to the state, to read the next state off the next action, and a planner would exploit it."""
+        return self.wm_unroll(self.wm_encode(y, obs), obs, actions)
+
+    def wm_encode(self, y: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """The world model's latent of a state [..., wm_hidden] (a planner encodes once per state)."""
+        if self.wm_enc is None:
             raise ValueError("this Mid Loop has no world model (wm_horizon 0, or a frame VQ-VAE)")
-        x = torch.cat([y.detach(), obs, actions.flatten(-2)], dim=-1)
-        return obs.unsqueeze(-2) + self.wm_net(x).unflatten(-1, (self.cfg.wm_horizon, self.obs_dim))
+        return self.wm_enc(torch.cat([y.detach(), obs], dim=-1))
+
+    def wm_unroll(self, h: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Latent h [..., w] of obs [..., D] (both broadcast against actions' leading dims), held
+        actions [..., j, A] -> the observations after each [..., j, D]."""
+        h = h.expand(*actions.shape[:-2], h.shape[-1])
+        out = []
+        for a in actions.unbind(-2):
+            h = h + self.wm_cell(torch.cat([h, a], dim=-1))  # residual: a held action nudges the state
+            out.append(obs + self.wm_out(h))
+        return torch.stack(out, dim=-2)
 
     def init_state(self, batch: int) -> torch.Tensor:
         return self.ssm.init_state(batch)

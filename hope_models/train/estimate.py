@@ -298,8 +298,9 @@ def config_layers(resolved: Any) -> list[Layer]:
              *_gated_mlp(d, hidden, True)]
     wm = []  # the action-conditioned world model (mid_loop.py): a vector VQ-VAE only
     if getattr(cfg, "wm_horizon", 0) > 0 and vq.input == "vector":
-        m, w, o = cfg.wm_horizon, cfg.wm_hidden, vq.obs_dim
-        wm = [_linear(d + o + m * cfg.act_dim, w, True), _linear(w, w, True), _linear(w, m * o, True)]
+        w, o = cfg.wm_hidden, vq.obs_dim
+        wm = [_linear(d + o, w, True), _linear(w, w, True), _linear(w + cfg.act_dim, w, True), _linear(w, w, True),
+              _linear(w, o, True)]
     return [Layer("Embedding", ((cfg.n_codes * vq.groups, d),), True), _linear(cfg.act_dim, d, True),
             *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), _layer_norm(d, True),
             _linear(d, len(cfg.horizon_steps) * cfg.n_codes * vq.groups, True), *wm, *frozen]

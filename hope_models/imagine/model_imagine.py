@@ -1,0 +1,149 @@
+"""`imagine --method model`: imagined episodes from a learned world model, no simulator anywhere.
+
+    result = imagine_model_dataset("D/imagined", 50, model="D/wm", demos=["D/demos"], play=["D/play"])
+
+1. The world model is a trained mid_loop with its action-conditioned wm_* heads (planner.WorldModel).
+2. Start states: N steps drawn (seeded) from the recorded episodes, demos and play alike, each with
+   its real 2 s history as the Mid Loop's context (recorded.grid_history). The goal is where the
+   demos were rewarded (recorded.Goal).
+3. All N episodes are rolled forward together, one grid step (100 ms) at a time. At each grid point
+   the CEM planner (planner.ModelCEM) plans held commands in the model; DART's rule (Laskey et al.
+   2017) as in hope_models/sim/imagine.py: what is executed is the plan's first command + N(0,
+   noise^2), clipped, held for the grid step; the world model predicts where that leaves the arm.
+4. The episode is written at the recordings' control period (20 ms): the grid step's 5 control
+   steps hold states interpolated linearly between the grid points the model predicted (the model
+   predicts at its grid; over 100 ms the reacher's state is smooth enough that a line is within the
+   model's own error, measured in docs/reflex.md), and every one of them is labelled with the
+   planner's command *at that state* (a fresh plan from it): the correction, as DART labels.
+5. Each episode is a canonical RLDS dir: the recorded episodes' observation layout (denormalised
+   with the checkpoint's statistics), action {command: the plan, source "model_planner",
+   executed_command}, reward 0 (no simulator scores it; step_metadata.goal_distance says how far
+   the model thinks the state is from the goal), provenance origin "imagined:model" and the tag
+   "continuon.imagined", validated with the train profile before it is written.
+
+The same model, data, seed and settings give the same episodes (torch runs deterministic CPU ops).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from hope_models.imagine.planner import ACTION_BOUNDS, ModelCEM, PlanConfig, WorldModel
+from hope_models.imagine.recorded import Goal, Recorded, control_period_s, grid_history, read_recorded
+from hope_models.imagine.write import ModelEpisode, episode_id_for, write_model_episode
+
+METHOD = "model"
+DEFAULT_NOISE = 0.5  # per grid step, held 100 ms (the sim's DART noise is white per 20 ms step)
+
+
+@dataclass
+class ModelImagineResult:
+    out_dir: Path
+    seed: int
+    settings: dict[str, Any]
+    episodes: list[dict[str, Any]] = field(default_factory=list)
+    elapsed_s: float = 0.0
+
+    def to_json_obj(self) -> dict[str, Any]:
+        dist = [e["final_goal_distance"] for e in self.episodes]
+        return {"out": str(self.out_dir), "method": METHOD, "origin": f"imagined:{METHOD}",
+                "tag": "continuon.imagined", "seed": self.seed, "settings": self.settings,
+                "mean_final_goal_distance": round(float(np.mean(dist)), 4) if dist else None,
+                "steps": sum(e["steps"] for e in self.episodes), "elapsed_s": round(self.elapsed_s, 3),
+                "episodes": self.episodes}
+
+
+def pick_starts(eps: Sequence[Recorded], n: int, rng: np.random.Generator) -> list[tuple[int, int]]:
+    """n (episode, step) start states, episodes uniformly, then a step uniformly within it."""
+    out = []
+    for _ in range(n):
+        e = int(rng.integers(len(eps)))
+        out.append((e, int(rng.integers(len(eps[e].t)))))
+    return out
+
+
+def _lerp(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
+    return a + (b - a) * f
+
+
+def imagine_batch(wm: WorldModel, goal: Goal, eps: Sequence[Recorded], starts: list[tuple[int, int]], *,
+                  steps: int, period_s: float, noise: float, plan: PlanConfig, seed: int) -> list[ModelEpisode]:
+    """Roll all starts forward together (module doc, 3-4); the episodes in memory, normalised."""
+    sub = int(round(wm.grid_s / period_s))
+    if sub < 1 or abs(sub * period_s - wm.grid_s) > 1e-6:
+        raise ValueError(f"the world model's grid step {wm.grid_s:g} s is not a whole number of the recordings' "
+                         f"{period_s:g} s control periods")
+    hist = [grid_history(eps[e], s, wm.k, wm.grid_s) for e, s in starts]
+    h_obs, h_act, h_mask = (np.stack([h[i] for h in hist]) for i in range(3))
+    b = len(starts)
+    cem = ModelCEM(wm, goal, plan, seed, b)
+    rng = np.random.default_rng([int(seed), 0xDA27, 3])
+    out = [ModelEpisode(eps[e].episode_id, s) for e, s in starts]
+    lo, hi = ACTION_BOUNDS
+    obs0 = h_obs[:, -1].copy()
+    for _ in range(-(-steps // sub)):
+        y = wm.context(h_obs, h_act, h_mask)
+        label, cost = cem.plan(y, obs0)
+        executed = np.clip(label + noise * rng.standard_normal(label.shape), lo, hi) if noise else label
+        obs1 = wm.predict(y, obs0, wm.norm_act(executed)[:, None].astype(np.float32))[:, 0].numpy()
+        for j in range(sub):
+            state = _lerp(obs0, obs1, j / sub)
+            if j:
+                label, cost = cem.plan(y, state)
+            dist = cem.goal_distance(torch.from_numpy(state)).numpy()
+            for i, ep in enumerate(out):
+                if len(ep.obs) < steps:
+                    ep.add(state[i], label[i], executed[i], float(dist[i]))
+        cem.shift()
+        h_obs = np.concatenate([h_obs[:, 1:], obs1[:, None]], axis=1)
+        h_act = np.concatenate([h_act[:, 1:], wm.norm_act(executed).astype(np.float32)[:, None]], axis=1)
+        h_mask = np.concatenate([h_mask[:, 1:], np.ones((b, 1), dtype=bool)], axis=1)
+        obs0 = obs1
+    return out
+
+
+def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Path, demos: Sequence[str | Path],
+                          play: Sequence[str | Path] = (), seed: int = 0, noise: float = DEFAULT_NOISE,
+                          steps: int = 300, plan: PlanConfig | None = None,
+                          progress: Callable[[dict[str, Any]], None] | None = None) -> ModelImagineResult:
+    """Imagine `episodes` episodes into out_dir (module doc). demos: recorded demos (start states
+    and the goal); play: more recorded episodes for start states (the play the model saw)."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes={episodes!r} must be a positive integer")
+    if not demos:
+        raise ValueError("--demos is required: the goal is where the demos were rewarded")
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise={noise!r} must be a non-negative standard deviation (command units)")
+    plan = plan or PlanConfig()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out}: exists and is not a directory")
+    taken = [i for i in range(episodes) if (out / episode_id_for(seed, i)).exists()]
+    if taken:
+        raise FileExistsError(f"{out / episode_id_for(seed, taken[0])}: episode dir already exists ({len(taken)} of "
+                              f"the {episodes} would clash); imagine into another --out or from another --seed")
+    t0 = time.perf_counter()
+    wm = WorldModel.load(model)
+    eps = read_recorded([*demos, *play], wm.spec)
+    goal = Goal.from_rewarded(eps)
+    period = control_period_s(eps)
+    rng = np.random.default_rng([int(seed), 0x57A7])
+    starts = pick_starts(eps, episodes, rng)
+    settings = {"noise_std": noise, "steps": steps, "control_period_s": period, "model": wm.version(),
+                "model_checkpoint": str(wm.checkpoint), "goal": goal.to_json_obj(wm.spec.observation.dim_names()),
+                "start_episodes": len(eps), "play_episodes": int(sum(e.play for e in eps)), **ModelCEM(
+                    wm, goal, plan, seed, 1).settings()}
+    result = ModelImagineResult(out, seed, settings)
+    imagined = imagine_batch(wm, goal, eps, starts, steps=steps, period_s=period, noise=noise, plan=plan, seed=seed)
+    for i, ep in enumerate(imagined):
+        rec = write_model_episode(out, ep, i, seed, wm.spec, eps[starts[i][0]].metadata, period, settings)
+        result.episodes.append(rec)
+        if progress is not None:
+            progress(rec)
+    result.elapsed_s = time.perf_counter() - t0
+    return result

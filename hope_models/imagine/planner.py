@@ -1,0 +1,170 @@
+"""The learned world model (a trained mid_loop with its wm_* heads) and a CEM planner inside it.
+
+    wm = WorldModel.load("runs/wm")            # a run dir holding mid_loop/, the mid_loop run, or a checkpoint
+    y = wm.context(hist_obs, hist_act, mask)    # [B, d] at the last grid point of each window
+    cem = ModelCEM(wm, goal, PlanConfig(), seed=0, batch=B)
+    label, cost = cem.plan(y, obs)              # raw commands [B, A] (the first held action of the plan)
+
+Everything is in the checkpoint's normalised units except the commands, which the planner samples
+in the action's own units and clips to [-1, 1] (ACTION_BOUNDS: the commands a robot's action spec
+allows; the reacher's). One plan step is one grid step of the Mid Loop's window (100 ms): the world
+model predicts what holding each action for a grid step does (mid_loop.py, "World model").
+
+CEM as the simulator's planner does it (hope_models/sim/imagine.py): the current plan and "do
+nothing" always compete, the perturbations are drawn once (common random numbers) so the plan is a
+smooth function of the state, and the plan is warm-started from the previous one. Cost: the sum
+over the plan's steps of the goal's Mahalanobis distance (recorded.Goal), + action_cost x |u|^2.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hope_models.imagine.recorded import Goal
+from hope_models.models.mid_loop import MidLoop, previous_actions
+
+ACTION_BOUNDS = (-1.0, 1.0)
+
+
+@dataclass
+class PlanConfig:
+    horizon: int = 3  # grid steps (<= the world model's wm_horizon)
+    population: int = 32
+    iterations: int = 2
+    elites: int = 6
+    init_std: float = 0.6  # command units
+    min_std: float = 0.05
+    action_cost: float = 0.01
+
+    def validate(self, wm_horizon: int) -> None:
+        for name in ("horizon", "population", "iterations", "elites"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"plan {name}={v!r} must be a positive integer")
+        if self.horizon > wm_horizon:
+            raise ValueError(f"plan horizon={self.horizon} exceeds the world model's wm_horizon={wm_horizon}")
+        if self.elites > self.population or self.population < 3:
+            raise ValueError(f"plan elites={self.elites} must be <= population={self.population} (>= 3)")
+        if not (self.init_std > 0 and self.min_std >= 0 and self.action_cost >= 0):
+            raise ValueError("plan init_std must be > 0, min_std and action_cost >= 0")
+
+
+def find_mid_loop_checkpoint(path: str | Path) -> Path:
+    """A checkpoint dir, a mid_loop run dir, or a `train --sequential` run dir holding mid_loop/ ->
+    the newest complete mid_loop checkpoint dir."""
+    from hope_models.train.checkpoint import latest_complete
+
+    p = Path(path)
+    if (p / "config.json").is_file():
+        return p
+    for run in (p, p / "mid_loop"):
+        if (run / "checkpoints").is_dir():
+            ckpt = latest_complete(run)
+            if ckpt is not None:
+                return ckpt
+    raise FileNotFoundError(f"{p}: no mid_loop checkpoint (expected a checkpoint dir, a mid_loop run dir, or a "
+                            "`train --sequential ...,mid_loop` run dir with mid_loop/ in it)")
+
+
+class WorldModel:
+    def __init__(self, component, checkpoint: Path):
+        model: MidLoop = component.model
+        if component.name != "mid_loop":
+            raise ValueError(f"{checkpoint}: a {component.name} checkpoint, not a mid_loop")
+        if not model.has_world_model:
+            raise ValueError(f"{checkpoint}: this mid_loop has no world model (trained with wm_horizon 0, "
+                             "or on frames); retrain it with the default model_config")
+        self.component, self.model, self.checkpoint = component, model.eval(), checkpoint
+        self.spec, self.window = component.spec, component.window
+        self.grid_s, self.k = self.window.grid_step_s, self.window.k
+        self.act_mean = np.asarray(self.spec.action.mean, dtype=np.float32)
+        self.act_std = np.asarray(self.spec.action.std, dtype=np.float32)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "WorldModel":
+        from hope_models.train.components import component_from_checkpoint
+
+        ckpt = find_mid_loop_checkpoint(path)
+        return cls(component_from_checkpoint(ckpt), ckpt)
+
+    def version(self) -> str:
+        from hope_models.checkpoint_format import MODEL_FILE
+        from hope_models.durable import file_sha256
+
+        return f"{self.checkpoint.parent.parent.name}@{self.checkpoint.name}:{file_sha256(self.checkpoint / MODEL_FILE)[:12]}"
+
+    def norm_act(self, u: np.ndarray | torch.Tensor):
+        return (u - self.act_mean) / self.act_std
+
+    def raw_act(self, a: np.ndarray) -> np.ndarray:
+        return a * self.act_std + self.act_mean
+
+    @torch.no_grad()
+    def context(self, obs: np.ndarray, act: np.ndarray, mask: np.ndarray) -> torch.Tensor:
+        """Windows obs [B, K, D], held actions [B, K, A] (normalised), mask [B, K] -> context at the last point [B, d]."""
+        o, a = torch.from_numpy(np.ascontiguousarray(obs)), torch.from_numpy(np.ascontiguousarray(act))
+        m = torch.from_numpy(np.ascontiguousarray(mask))
+        return self.model.context(self.model.codes(o), previous_actions(a), m)[:, -1]
+
+    @torch.no_grad()
+    def predict(self, y: torch.Tensor, obs: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """y [..., d], obs [..., D] normalised, normalised actions held [..., M, A] -> obs after each [..., M, D]."""
+        return self.model.wm_predict(y, torch.as_tensor(obs, dtype=torch.float32),
+                                     torch.as_tensor(actions, dtype=torch.float32))
+
+
+class ModelCEM:
+    """CEM over held command sequences, scored by the world model against the goal (module doc)."""
+
+    def __init__(self, wm: WorldModel, goal: Goal, cfg: PlanConfig, seed: int, batch: int):
+        cfg.validate(wm.model.cfg.wm_horizon)
+        self.wm, self.cfg, self.batch = wm, cfg, batch
+        a = len(wm.act_mean)
+        rng = np.random.default_rng([int(seed), 0xC3E, 7])
+        self._noise = torch.from_numpy(rng.standard_normal((cfg.iterations, cfg.population, cfg.horizon, a))
+                                       .astype(np.float32))
+        self._goal_mean = torch.as_tensor(goal.mean, dtype=torch.float32)
+        self._goal_w = torch.as_tensor(goal.weight, dtype=torch.float32)
+        self.mean = torch.zeros(batch, cfg.horizon, a)
+        self._act_mean = torch.from_numpy(wm.act_mean)
+        self._act_std = torch.from_numpy(wm.act_std)
+
+    def settings(self) -> dict[str, Any]:
+        return {"plan": asdict(self.cfg), "cost": "sum over the plan of the goal's Mahalanobis distance "
+                "(normalised observation) + action_cost x |command|^2", "plan_step_s": self.wm.grid_s}
+
+    def goal_distance(self, obs: torch.Tensor) -> torch.Tensor:
+        """[..., D] normalised -> the goal's Mahalanobis distance [...]."""
+        return (((obs - self._goal_mean) ** 2) * self._goal_w).sum(-1).sqrt()
+
+    @torch.no_grad()
+    def plan(self, y: torch.Tensor, obs: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """From context y [B, d] and observation [B, D]: (the plan's first command [B, A] raw, its cost [B]).
+        The rest of the plan stays as the warm start of the next call (shift() moves it one step)."""
+        cfg = self.cfg
+        lo, hi = ACTION_BOUNDS
+        obs = torch.as_tensor(obs, dtype=torch.float32)
+        b, p = obs.shape[0], cfg.population
+        h0 = self.wm.model.wm_encode(y, obs)[:, None]  # once per state, shared by its candidates
+        mu, sd = self.mean.clone(), torch.full_like(self.mean, cfg.init_std)
+        best = torch.zeros(b)
+        for it in range(cfg.iterations):
+            u = (mu[:, None] + sd[:, None] * self._noise[it][None]).clamp(lo, hi)  # [B, P, M, A]
+            u[:, 0] = mu.clamp(lo, hi)  # the current plan always competes
+            u[:, 1] = 0.0  # and so does doing nothing
+            pred = self.wm.model.wm_unroll(h0, obs[:, None], (u - self._act_mean) / self._act_std)  # [B, P, M, D]
+            cost = self.goal_distance(pred).sum(-1) + cfg.action_cost * (u ** 2).sum((-1, -2))
+            order = cost.argsort(dim=1, stable=True)[:, :cfg.elites]
+            elite = torch.gather(u, 1, order[..., None, None].expand(-1, -1, *u.shape[2:]))
+            mu, sd = elite.mean(1), elite.std(1, unbiased=False) + cfg.min_std
+            best = cost.gather(1, order[:, :1])[:, 0]
+        self.mean = mu
+        return mu[:, 0].clamp(lo, hi).numpy().astype(np.float64), best.numpy()
+
+    def shift(self) -> None:
+        """One grid step has passed: the plan's second step becomes its first."""
+        self.mean = torch.cat([self.mean[:, 1:], self.mean[:, -1:]], dim=1)

@@ -1,0 +1,97 @@
+"""Model-imagined episodes as canonical RLDS dirs (the layout hope_models/sim/imagine.py writes,
+without anything of the simulator: the observation block is rebuilt from the checkpoint's feature
+spec and the metadata from the recorded episode the rollout started from)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.data.dataset_cache import PLAY_TAG
+from hope_models.data.features import FeatureSpec
+from hope_models.rlds.episode import Episode, Step
+from hope_models.rlds.validation_report import episode_report
+from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
+
+IMAGINED_TAG = "continuon.imagined"
+ORIGIN = "imagined:model"
+SOURCE = "model_planner"  # action.source, control_role and action_source of every step
+# metadata keys copied from the start episode: what robot and setting the imagination is about
+COPIED = ("schema_version", "robot_model", "robot_type", "xr_mode", "environment_id")
+DROPPED_TAGS = (PLAY_TAG, "dart_noise")  # marks of how the start episode was recorded, not of this one
+
+
+@dataclass
+class ModelEpisode:
+    start_episode: str
+    start_step: int
+    obs: list[np.ndarray] = field(default_factory=list)  # normalised
+    label: list[np.ndarray] = field(default_factory=list)  # raw commands
+    executed: list[np.ndarray] = field(default_factory=list)
+    goal_distance: list[float] = field(default_factory=list)
+
+    def add(self, obs, label, executed, dist: float) -> None:
+        self.obs.append(np.array(obs, dtype=np.float64))
+        self.label.append(np.array(label, dtype=np.float64))
+        self.executed.append(np.array(executed, dtype=np.float64))
+        self.goal_distance.append(dist)
+
+
+def episode_id_for(seed: int, index: int) -> str:
+    return safe_episode_id(f"imagined-model-s{seed:06d}-{index:04d}")
+
+
+def _nested(spec: FeatureSpec, row: np.ndarray) -> dict[str, Any]:
+    """A raw observation vector in spec order -> the observation block ({"robot_state": {...}, ...})."""
+    out: dict[str, Any] = {}
+    i = 0
+    for f in spec.observation.fields:
+        parts = f.path.split(".")[1:]  # without the leading "observation"
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        vals = [float(v) for v in row[i:i + f.size]]
+        node[parts[-1]] = vals if f.size > 1 or len(parts) == 1 else vals[0]
+        i += f.size
+    return out
+
+
+def _metadata(ep_id: str, start_meta: dict[str, Any], n: int, period_s: float, provenance: dict) -> dict:
+    meta = {k: start_meta[k] for k in COPIED if k in start_meta}
+    tags = [t for t in start_meta.get("tags", []) if isinstance(t, str) and t not in DROPPED_TAGS]
+    meta.update({"episode_id": ep_id, "control_role": SOURCE, "action_source": SOURCE,
+                 "tags": [*tags, IMAGINED_TAG, "imagined_model"],
+                 "software": {"imagine": "hope_models.imagine.model_imagine"},
+                 "total_steps": n, "duration_ms": int(round((n - 1) * period_s * 1000)), "provenance": provenance})
+    meta.setdefault("schema_version", "1.1")
+    return meta
+
+
+def write_model_episode(out: Path, ep: ModelEpisode, index: int, seed: int, spec: FeatureSpec,
+                        start_meta: dict[str, Any], period_s: float, settings: dict[str, Any]) -> dict[str, Any]:
+    """Validate (train profile) and write one episode; its summary for the result."""
+    ep_id = episode_id_for(seed, index)
+    mean, std = np.asarray(spec.observation.mean), np.asarray(spec.observation.std)
+    period_ns = int(round(period_s * 1e9))
+    n = len(ep.obs)
+    steps = []
+    for t in range(n):
+        action = {"command": [float(v) for v in ep.label[t]], "source": SOURCE,
+                  "executed_command": [float(v) for v in ep.executed[t]]}
+        steps.append(Step(observation=_nested(spec, ep.obs[t] * std + mean), action=action, reward=0.0,
+                          is_terminal=(t == n - 1), step_metadata={"goal_distance": round(ep.goal_distance[t], 5)},
+                          timestamp_ns=t * period_ns))
+    provenance = {"origin": ORIGIN, "imagined": {"method": "model", "seed": int(seed), "index": index,
+                                                 "start": {"episode_id": ep.start_episode, "step": ep.start_step},
+                                                 **settings}}
+    episode = Episode(ep_id, _metadata(ep_id, start_meta, n, period_s, provenance), steps,
+                      source=f"{ORIGIN}#{ep_id}", layout="sim")
+    report = episode_report(episode, "train")
+    if not report["ok"]:
+        raise RuntimeError(f"imagined episode {ep_id} fails the train profile: " + "; ".join(report["errors"][:3]))
+    path = write_episode_dir(episode, out)
+    return {"episode_id": ep_id, "path": str(path), "steps": n, "status": report["status"],
+            "start": {"episode_id": ep.start_episode, "step": ep.start_step},
+            "final_goal_distance": round(ep.goal_distance[-1], 4)}
