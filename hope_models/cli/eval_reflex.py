@@ -1,7 +1,7 @@
 """`run_trainer.py eval-reflex`: a fast_loop in closed loop in the reacher, against the expert and random.
 
     run_trainer.py eval-reflex --checkpoint runs/reach [--episodes 20] [--seed 0] [--task reach|track] [--json]
-    run_trainer.py eval-reflex --checkpoint promoted ...
+    run_trainer.py eval-reflex --checkpoint promoted ... [--stream-frames FPS] [--stream-surprise] [--target-jump-at S]
 
 The policy is stepped one tick per 20 ms control step with its recurrent state (ReflexPolicy), on
 seeds S .. S+N-1; the expert and a uniform-random policy run on the same seeds. With --json one
@@ -30,6 +30,22 @@ names another GL backend). If the frames cannot be rendered, a {"frame_error": "
 the evaluation goes on, and the result's "frames" {"fps", "size", "speed", "sent", "error"} reports
 sent = 0 and the error; if dm_control cannot even be imported with that backend, the command fails
 (exit 2) with the reason. The expert and random episodes are never rendered.
+
+Surprise: `--stream-surprise` shows the policy's first episode to the mid_loop promoted in $HOPE_HOME
+(hope_models/runtime/surprise_stream.py: BrainService's session and surprise, fed the sim's
+observations and the actions the reflex takes), and writes one line per Mid Loop grid point (every 5
+control steps, rendered or not; with --stream-frames, among the frames) after a header line:
+
+    {"surprise_stream": {"mid_loop": version | null, "reason": null | "no mid_loop promoted" | why not,
+                         "horizons", "horizons_s", "grid_step_s", "every_steps", "window_k", "target_jump_s"}}
+    {"surprise": {"step", "t", "grid_point", "surprise", "surprise_by_horizon"}}
+
+The result's "surprise" {"mid_loop", "reason", "records", "non_finite"} sums it up. A mid_loop that
+cannot read the reacher's observation is a reason, not a failure: the reflex is still evaluated.
+
+Target jump: `--target-jump-at SECONDS` moves the target at that time in every episode (the policy's,
+the expert's and random's; reacher.py's jump_position, drawn from the seed), to see the reflex and
+the Mid Loop react to the unexpected.
 """
 from __future__ import annotations
 
@@ -65,6 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="streamed frame size, square (default 128)")
     parser.add_argument("--stream-speed", type=_speed, default=1.0, metavar="X",
                         help="pace the streamed episode at X times real time (default 1; 0: as fast as it runs)")
+    parser.add_argument("--stream-surprise", action="store_true",
+                        help="stream the promoted mid_loop's surprise at each grid point of the first episode as "
+                             "JSON lines on stdout (a header says when no mid_loop is promoted)")
+    parser.add_argument("--target-jump-at", type=_jump, default=None, metavar="SECONDS",
+                        help="move the target to a new position (drawn from the seed, inside the arm's reach) at "
+                             "SECONDS into every episode (0.02-19.98; default: it never moves on reach)")
 
 
 def _fps(text: str) -> float:
@@ -81,6 +103,61 @@ def _speed(text: str) -> float:
         return float_from_text("--stream-speed", text, minimum=0.0)
     except NumberError as exc:
         raise argparse.ArgumentTypeError(exc.reason) from None
+
+
+def _jump(text: str) -> float:
+    from hope_models.sim.reacher import jump_step
+
+    try:
+        value = float_from_text("--target-jump-at", text)
+        jump_step(value)
+    except NumberError as exc:
+        raise argparse.ArgumentTypeError(exc.reason) from None
+    except ValueError as exc:  # outside the episode
+        raise argparse.ArgumentTypeError(f"--target-jump-at {text}: {exc}") from None
+    return value
+
+
+def _surprise_tick(args, out):
+    """(on_tick for the streamed episode, the result's "surprise" summary) for the promoted mid_loop;
+    the header line is written at once, so a reader knows whether records will follow."""
+    from hope_models.runtime.surprise_stream import SurpriseStream
+    from hope_models.settings import SettingsError, load_settings
+    from hope_models.sim.reacher import CONTROL_PERIOD_S
+
+    try:
+        stream, reason = SurpriseStream.promoted(load_settings().home, CONTROL_PERIOD_S)
+    except SettingsError as exc:
+        stream, reason = None, f"no $HOPE_HOME to read the mid_loop pointer from: {exc}"
+    summary = {"mid_loop": stream.mid.version if stream else None, "reason": reason, "records": 0, "non_finite": 0}
+    header = {**(stream.describe() if stream else {"mid_loop": None}), "reason": reason,
+              "target_jump_s": args.target_jump_at}
+
+    def write(obj) -> None:
+        out.write(json.dumps(obj, allow_nan=False) + "\n")
+        out.flush()
+
+    write({"surprise_stream": header})
+    if stream is None:
+        return None, summary
+
+    def on_tick(step, observation, action) -> None:
+        if summary["reason"] is not None:
+            return
+        if step == 0:
+            try:
+                stream.check_fits(observation, len(action))
+            except ValueError as exc:  # a mid_loop of another robot: say so once, keep evaluating
+                summary["reason"] = f"the promoted mid_loop cannot read this episode: {exc}"
+                write({"surprise_stream": {**header, "reason": summary["reason"]}})
+                return
+        record = stream.tick(step, observation, action)
+        if record is not None:
+            write({"surprise": record})
+            summary["records"] += 1
+            summary["non_finite"] = stream.non_finite
+
+    return on_tick, summary
 
 
 def _prepare_gl() -> str | None:
@@ -154,16 +231,19 @@ def run(args: argparse.Namespace) -> int:
     except ReflexPolicyError as exc:
         return _fail(args, str(exc))
     seeds = list(range(args.seed, args.seed + args.episodes))
-    stream = None
+    stream = on_tick = surprise = None
     if args.stream_frames is not None:
         from hope_models.sim.frames import FrameStream
 
         stream = FrameStream(sys.stdout, fps=args.stream_frames, size=args.stream_size, speed=args.stream_speed)
-    res = evaluate_policy(policy, seeds, args.task, frames=stream)
+    if args.stream_surprise:
+        on_tick, surprise = _surprise_tick(args, sys.stdout)
+    jump = args.target_jump_at
+    res = evaluate_policy(policy, seeds, args.task, frames=stream, target_jump_s=jump, on_tick=on_tick)
     if stream is not None and stream.error is not None:
         print(f"warning: no frames were streamed: {stream.error}", file=sys.stderr)
-    expert = evaluate_policy(expert_factory, seeds, args.task)
-    rand = evaluate_policy(random_factory, seeds, args.task)
+    expert = evaluate_policy(expert_factory, seeds, args.task, target_jump_s=jump)
+    rand = evaluate_policy(random_factory, seeds, args.task, target_jump_s=jump)
     out = {
         "ok": True,
         "mean_return": json_number(res.mean_return),
@@ -185,8 +265,12 @@ def run(args: argparse.Namespace) -> int:
             for p, e, r in zip(res.episodes, expert.episodes, rand.episodes)],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
+    if jump is not None:
+        out["target_jump_s"] = jump
     if stream is not None:
         out["frames"] = stream.summary()
+    if surprise is not None:
+        out["surprise"] = surprise
     if args.json:
         print(json.dumps(out))
     else:

@@ -104,12 +104,19 @@ def _policy_for(policy_factory: Any, seed: int):
     return policy_factory(seed)
 
 
+TickHook = Callable[[int, dict, np.ndarray], None]
+
+
 def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames=None,
-                episode: int = 0) -> np.ndarray:
+                episode: int = 0, target_jump_s: float | None = None, on_tick: TickHook | None = None) -> np.ndarray:
     """Per-step rewards of one closed-loop episode. `frames` (a hope_models.sim.frames.FrameStream)
     is shown the env after reset and after every step, and renders the frames it wants; the episode
-    is the same with or without it (rendering does not touch the physics)."""
-    env = make_env(task, seed, frames=frames is not None)
+    is the same with or without it (rendering does not touch the physics). `on_tick(step, observation,
+    action)` sees every control step's observation and the action the policy answered to it (clipped
+    to the range the env applies), before the env steps: what a model watching the robot would be
+    sent (eval-reflex's Mid Loop surprise), without this module knowing any model. target_jump_s:
+    reacher.make_env's target jump."""
+    env = make_env(task, seed, frames=frames is not None, target_jump_s=target_jump_s)
     obs = env.reset()
     reset = getattr(policy, "reset", None)
     if reset is not None:
@@ -122,6 +129,8 @@ def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames
         action = np.asarray(policy.act(obs), dtype=np.float64)
         if not np.isfinite(action).all():
             raise ValueError(f"{task} seed {seed} step {t}: the policy gave a non-finite action {action.tolist()}")
+        if on_tick is not None:
+            on_tick(t, obs, np.clip(action, env.action_low, env.action_high))
         obs, rewards[t], done = env.step(action)
         ret += rewards[t]
         if frames is not None:
@@ -133,10 +142,12 @@ def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames
 
 
 def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], task: str = "reach",
-                    name: str | None = None, steps: int = EPISODE_STEPS, frames=None) -> EvalResult:
+                    name: str | None = None, steps: int = EPISODE_STEPS, frames=None,
+                    target_jump_s: float | None = None, on_tick: TickHook | None = None) -> EvalResult:
     """Score a policy on each seed. `policy_factory` is a callable seed -> policy, or a policy
     (anything with act(observation) and optionally reset(), which is called per episode).
-    `frames` (a hope_models.sim.frames.FrameStream) streams the first episode's frames."""
+    `frames` (a hope_models.sim.frames.FrameStream) streams the first episode's frames and
+    `on_tick` (run_episode's) sees the first episode's steps; target_jump_s applies to every episode."""
     if task not in TASKS:
         raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
     seeds = [int(s) for s in seeds]
@@ -150,7 +161,9 @@ def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], t
         policy = _policy_for(policy_factory, seed)
         if label is None:
             label = str(getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__))
-        rewards = run_episode(policy, task, seed, steps, frames=frames if i == 0 else None, episode=i)
+        first = i == 0
+        rewards = run_episode(policy, task, seed, steps, frames=frames if first else None, episode=i,
+                              target_jump_s=target_jump_s, on_tick=on_tick if first else None)
         out.episodes.append(score_rewards(seed, rewards))
     out.policy = label or ""
     return out

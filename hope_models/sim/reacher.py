@@ -17,6 +17,12 @@ on the target (at most 1000).
   drawn per episode), always inside the arm's reach (0.04-0.24 m). Each control step, before the
   physics steps, the target geom is moved (physics.named.model.geom_pos) to where it will be at the
   end of the step, so the reward after the step sees the target's new position.
+- a target jump (either task, `make_env(..., target_jump_s=T)`, eval-reflex --target-jump-at): at T s
+  the target moves to a new position drawn from the seed alone (jump_position: 0.08-0.20 m from the
+  shoulder, on the far side of where the target was), so the observation at step round(T / 20 ms) is
+  the first to see it. On track the circle is re-fitted through the new position (same speed and
+  direction), so the target keeps moving from there. It tests how a model reacts to the unexpected:
+  the Mid Loop's surprise spikes (docs/reflex.md, "Reflex view: surprise").
 
 Seeded: the same (task, seed) gives the same episode, bit for bit (the task's RandomState(seed)
 draws everything). Evaluation uses seeds [S, S+N); demos are recorded from other seeds (see
@@ -71,6 +77,9 @@ TOLERANCE_M = TARGET_SIZE_M + FINGER_SIZE_M  # reward 1 within this distance of 
 
 TRACK_RADIUS_M = (0.08, 0.18)  # circle radius range (drawn per episode), inside the 0.04-0.24 m annulus
 TRACK_OMEGA_RAD_S = 0.5  # angular speed of the target on its circle
+JUMP_RADIUS_M = (0.08, 0.20)  # where a target jump lands: well inside the arm's 0.04-0.24 m annulus
+JUMP_SEED_SALT = 0x71  # the jump's own RandomState stream: it must not shift what the task draws
+EPISODE_S = EPISODE_STEPS * CONTROL_PERIOD_S
 
 OBS_FIELDS: tuple[tuple[str, int], ...] = (
     ("observation.robot_state.joint_positions", 2),
@@ -181,15 +190,37 @@ def _track_task_class():
     return TrackReacher
 
 
+def jump_step(target_jump_s: float) -> int:
+    """The step whose observation first sees a jump at target_jump_s; ValueError unless the jump
+    falls within the episode (after its first step, before its last)."""
+    t = float(target_jump_s)
+    step = round(t / CONTROL_PERIOD_S) if math.isfinite(t) else -1
+    if not 1 <= step < EPISODE_STEPS:
+        raise ValueError(f"target_jump_s={target_jump_s!r} must be within the episode: "
+                         f"{CONTROL_PERIOD_S:g}-{EPISODE_S - CONTROL_PERIOD_S:g} s")
+    return step
+
+
+def jump_position(seed: int, old_xy) -> tuple[float, float]:
+    """Where a target jump lands on the episode of `seed`: drawn from the seed alone (its own stream),
+    opposite the old position give or take 60 degrees, so the jump is a large one (>= 0.08 m)."""
+    rng = np.random.RandomState([int(seed), JUMP_SEED_SALT])
+    radius = rng.uniform(*JUMP_RADIUS_M)
+    angle = math.atan2(float(old_xy[1]), float(old_xy[0])) + math.pi + rng.uniform(-math.pi / 3, math.pi / 3)
+    return radius * math.cos(angle), radius * math.sin(angle)
+
+
 class ReacherEnv:
     """One seeded episode source: reset() -> obs, step(action) -> (obs, reward, done)."""
 
-    def __init__(self, task: str = "reach", seed: int = 0, frames: bool = False):
+    def __init__(self, task: str = "reach", seed: int = 0, frames: bool = False, target_jump_s: float | None = None):
         if task not in TASKS:
             raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed={seed!r} must be a non-negative integer")
         self.task_name, self.seed, self.frames = task, int(seed), frames
+        self.jump_step = None if target_jump_s is None else jump_step(target_jump_s)
+        self.jumped_to: tuple[float, float] | None = None  # where the target jumped to, once it has
         control, reacher = _dm_control(frames)
         physics = reacher.Physics.from_xml_string(*reacher.get_model_and_assets())
         if task == "reach":
@@ -249,7 +280,7 @@ class ReacherEnv:
         """Start an episode. The first reset() of an env is the episode of its seed; a second one
         draws the next start from the same RandomState (make a new env to replay a seed)."""
         ts = self._env.reset()
-        self.t = 0
+        self.t, self.jumped_to = 0, None
         self._obs = self.observation_dict(ts.observation)
         return self._obs
 
@@ -263,10 +294,23 @@ class ReacherEnv:
             raise ValueError(f"action must have {ACT_DIM} values, got shape {np.shape(action)}")
         if not np.isfinite(a).all():
             raise ValueError(f"action {a.tolist()} is not finite")
+        if self.jump_step is not None and self.t + 1 == self.jump_step:
+            self._jump_target()  # before the physics step: the observation after it sees the new target
         ts = self._env.step(np.clip(a, ACTION_LOW, ACTION_HIGH))
         self.t += 1
         self._obs = self.observation_dict(ts.observation)
         return self._obs, float(ts.reward or 0.0), self.t >= EPISODE_STEPS
+
+    def _jump_target(self) -> None:
+        x, y = jump_position(self.seed, self.target_xy())
+        task = self.task
+        if hasattr(task, "target_xy"):  # track: re-fit its circle through (x, y) at the jump's time
+            t_jump = self.jump_step * CONTROL_PERIOD_S
+            task.circle_radius = math.hypot(x, y)
+            task.phase0 = math.atan2(y, x) - task.direction * TRACK_OMEGA_RAD_S * t_jump
+        self.physics.named.model.geom_pos["target", "x"] = x
+        self.physics.named.model.geom_pos["target", "y"] = y
+        self.jumped_to = (x, y)
 
     def render(self, size: int = FRAME_SIZE) -> np.ndarray:
         """The current scene from the top-down camera, uint8 [size, size, 3]."""
@@ -275,6 +319,8 @@ class ReacherEnv:
         return np.ascontiguousarray(self.physics.render(size, size, camera_id=CAMERA), dtype=np.uint8)
 
 
-def make_env(task: str = "reach", seed: int = 0, frames: bool = False) -> ReacherEnv:
-    """A seeded reacher env for `task` ("reach" or "track"); frames=True needs MUJOCO_GL=egl."""
-    return ReacherEnv(task, seed, frames)
+def make_env(task: str = "reach", seed: int = 0, frames: bool = False,
+             target_jump_s: float | None = None) -> ReacherEnv:
+    """A seeded reacher env for `task` ("reach" or "track"); frames=True needs MUJOCO_GL=egl;
+    target_jump_s: move the target at that time (the module docstring)."""
+    return ReacherEnv(task, seed, frames, target_jump_s)

@@ -3,11 +3,18 @@
 // finishes (POST /api/sim/reflex, GET /api/sim/reflex/<job>). The first episode's frames arrive as
 // sim.frame events {job_id, step, image, return_so_far} while it runs and are drawn on the canvas;
 // if the server could not render, the result says why ("frames").
+// Beside the frames, the promoted Mid Loop's surprise at each of its grid points of that episode
+// (job.surprise.records, computed by the eval-reflex child as BrainService defines it) is plotted
+// against time as the polls bring it, with a dashed marker at the target jump if one was asked for.
+// Without a promoted mid_loop the chart gives way to the reason ("no mid_loop promoted").
 import { $, setText, fillKv, num, duration } from "./util.js";
 
 const POLL_MS = 1000;
+const EPISODE_S = 20;  // the reacher's episode: 1000 control steps of 20 ms
 let ctx;
 let job = null;  // the reflex job this page follows
+let surpriseChart = null;
+let lastRecordStep = -1;  // the newest grid point already on the chart
 
 export function init(c) {
   ctx = c;
@@ -78,8 +85,11 @@ async function onReflex(event) {
   const canvas = $("#reflex-frame");
   canvas.hidden = true;
   canvas.dataset.frames = "0";
+  const jumpS = $("#reflex-jump").checked ? Number($("#reflex-jump-s").value) : null;
+  resetSurprise(jumpS);
   try {
     const body = { episodes: Number($("#reflex-episodes").value), seed: Number($("#reflex-seed").value), task: "reach" };
+    if (jumpS !== null) body.target_jump_s = jumpS;
     const started = await ctx.api("/api/sim/reflex", { method: "POST", body });
     job = started.job.id;
     setText("#reflex-status", `job ${job} running (the sim runs in a child process)…`);
@@ -94,6 +104,7 @@ async function onReflex(event) {
 async function poll(id) {
   for (;;) {
     const j = (await ctx.api(`/api/sim/reflex/${encodeURIComponent(id)}`)).job;
+    showSurprise(j.surprise);
     if (j.state !== "running") return renderReflex(j);
     await new Promise((r) => setTimeout(r, POLL_MS));
   }
@@ -115,4 +126,75 @@ function renderReflex(j) {
   const f = j.frames;
   if (f) pairs.push(["frames", f.error ? `none: ${f.error}` : `${f.emitted} streamed`]);
   fillKv("#reflex-result", pairs);
+}
+
+// -- the Mid Loop's surprise beside the frames ---------------------------------------------------
+
+// A dashed vertical line at the target jump (no annotation plugin is vendored: a few lines do it)
+const jumpMarker = {
+  id: "jumpMarker",
+  afterDatasetsDraw(chart, _args, opts) {
+    if (typeof opts.t !== "number") return;
+    const x = chart.scales.x.getPixelForValue(opts.t);
+    const { top, bottom } = chart.chartArea;
+    const g = chart.ctx;
+    g.save();
+    g.strokeStyle = "#c0392b";
+    g.setLineDash([5, 4]);
+    g.beginPath(); g.moveTo(x, top); g.lineTo(x, bottom); g.stroke();
+    g.fillStyle = "#c0392b";
+    g.fillText(`target jump ${opts.t} s`, Math.min(x + 4, chart.chartArea.right - 90), top + 10);
+    g.restore();
+  },
+};
+
+function makeSurpriseChart() {
+  if (typeof Chart !== "function") return null;  // vendor file missing: the banner says so
+  return new Chart($("#reflex-surprise-chart"), {
+    type: "line",
+    data: { datasets: [{ label: "surprise", data: [], borderColor: "#8e44ad", pointRadius: 1.5, borderWidth: 2 }] },
+    options: {
+      animation: false, maintainAspectRatio: false, parsing: false, normalized: true,
+      scales: { x: { type: "linear", min: 0, max: EPISODE_S, title: { display: true, text: "time (s)" } },
+                y: { beginAtZero: true, title: { display: true, text: "surprise (nats)" } } },
+      plugins: { legend: { display: false }, jumpMarker: { t: null } },
+    },
+    plugins: [jumpMarker],
+  });
+}
+
+function resetSurprise(jumpS) {
+  lastRecordStep = -1;
+  $("#reflex-surprise").hidden = true;
+  $("#reflex-surprise").dataset.records = "0";
+  setText("#reflex-surprise-latest", "–");
+  if (!surpriseChart) surpriseChart = makeSurpriseChart();
+  if (surpriseChart) {
+    surpriseChart.data.datasets[0].data = [];
+    surpriseChart.options.plugins.jumpMarker.t = jumpS;
+    surpriseChart.update("none");
+  }
+}
+
+function showSurprise(s) {
+  if (!s) return;  // the child has not said yet (or streams no frames)
+  const box = $("#reflex-surprise");
+  box.hidden = false;
+  const none = !s.mid_loop;
+  $("#reflex-surprise-none").hidden = !none;
+  box.querySelector(".chart-box").hidden = none;
+  if (none) {
+    setText("#reflex-surprise-none", s.reason || "no mid_loop promoted");
+    return;
+  }
+  const horizon = s.horizons?.length ? ` at ${s.horizons[0]}` : "";
+  for (const r of s.records || []) {
+    if (typeof r.step !== "number" || r.step <= lastRecordStep) continue;
+    lastRecordStep = r.step;
+    box.dataset.records = String(Number(box.dataset.records) + 1);  // grid points received (tests read it)
+    if (typeof r.surprise !== "number") continue;  // null until the first prediction that far back
+    surpriseChart?.data.datasets[0].data.push({ x: r.t, y: r.surprise });
+    setText("#reflex-surprise-latest", `${num(r.surprise, 3)} at ${num(r.t, 3)} s (${s.mid_loop}${horizon})`);
+  }
+  surpriseChart?.update("none");
 }
