@@ -37,7 +37,22 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from reflex_imagined import sh  # noqa: E402  (the same runner: run_trainer.py <cmd> --json)
+import reflex_imagined  # noqa: E402
+
+
+def sh(cmd: list[str], log: list[str], quiet: bool) -> dict:
+    """reflex_imagined.sh (run_trainer.py <cmd> --json), for ingest too, whose --json is one
+    indented document rather than one line."""
+    if cmd[0] != "ingest":
+        return reflex_imagined.sh(cmd, log, quiet)
+    import subprocess
+
+    log.append("python run_trainer.py " + " ".join(cmd))
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), *cmd, "--json"], capture_output=True,
+                          text=True, cwd=REPO)
+    if proc.returncode != 0:
+        raise SystemExit(f"failed (exit {proc.returncode}): {log[-1]}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout)
 
 
 def model_error(model: Path, episodes: Path, anchors: int = 200, seed: int = 0) -> dict:

@@ -23,6 +23,10 @@ Metrics (all means over targets; "_<label>" versions per horizon):
   dims) of the predicted observation (MidLoop.predicted_observation) against the real one at the
   horizon, and copy_last_obs_mse, the same for "the observation will not change" (the real current
   observation, not its reconstruction: the baseline pays no tokenizer error).
+
+The action-conditioned world model (mid_loop.py, "World model") has its own loss and metrics,
+world_model_loss below: wm_obs_mse (per step ahead wm_obs_mse_<t>s) against wm_copy_obs_mse; the
+component adds wm_weight x that loss to the codes' NLL.
 """
 from __future__ import annotations
 
