@@ -19,7 +19,7 @@ class VQVAEConfig:
     frame_shape: tuple[int, int, int] = (64, 64, 3)
     n_codes: int = 128  # codes per group
     code_dim: int = 48  # encoder output width, cut into `groups` equal slices
-    groups: int = 3  # codebooks, one code each per observation (product quantisation: vqvae.py)
+    groups: int = 4  # codebooks, one code each per observation (product quantisation: vqvae.py)
     hidden: int = 128  # MLP width (vector input)
     channels: int = 32  # first conv width (frame input); then 2x, 2x, 2x
     beta: float = 0.25  # commitment weight
