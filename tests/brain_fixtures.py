@@ -55,16 +55,21 @@ def brain_runs(tmp_path_factory) -> dict[str, Path]:
     return _RUNS
 
 
+def _datasets(root: Path) -> None:
+    """ds6 (6 -> 2) and ds8 (8 -> 3): both builds generate the same ones, so their models fit together."""
+    from hope_models.data.synthetic import generate_dataset
+
+    generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
+    generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
+
+
 def _build_runs(root: Path) -> None:
     import torch
-
-    from hope_models.data.synthetic import generate_dataset
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
-        generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
+        _datasets(root)
         cache = root / "cache"
         alpha30 = _train(root / "ds6", root / "runs" / "alpha", cache, "fast_loop", 30, 15, SMALL)
         runs = {"alpha30": alpha30, "alpha15": alpha30.parent / "00000015"}
@@ -98,14 +103,10 @@ def brain_whole_runs(tmp_path_factory) -> dict[str, Path]:
 def _build_whole(root: Path) -> None:
     import torch
 
-    from hope_models.data.synthetic import generate_dataset
-
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        # the same data as brain_runs' ds6/ds8 (same generator and seeds): the fast_loops there fit
-        generate_dataset(root / "ds6", 1500, obs_dim=6, act_dim=2, episode_seconds=(5, 15), seed=1)
-        generate_dataset(root / "ds8", 800, obs_dim=8, act_dim=3, episode_seconds=(5, 15), seed=2)
+        _datasets(root)  # the same data as brain_runs' ds6/ds8: the fast_loops there fit
         cache = root / "cache"
         vq_b = _train(root / "ds6", root / "runs" / "vq", cache, "vqvae", 60, 30, VQ_SMALL)
         runs = {"vq_a": vq_b.parent / "00000030", "vq_b": vq_b}
