@@ -160,16 +160,21 @@ def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> Non
                                  f"({mc['obs_dim']}/{mc['n_codes']})")
 
 
-def check_config(config: Any, where: Path) -> FeatureSpec:
-    """The feature spec of a config.json this runtime can run (see the module doc)."""
+def check_header(config: Any, where: Path, component: str, error: type[Exception]) -> None:
+    """config.json is an object of this checkpoint format for `component`; else `error` naming the file."""
     if not isinstance(config, dict):
-        raise FastLoopNumpyError(f"{where}: must be a JSON object")
+        raise error(f"{where}: must be a JSON object")
     fmt = config.get("format")
     if fmt != CONFIG_FORMAT:
-        raise FastLoopNumpyError(f"{where}: format {fmt!r} is not {CONFIG_FORMAT!r}")
+        raise error(f"{where}: format {fmt!r} is not {CONFIG_FORMAT!r}")
     comp = config.get("component")
-    if comp != "fast_loop":
-        raise FastLoopNumpyError(f"{where}: component is {comp!r}; this runtime runs fast_loop checkpoints only")
+    if comp != component:
+        raise error(f"{where}: component is {comp!r}; this runtime serves {component} checkpoints here")
+
+
+def check_config(config: Any, where: Path) -> FeatureSpec:
+    """The feature spec of a config.json this runtime can run (see the module doc)."""
+    check_header(config, where, "fast_loop", FastLoopNumpyError)
     mc = config.get("model_config")
     _check_model_config(mc, where)
     window = config.get("window")

@@ -19,10 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import CONFIG_FORMAT, weights_misfit
+from hope_models.checkpoint_format import weights_misfit
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.windows import MAX_K
-from hope_models.runtime.fast_loop_checkpoint import CheckpointRefused, FastLoopCheckpoint, read_component
+from hope_models.runtime.fast_loop_checkpoint import (
+    CheckpointRefused, FastLoopCheckpoint, check_header, read_component,
+)
 from hope_models.runtime.vqvae_numpy import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
 
 MAX_LAYERS = 64
@@ -64,13 +66,7 @@ def _check_model(mc: Any, window: Any, where: Path) -> None:
 
 def check_config(config: Any, where: Path) -> FeatureSpec:
     """The feature spec of a mid_loop config.json this runtime can run (see the module doc)."""
-    if not isinstance(config, dict):
-        raise MidLoopNumpyError(f"{where}: must be a JSON object")
-    if config.get("format") != CONFIG_FORMAT:
-        raise MidLoopNumpyError(f"{where}: format {config.get('format')!r} is not {CONFIG_FORMAT!r}")
-    if config.get("component") != "mid_loop":
-        raise MidLoopNumpyError(f"{where}: component is {config.get('component')!r}; this runtime serves a mid_loop "
-                                "checkpoint here")
+    check_header(config, where, "mid_loop", MidLoopNumpyError)
     mc = config.get("model_config")
     _check_model(mc, config.get("window"), where)
     try:

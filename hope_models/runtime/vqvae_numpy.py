@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import CONFIG_FORMAT, weights_misfit
+from hope_models.checkpoint_format import weights_misfit
 from hope_models.data.features import FeatureSpec, FeatureSpecError
-from hope_models.runtime.fast_loop_checkpoint import MAX_GROUPS, CheckpointRefused, read_component
+from hope_models.runtime.fast_loop_checkpoint import MAX_GROUPS, CheckpointRefused, check_header, read_component
 from hope_models.runtime.numpy_layers import Linear, layer_norm, silu
 
 MAX_WIDTH = 1 << 14  # bounds what an untrusted config sizes (the reacher's VQ-VAE is 256 wide)
@@ -169,13 +169,7 @@ def check_vqvae_tensors(t: dict[str, np.ndarray], vq_cfg: dict[str, Any], where:
 
 
 def _check_config(config: Any, where: Path) -> FeatureSpec:
-    if not isinstance(config, dict):
-        raise VQVAENumpyError(f"{where}: must be a JSON object")
-    if config.get("format") != CONFIG_FORMAT:
-        raise VQVAENumpyError(f"{where}: format {config.get('format')!r} is not {CONFIG_FORMAT!r}")
-    if config.get("component") != "vqvae":
-        raise VQVAENumpyError(f"{where}: component is {config.get('component')!r}; this runtime serves a vqvae "
-                              "checkpoint here")
+    check_header(config, where, "vqvae", VQVAENumpyError)
     try:
         spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
     except FeatureSpecError as exc:
