@@ -43,16 +43,29 @@ import reflex_imagined  # noqa: E402
 def sh(cmd: list[str], log: list[str], quiet: bool) -> dict:
     """reflex_imagined.sh (run_trainer.py <cmd> --json), for ingest too, whose --json is one
     indented document rather than one line."""
-    if cmd[0] != "ingest":
+    if cmd[0] not in ("ingest", "train"):
         return reflex_imagined.sh(cmd, log, quiet)
     import subprocess
 
     log.append("python run_trainer.py " + " ".join(cmd))
+    if not quiet:
+        print(f"$ {log[-1]}", file=sys.stderr, flush=True)
     proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), *cmd, "--json"], capture_output=True,
                           text=True, cwd=REPO)
     if proc.returncode != 0:
         raise SystemExit(f"failed (exit {proc.returncode}): {log[-1]}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
-    return json.loads(proc.stdout)
+    if cmd[0] == "ingest":
+        return json.loads(proc.stdout)
+    out = json.loads(proc.stdout.strip().splitlines()[-1])  # train --sequential: a list, one per member
+    return {"members": out} if isinstance(out, list) else out
+
+
+def once(path: Path, cmd: list[str], log: list[str], quiet: bool) -> dict | None:
+    """Run cmd unless path exists (a re-run with --work continues where the last one stopped)."""
+    if path.exists():
+        log.append("(kept) python run_trainer.py " + " ".join(cmd))
+        return None
+    return sh(cmd, log, quiet)
 
 
 def model_error(model: Path, episodes: Path, anchors: int = 200, seed: int = 0) -> dict:
@@ -91,24 +104,31 @@ def model_error(model: Path, episodes: Path, anchors: int = 200, seed: int = 0) 
 def pipeline(work: Path, play: int, args, log: list[str]) -> dict:
     q = args.quiet
     d = work / f"play{play}"
-    sh(["sim-demos", "--episodes", str(args.demos), "--task", "reach", "--noise", "1.0", "--out", str(d / "demos")], log, q)
+    once(d / "demos", ["sim-demos", "--episodes", str(args.demos), "--task", "reach", "--noise", "1.0",
+                       "--out", str(d / "demos")], log, q)
     srcs = [str(d / "demos")]
     if play:
-        sh(["sim-demos", "--episodes", str(play), "--task", "reach", "--policy", "play", "--out", str(d / "play")], log, q)
+        once(d / "play", ["sim-demos", "--episodes", str(play), "--task", "reach", "--policy", "play",
+                          "--out", str(d / "play")], log, q)
         srcs.append(str(d / "play"))
-    sh(["ingest", *srcs, "--into", str(d / "ds")], log, q)
+    once(d / "ds", ["ingest", *srcs, "--into", str(d / "ds")], log, q)
     t0 = time.perf_counter()
-    sh(["train", "--sequential", "vqvae,mid_loop", "--data", str(d / "ds"), "--run-dir", str(d / "wm"),
-        "--steps", str(args.wm_steps)], log, q)
-    wm_s = time.perf_counter() - t0
+    once(d / "wm" / "mid_loop" / "result.json", ["train", "--sequential", "vqvae,mid_loop", "--data", str(d / "ds"),
+                                                 "--run-dir", str(d / "wm"), "--steps", str(args.wm_steps)], log, q)
+    wm_s = sum(json.loads((d / "wm" / c / "result.json").read_text()).get("elapsed_s", 0.0)
+               for c in ("vqvae", "mid_loop")) or time.perf_counter() - t0  # the first run's, on a re-run
     imag = ["imagine", "--method", "model", "--model", str(d / "wm"), "--demos", str(d / "demos"),
             "--episodes", str(args.imagined), "--out", str(d / "imagined")]
     if play:
         imag += ["--play", str(d / "play")]
-    im = sh(imag + [*args.imagine_args], log, q)
-    sh(["ingest", str(d / "imagined"), "--into", str(d / "ds")], log, q)
-    sh(["train", "--component", "fast_loop", "--data", str(d / "ds"), "--run-dir", str(d / "fast"),
-        "--steps", str(args.fast_steps), "--seed", "0", "--imagined-ratio", "0.5"], log, q)
+    im = once(d / "imagined", imag + [*args.imagine_args], log, q)
+    if im is not None:
+        (d / "imagine.json").write_text(json.dumps(im))
+        sh(["ingest", str(d / "imagined"), "--into", str(d / "ds")], log, q)
+    im = json.loads((d / "imagine.json").read_text())
+    once(d / "fast" / "result.json", ["train", "--component", "fast_loop", "--data", str(d / "ds"), "--run-dir",
+                                      str(d / "fast"), "--steps", str(args.fast_steps), "--seed", "0",
+                                      "--imagined-ratio", "0.5"], log, q)
     ev = sh(["eval-reflex", "--checkpoint", str(d / "fast"), "--episodes", "20", "--seed", "0", "--task", "reach"], log, q)
     return {"play": play, "mean_return": ev["mean_return"], "success_rate": ev["success_rate"],
             "time_to_reach_s": ev["time_to_reach_s"], "expert_mean_return": ev["expert_mean_return"],
