@@ -106,6 +106,10 @@ def test_cli_imagines_train_episodes_without_importing_the_simulator(world):
         a = sorted((out / ep.episode_id).rglob("*.jsonl"))
         b = sorted((root / "again" / ep.episode_id).rglob("*.jsonl"))
         assert a and [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+    # without --play: the play episodes of the dataset the world model was trained on
+    auto = imagine_model_dataset(root / "auto", 1, model=root / "wm", demos=[root / "demos"], seed=7, steps=5,
+                                 plan=PlanConfig(population=8, elites=3)).settings
+    assert auto["play_episodes"] == 2 and auto["start_episodes"] == 4 and "training data" in auto["play_from"][0]
     _refusals(root, out)
 
 

@@ -37,8 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="RUN_DIR", default=None,
                         help="model: the world model, a trained mid_loop (a `train --sequential vqvae,mid_loop` "
                              "run dir, the mid_loop run dir or one of its checkpoints)")
-    parser.add_argument("--play", nargs="+", metavar="DIR", default=(),
-                        help="model: recorded play episodes to draw start states from too (the play the model saw)")
+    parser.add_argument("--play", nargs="+", metavar="DIR", default=None,
+                        help="model: recorded play episodes to draw start states from too (default: the play "
+                             "episodes of the dataset the world model was trained on, if it is still there)")
     parser.add_argument("--task", choices=("reach", "track"), default="reach")
     parser.add_argument("--seed", type=non_negative_int, default=200_000,
                         help="first task seed; episode i uses seed+i (default 200000: outside the eval and demo seeds)")

@@ -108,11 +108,12 @@ def imagine_batch(wm: WorldModel, goal: Goal, eps: Sequence[Recorded], starts: l
 
 
 def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Path, demos: Sequence[str | Path],
-                          play: Sequence[str | Path] = (), seed: int = 0, noise: float = DEFAULT_NOISE,
+                          play: Sequence[str | Path] | None = None, seed: int = 0, noise: float = DEFAULT_NOISE,
                           steps: int = 300, plan: PlanConfig | None = None,
                           progress: Callable[[dict[str, Any]], None] | None = None) -> ModelImagineResult:
     """Imagine `episodes` episodes into out_dir (module doc). demos: recorded demos (start states
-    and the goal); play: more recorded episodes for start states (the play the model saw)."""
+    and the goal); play: more recorded episodes for start states; None: the play episodes of the
+    dataset the world model was trained on (its config.json's train.data), when it is still there."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes={episodes!r} must be a positive integer")
     if not demos:
@@ -129,14 +130,21 @@ def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Pa
                               f"the {episodes} would clash); imagine into another --out or from another --seed")
     t0 = time.perf_counter()
     wm = WorldModel.load(model)
-    eps = read_recorded([*demos, *play], wm.spec)
+    eps = read_recorded([*demos, *(play or ())], wm.spec)
+    play_from = [str(p) for p in play or ()]
+    if play is None:  # the play the model saw: the play episodes of the dataset it was trained on
+        seen = wm.training_data()
+        if seen is not None:
+            eps += [e for e in read_recorded([seen], wm.spec) if e.play]
+            play_from = [f"{seen} (the world model's training data, play episodes only)"]
     goal = Goal.from_rewarded(eps)
     period = control_period_s(eps)
     rng = np.random.default_rng([int(seed), 0x57A7])
     starts = pick_starts(eps, episodes, rng)
     settings = {"noise_std": noise, "steps": steps, "control_period_s": period, "model": wm.version(),
                 "model_checkpoint": str(wm.checkpoint), "goal": goal.to_json_obj(wm.spec.observation.dim_names()),
-                "start_episodes": len(eps), "play_episodes": int(sum(e.play for e in eps)), **ModelCEM(
+                "start_episodes": len(eps), "play_episodes": int(sum(e.play for e in eps)), "play_from": play_from,
+                **ModelCEM(
                     wm, goal, plan, seed, 1).settings()}
     result = ModelImagineResult(out, seed, settings)
     imagined = imagine_batch(wm, goal, eps, starts, steps=steps, period_s=period, noise=noise, plan=plan, seed=seed)

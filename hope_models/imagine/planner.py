@@ -91,6 +91,14 @@ class WorldModel:
         ckpt = find_mid_loop_checkpoint(path)
         return cls(component_from_checkpoint(ckpt), ckpt)
 
+    def training_data(self) -> Path | None:
+        """The dataset the mid_loop was trained on (its config.json's train.data), if it is still there."""
+        from hope_models.checkpoint_format import CONFIG_FILE, read_json_object
+
+        train = read_json_object(self.checkpoint / CONFIG_FILE).get("train")
+        data = train.get("data") if isinstance(train, dict) else None
+        return Path(data) if isinstance(data, str) and Path(data).is_dir() else None
+
     def version(self) -> str:
         from hope_models.checkpoint_format import MODEL_FILE
         from hope_models.durable import file_sha256

@@ -76,7 +76,7 @@ def control_period_s(eps: Sequence[Recorded]) -> float:
     dts = np.concatenate([np.diff(e.t) for e in eps if len(e.t) > 1])
     if dts.size == 0:
         raise ValueError("the recorded episodes have one step each: no control period to imagine at")
-    return float(np.median(dts))
+    return round(float(np.median(dts)), 9)  # the clock is in ns: no float dust in the metadata
 
 
 def grid_history(ep: Recorded, step: int, k: int, grid_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
