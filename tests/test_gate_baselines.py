@@ -108,6 +108,11 @@ def test_mid_loop_verdict_needs_every_horizon_to_beat_every_baseline():
     assert mid_loop_verdict(_mid_val(**{"obs_mse_1s": 5.0}), ["0.5s", "1s"], False, 0.3)[0] == "passed"
     status, text = mid_loop_verdict({}, ["0.5s"], True, 0.3)
     assert status == "failed" and "not measured" in text
+    # the world model (wm_ heads) must beat copy-last too
+    status, text = mid_loop_verdict(_mid_val(wm_obs_mse=0.39, wm_copy_obs_mse=0.86), ["0.5s", "1s"], True, 0.3)
+    assert status == "passed" and "world model: observation error 0.3900 vs copy-last 0.8600" in text
+    status, text = mid_loop_verdict(_mid_val(wm_obs_mse=0.9, wm_copy_obs_mse=0.86), ["0.5s", "1s"], True, 0.3)
+    assert status == "failed" and text.endswith("its world model predicts no better than copy-last")
 
 
 def test_vqvae_verdict_vectors_and_frames():

@@ -8,6 +8,8 @@ answer on held-out episodes, measured on the validation batches the val_loss che
 - mid_loop, at each horizon: the code log-likelihood beats copy-last and the code frequencies
   (nll below both; mid_loop_metrics.py defines them), and with a vector VQ-VAE the decoded predicted
   observation's error is lower than copy-last's by at least settings.gate_mid_loop_min_gain (0.30).
+  Its world model (the action-conditioned wm_ heads, when it has them) must predict the next grid
+  steps better than copy-last (wm_obs_mse below wm_copy_obs_mse): imagination searches in it.
 
 The verdict's detail carries every figure, so a refusal says by how much.
 """
@@ -60,6 +62,11 @@ def mid_loop_verdict(val: dict[str, Any], labels: list[str], vector: bool, min_g
                 if gain < min_gain:
                     short.append(f"{label}: its predicted observation's error is {than} than copy-last's")
         parts.append(text)
+    wm, wm_copy = _num(val, "wm_obs_mse"), _num(val, "wm_copy_obs_mse")
+    if wm is not None and wm_copy is not None:
+        parts.append(f"world model: observation error {wm:.4f} vs copy-last {wm_copy:.4f}")
+        if not wm < wm_copy:
+            short.append("its world model predicts no better than copy-last")
     detail = "held-out " + "; ".join(parts) if parts else "no held-out figures"
     if short:
         return FAILED, f"{detail}: {'; '.join(short)}"
