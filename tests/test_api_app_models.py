@@ -92,7 +92,7 @@ def test_list_has_every_version_with_the_types_the_app_casts(api, models):
     fast = [m for m in body["models"] if m["component"] == "fast_loop"]
     served = fast[0]  # the served one first, then the history newest first
     assert served["id"] == str(models["b"]) and served["active"] and served["status"] == "serving"
-    assert served["backend"] == "numpy" and by_id[str(models["vq"])]["backend"] == "torch"
+    assert served["backend"] == "numpy" and by_id[str(models["vq"])]["backend"] == "numpy"  # every component: NumPy
     assert served["name"].startswith(f"fast_loop · run {models['run_id']} step 30 (serving, promoted 20")
     assert served["version"] == _version(api, models["b"])
     assert by_id[str(models["a"])]["status"] == "promoted before" and by_id[str(models["a"])]["activatable"]
