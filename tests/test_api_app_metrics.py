@@ -292,3 +292,14 @@ def test_benchmarks_are_the_gate_results_per_version(api, trained, tmp_path_fact
     assert f["details"]["higher_is_better"] is True and f["model_version"].startswith("alpha@30:")
     assert m["score"] == 2.5 and m["details"]["score_kind"] == "val_loss" and m["details"]["promoted_val_loss"] == 2.7
     assert len(api.get("/api/training/benchmarks?limit=1").get_json()["benchmarks"]) == 1
+
+
+def test_a_runs_api_object_carries_its_held_out_figures_and_baselines(api, trained):
+    mid = add_run(api, trained["mid40"], "mid_loop", started_min=0, finished_min=5)
+    run = api.get(f"/api/runs/{mid}").get_json()["run"]
+    val = json.loads((trained["mid40"] / "result.json").read_text())["summary"]["val"]
+    assert run["validation"]["loss"] == pytest.approx(val["loss"])
+    for key in ("nll_0.5s", "copy_last_nll_0.5s", "code_freq_nll_1s", "obs_mse_1s", "copy_last_obs_mse_0.5s"):
+        assert run["validation"][key] == pytest.approx(val[key]), key  # what the Robot Editor's summary shows
+    failed = add_run(api, None, "mid_loop", state="failed", started_min=6, finished_min=7, error="killed")
+    assert api.get(f"/api/runs/{failed}").get_json()["run"]["validation"] is None  # nothing was measured

@@ -46,6 +46,20 @@ log = logging.getLogger(__name__)
 
 RESULT_FILE = "result.json"
 MAX_RESULT_BYTES = 1 << 20
+
+
+def held_out_figures(run_dir: str | Path) -> dict[str, Any] | None:
+    """A finished run's validation figures (result.json summary.val: the component's held-out
+    metrics and, for vqvae and mid_loop, their baselines), or None."""
+    from hope_models.checkpoint_format import CheckpointError, read_json_object
+
+    try:
+        result = read_json_object(Path(run_dir) / RESULT_FILE, max_bytes=MAX_RESULT_BYTES)
+    except (OSError, CheckpointError):
+        return None
+    summary = result.get("summary")
+    val = summary.get("val") if isinstance(summary, dict) else None
+    return {k: v for k, v in val.items() if finite_number(v) is not None} if isinstance(val, dict) else None
 MAX_MANIFEST_BYTES = 16 << 20  # ~50k episodes; a bigger JSON would cost the Pi more memory than the count is worth
 TAIL_BYTES = 64 << 10
 STABLE_WINDOW = 5
@@ -134,14 +148,16 @@ def last_metric(run: Run) -> dict[str, Any] | None:
 
 # -- surprise and curiosity: the Mid Loop's validation cross-entropy -----------------------------
 
-def _code_space(run: Run, result: dict) -> tuple[int, int] | None:
+def _code_space(run: Run) -> tuple[int, int] | None:
     """(n_codes per group, groups) of the VQ-VAE the run's Mid Loop reads."""
     from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 
-    ckpt = run.last_checkpoint or result.get("checkpoint")
-    if not isinstance(ckpt, str):
-        return None
+    ckpt = run.last_checkpoint
     try:
+        if not ckpt:  # a run the registry lost the checkpoint of: result.json names it
+            ckpt = read_json_object(Path(run.run_dir) / RESULT_FILE, max_bytes=MAX_RESULT_BYTES).get("checkpoint")
+        if not isinstance(ckpt, str):
+            return None
         obj = read_json_object(Path(ckpt) / CONFIG_FILE)
     except (OSError, CheckpointError):
         return None
@@ -157,22 +173,15 @@ def _code_space(run: Run, result: dict) -> tuple[int, int] | None:
 def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
     """The validation cross-entropy of the newest `limit` completed mid_loop runs, oldest first:
     [{"run_id", "finished_at", "step", "surprise", "n_codes", "code_groups", "curiosity"}]."""
-    from hope_models.checkpoint_format import CheckpointError, read_json_object
-
     rows = s.scalars(select(Run).where(Run.component == "mid_loop", Run.state == "completed")
                      .order_by(Run.finished_at.desc(), Run.created_at.desc()).limit(limit))
     out = []
     for run in rows:
-        try:
-            result = read_json_object(Path(run.run_dir) / RESULT_FILE, max_bytes=MAX_RESULT_BYTES)
-        except (OSError, CheckpointError):
-            continue
-        summary = result.get("summary")
-        val = summary.get("val") if isinstance(summary, dict) else None
-        loss = finite_number(val.get("loss")) if isinstance(val, dict) else None
+        val = held_out_figures(run.run_dir)
+        loss = finite_number(val.get("loss")) if val else None
         if loss is None:
             continue  # no validation split (too few episodes): nothing was measured
-        space = _code_space(run, result)
+        space = _code_space(run)
         n, groups = space if space else (None, None)
         when = run.finished_at or run.updated_at
         out.append({"run_id": run.id, "finished_at": when.isoformat() if when else None, "step": run.step,

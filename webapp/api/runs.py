@@ -97,9 +97,14 @@ def create_run():
 def get_run(run_id: str):
     from registry import runs
 
+    from webapp.api.app_measures import held_out_figures
+
     query_args()
     with _state().registry.session(readonly=True) as s:
-        return jsonify({"run": runs.to_json(s, [_get(s, run_id)])[0]})
+        obj = runs.to_json(s, [_get(s, run_id)])[0]
+    # the held-out figures the gate judges (with the baselines), once the run has finished
+    obj["validation"] = held_out_figures(obj["run_dir"]) if obj.get("run_dir") else None
+    return jsonify({"run": obj})
 
 
 @bp.get("/<run_id>/metrics")

@@ -313,6 +313,32 @@ function eventLine(r) {
   return `${when}[${r.kind}]${step !== undefined ? " step " + step : ""} ${text}`;
 }
 
+// The validation figures (result.json summary.val) a finished run reported on its held-out episodes,
+// beside the baselines the promotion gate compares them with (hope_models/promote/baselines.py).
+function heldOutRows(component, v) {
+  if (!v) return [];
+  const pct = (x) => `${(100 * x).toFixed(0)} %`;
+  if (component === "vqvae" && typeof v.recon_nmse === "number") {
+    const rows = [["held-out variance kept", `${(100 * (1 - v.recon_nmse)).toFixed(1)} % (normalised MSE ${num(v.recon_nmse)}; the gate asks >= 95 %)`],
+      ["codebook", `perplexity ${num(v.perplexity)} per group, code usage ${pct(v.code_usage ?? NaN)}`]];
+    if (typeof v.psnr_db === "number") rows.push(["held-out PSNR", `${v.psnr_db.toFixed(1)} dB`]);
+    return rows;
+  }
+  if (component === "mid_loop") {
+    const labels = Object.keys(v).filter((k) => k.startsWith("nll_")).map((k) => k.slice(4));
+    const rows = labels.map((h) => {
+      const mse = v[`obs_mse_${h}`], copy = v[`copy_last_obs_mse_${h}`];
+      const obs = typeof mse === "number" && copy > 0
+        ? `observation error ${num(mse)} vs copy-last ${num(copy)} (${pct(Math.abs(1 - mse / copy))} ${mse <= copy ? "lower" : "higher"}); ` : "";
+      return [`held-out +${h}`, `${obs}nll ${num(v[`nll_${h}`])} vs copy-last ${num(v[`copy_last_nll_${h}`])}, `
+        + `code frequency ${num(v[`code_freq_nll_${h}`])}`];
+    });
+    if (typeof v.wm_obs_mse === "number") rows.push(["world model", `observation error ${num(v.wm_obs_mse)} vs copy-last ${num(v.wm_copy_obs_mse)}`]);
+    return rows;
+  }
+  return typeof v.loss === "number" ? [["held-out loss", num(v.loss)]] : [];
+}
+
 function renderSummary(run, metrics) {
   const box = $("#run-summary");
   box.hidden = !FINISHED.has(run.state);
@@ -328,6 +354,7 @@ function renderSummary(run, metrics) {
     ["peak RSS", peakRss === null ? "–" : `${Math.round(peakRss)} MB`],
     ["time", duration(took)],
     ["checkpoint", run.last_checkpoint],
+    ...heldOutRows(run.component, run.validation),
   ]);
   $("#promote-run").hidden = run.state !== "completed";
   setText("#promote-result", "");
