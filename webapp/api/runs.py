@@ -2,7 +2,7 @@
 
     GET  /api/runs[?state=queued,running][&limit=50]  -> {"runs": [Run.to_json_obj(), ...]} newest first
     POST /api/runs  {"component", "data", "steps", ...}  -> 201 {"run": {...}}
-    GET  /api/runs/<id>                                -> {"run": {...}}
+    GET  /api/runs/<id>                                -> {"run": {..., "validation": held-out figures or null}}
     POST /api/runs/<id>/cancel|pause|resume            -> {"run": {...}}
     GET  /api/runs/<id>/metrics[?after=STEP][&limit=N][&events=1]
          -> {"run_id", "records": [...], "next_after": STEP | null, "more": bool}
