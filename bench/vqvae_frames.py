@@ -14,7 +14,7 @@ reconstructions for docs/training.md.
 4. writes --strip (default docs/img/vqvae-frames.png): the first frame of every 25th step of the
    first held-out episode, originals on the top row, reconstructions below, 2x upscaled.
 
-    .venv/bin/python bench/vqvae_frames.py --out /tmp/vqvae_frames       # ~5 min on 2 cores
+    .venv/bin/python bench/vqvae_frames.py --out /tmp/vqvae_frames       # ~20 min on 2 cores
 
 It prints figures; it is not a test.
 """
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=60)
     p.add_argument("--play", type=int, default=40, help="play episodes (exploration) besides the demos")
     p.add_argument("--steps", type=int, default=100, help="control steps per episode")
-    p.add_argument("--train-steps", type=int, default=2000)
+    p.add_argument("--train-steps", type=int, default=4000)
     p.add_argument("--strip", type=Path, default=REPO / "docs" / "img" / "vqvae-frames.png")
     p.add_argument("--frames-in-strip", type=int, default=8)
     args = p.parse_args(argv)
