@@ -114,7 +114,8 @@ def mid_loop_loss(model, logits, codes, mask, *, obs=None, future_codes=None, fu
                        future_obs if want_obs else None)
     if training:
         count_targets(model, targets)
-    sums: dict[str, float] = {}
+    metrics: dict[str, float] = {}
+    overall: dict[str, list[torch.Tensor]] = {}  # per-target values of every horizon: the overall means
     total_n, window_n, nll_all = 0, 0, []
     for h, (t, label) in enumerate(zip(targets, labels)):
         if not t.target:
@@ -138,23 +139,16 @@ def mid_loop_loss(model, logits, codes, mask, *, obs=None, future_codes=None, fu
             per["obs_mse"] = ((pred - obs_target) ** 2).mean(1)
             per["copy_last_obs_mse"] = ((obs_now - obs_target) ** 2).mean(1)
         for key, v in per.items():
-            m = float(v.float().mean())
-            sums[f"{key}_{label}"] = m
-            sums.setdefault(key, 0.0)
-            sums[f"_{key}_n"] = sums.get(f"_{key}_n", 0.0) + v.shape[0]
-            sums[key] += m * v.shape[0]
+            metrics[f"{key}_{label}"] = float(v.float().mean())
+            overall.setdefault(key, []).append(v.float())
         total_n += target.shape[0]
         window_n += target.shape[0] - t.anchor
     if total_n == 0:
         # e.g. every anchor within a horizon of its episode's start and end: nothing to learn from
         # this batch, which must not stop a run. A zero loss that still has a graph (backward works).
         return logits.sum() * 0.0, {"targets": 0.0, "window_targets": 0.0}
-    metrics = {k: v for k, v in sums.items() if not k.startswith("_") and f"_{k}_n" not in sums}
-    for k in [k for k in sums if k.startswith("_")]:
-        name = k[1:-2]
-        metrics[name] = sums[name] / sums[k]
+    metrics.update({key: float(torch.cat(vs).mean()) for key, vs in overall.items()})
     metrics["targets"] = float(total_n)
-    metrics["window_targets"] = float(total_n - sum(t.anchor for t in targets))
     metrics["window_targets"] = float(window_n)  # of them inside the window (the rest: beyond it)
     loss = torch.cat(nll_all).mean()
     return loss, metrics

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Iterable, Callable
 
 import numpy as np
 
@@ -246,6 +246,26 @@ def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any], groups: int) -> 
             "vqvae.codebook": (mc["n_codes"] * groups, code_dim // groups if code_dim % groups == 0 else -1)}
 
 
+def check_weights(t: dict[str, np.ndarray], want: dict[str, tuple[int, ...]], where: Path, what: str,
+                  error: type[Exception], ignore: Iterable[str] = ()) -> None:
+    """t holds exactly the float32 tensors `want` names with those shapes (besides the `ignore`d
+    names), every one finite; else `error` naming the file and the tensors."""
+    misfit = weights_misfit({k: f"{list(s)} float32" for k, s in want.items()},
+                            {k: f"{list(v.shape)} {v.dtype}" for k, v in t.items()}, ignore=list(ignore))
+    if misfit:
+        raise error(f"{where}: weights do not fit {what} ({misfit})")
+    bad = [k for k in want if not np.isfinite(t[k]).all()]
+    if bad:
+        raise error(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}")
+
+
+def check_trained(t: dict[str, np.ndarray], prefix: str, where: Path, whose: str, error: type[Exception]) -> None:
+    """The VQ-VAE under prefix was trained (its codebook initialised)."""
+    init = t.get(f"{prefix}initialized")
+    if init is None or int(np.asarray(init).reshape(-1)[0]) != 1:
+        raise error(f"{where}: {whose} was never trained (codebook not initialised)")
+
+
 def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1) -> None:
     """The weights are exactly the float32 tensors config.json describes, finite, and a VQ-VAE
     they read codes of was trained."""
@@ -256,18 +276,9 @@ def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, gro
     # names the runtime does not read: the VQ-VAE's decoder and EMA buffers are fine, anything else
     # means the file describes another model than config.json does
     ignore = [k for k in t if n_codes and k.startswith("vqvae.")]
-    misfit = weights_misfit({k: f"{list(s)} float32" for k, s in want.items()},
-                            {k: f"{list(v.shape)} {v.dtype}" for k, v in t.items()}, ignore=ignore)
-    if misfit:
-        raise FastLoopNumpyError(f"{where}: weights do not fit the fast_loop config.json describes ({misfit})")
-    bad = [k for k in want if not np.isfinite(t[k]).all()]
-    if bad:
-        raise FastLoopNumpyError(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}"
-                                 f"{' ...' if len(bad) > 5 else ''}")
+    check_weights(t, want, where, "the fast_loop config.json describes", FastLoopNumpyError, ignore)
     if n_codes:
-        init = t.get("vqvae.initialized")
-        if init is None or int(np.asarray(init).reshape(-1)[0]) != 1:
-            raise FastLoopNumpyError(f"{where}: the fast_loop's VQ-VAE was never trained (codebook not initialised)")
+        check_trained(t, "vqvae.", where, "the fast_loop's VQ-VAE", FastLoopNumpyError)
 
 
 __all__ = ["CheckpointRefused", "FastLoopNumpyError", "FastLoopCheckpoint", "read_fast_loop", "read_component",

@@ -19,11 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import weights_misfit
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.windows import MAX_K
 from hope_models.runtime.fast_loop_checkpoint import (
-    CheckpointRefused, FastLoopCheckpoint, check_header, read_component,
+    CheckpointRefused, FastLoopCheckpoint, check_header, check_weights, read_component,
 )
 from hope_models.runtime.vqvae_numpy import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
 
@@ -105,14 +104,7 @@ def check_tensors(t: dict[str, np.ndarray], config: dict[str, Any], where: Path)
     mc, vq_cfg = config["model_config"], config["vqvae"]["model_config"]
     want = expected_shapes(mc, int(vq_cfg.get("groups", 1)))
     ignore = [k for k in t if k.startswith(("vqvae.", "wm_")) or k in IGNORED]
-    misfit = weights_misfit({k: f"{list(s)} float32" for k, s in want.items()},
-                            {k: f"{list(v.shape)} {v.dtype}" for k, v in t.items()}, ignore=ignore)
-    if misfit:
-        raise MidLoopNumpyError(f"{where}: weights do not fit the mid_loop config.json describes ({misfit})")
-    bad = [k for k in want if not np.isfinite(t[k]).all()]
-    if bad:
-        raise MidLoopNumpyError(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}"
-                                f"{' ...' if len(bad) > 5 else ''}")
+    check_weights(t, want, where, "the mid_loop config.json describes", MidLoopNumpyError, ignore)
     check_vqvae_tensors(t, vq_cfg, where, "vqvae.", MidLoopNumpyError)
 
 

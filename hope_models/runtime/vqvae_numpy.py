@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import weights_misfit
 from hope_models.data.features import FeatureSpec, FeatureSpecError
-from hope_models.runtime.fast_loop_checkpoint import MAX_GROUPS, CheckpointRefused, check_header, read_component
+from hope_models.runtime.fast_loop_checkpoint import (
+    MAX_GROUPS, CheckpointRefused, check_header, check_trained, check_weights, read_component,
+)
 from hope_models.runtime.numpy_layers import Linear, layer_norm, silu
 
 MAX_WIDTH = 1 << 14  # bounds what an untrusted config sizes (the reacher's VQ-VAE is 256 wide)
@@ -153,18 +154,9 @@ def check_vqvae_tensors(t: dict[str, np.ndarray], vq_cfg: dict[str, Any], where:
     for name, (o, i) in shapes.items():
         want[f"{prefix}{name}.weight"], want[f"{prefix}{name}.bias"] = (o, i), (o,)
     want[f"{prefix}codebook"] = (g * n, d // g)
-    have = {k: v for k, v in t.items() if k in want}
-    missing = [k for k in want if k not in t or tuple(t[k].shape) != want[k] or t[k].dtype != np.float32]
-    if missing:
-        got = {k: f"{list(v.shape)} {v.dtype}" for k, v in have.items()}
-        raise error(f"{where}: the VQ-VAE's weights do not fit its config "
-                    f"({weights_misfit({k: f'{list(s)} float32' for k, s in want.items()}, got)})")
-    bad = [k for k in want if not np.isfinite(t[k]).all()]
-    if bad:
-        raise error(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}")
-    init = t.get(f"{prefix}initialized")
-    if init is None or int(np.asarray(init).reshape(-1)[0]) != 1:
-        raise error(f"{where}: the VQ-VAE was never trained (codebook not initialised)")
+    # the rest of the file (other parts of the model, the EMA buffers) is the caller's to check
+    check_weights(t, want, where, "the VQ-VAE's config", error, ignore=[k for k in t if k not in want])
+    check_trained(t, prefix, where, "the VQ-VAE", error)
     return want
 
 
