@@ -49,6 +49,7 @@ class VQOutput(NamedTuple):
     codes: torch.Tensor  # [B, G] long, group-local
     recon_loss: torch.Tensor
     commit_loss: torch.Tensor
+    target: torch.Tensor  # what recon reconstructs: prepare(x)
 
 
 def _conv_encoder(cfg: VQVAEConfig) -> nn.Module:
@@ -184,7 +185,7 @@ class VQVAE(nn.Module):
         commit = F.mse_loss(z_e, z_q)
         z_st = z_e + (z_q - z_e).detach()  # straight-through: decoder gradient flows to the encoder
         recon = self.decoder(z_st)
-        return VQOutput(recon, z_e, codes, F.mse_loss(recon, xin), commit)
+        return VQOutput(recon, z_e, codes, F.mse_loss(recon, xin), commit, xin)
 
     def loss_of(self, out: VQOutput) -> torch.Tensor:
         return out.recon_loss + self.cfg.beta * out.commit_loss

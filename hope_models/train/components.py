@@ -145,13 +145,12 @@ class VQVAEComponent(_Component):
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
         model: VQVAE = self._model
-        x = self._x(batch)
-        out = model(x, init_codebook=training)
+        out = model(self._x(batch), init_codebook=training)
         if training:  # the codebook moves in after_step, once the optimiser step has been taken
             self._pending = (out.z_e.detach(), out.codes)
         metrics = {"recon_loss": out.recon_loss.item(), "commit_loss": out.commit_loss.item(),
                    **model.code_stats(out.codes), "codes_restarted": float(model.restarts),
-                   **reconstruction_quality(model, x, out.recon_loss.item())}
+                   **reconstruction_quality(model, out)}
         return model.loss_of(out), metrics
 
     def after_step(self, step: int) -> None:
@@ -165,16 +164,16 @@ class VQVAEComponent(_Component):
             log.debug("vqvae step %d: restarted %d dead codes", step, n)
 
 
-def reconstruction_quality(model: VQVAE, x: torch.Tensor, err: float) -> dict[str, float]:
+def reconstruction_quality(model: VQVAE, out) -> dict[str, float]:
     """recon_nmse: the reconstruction's squared error over the batch's own variance, i.e. 1 - the
     share of variance kept (frames too, over pixels); frames also psnr_db, 10 log10(1 / pixel MSE)
     on [0, 1] pixels."""
+    err = out.recon_loss.item()
     with torch.no_grad():
-        xin = model.prepare(x)
-        out = {"recon_nmse": err / max(float(xin.var(0, unbiased=False).mean()), 1e-12)}
-        if model.cfg.input == "frame":
-            out["psnr_db"] = 10.0 * math.log10(1.0 / max(err, 1e-12))
-        return out
+        figures = {"recon_nmse": err / max(float(out.target.var(0, unbiased=False).mean()), 1e-12)}
+    if model.cfg.input == "frame":
+        figures["psnr_db"] = 10.0 * math.log10(1.0 / max(err, 1e-12))
+    return figures
 
 
 class FastLoopComponent(_Component):
