@@ -75,6 +75,17 @@ class Serve:
         pytest.fail(f"serve did not answer /api/health within {timeout:g} s\n{self.home.describe()}")
 
 
+def serving(home: Home):
+    """A ready `serve` on home, stopped (and home closed) after the test: every browser test's fixture."""
+    s = Serve(home, free_port())
+    try:
+        s.wait_ready()
+        yield s
+    finally:
+        s.proc.stop(timeout=30)
+        home.close()
+
+
 @pytest.fixture
 def serve(tmp_path, tmp_path_factory):
     # a thermal zone file the test can heat (millidegrees, like /sys/class/thermal/.../temp)
@@ -83,13 +94,7 @@ def serve(tmp_path, tmp_path_factory):
     home = Home(tmp_path / "home", extra_env={"HOPE_THERMAL_ZONE": str(zone)})
     home.zone = zone
     shutil.copytree(tiny_dataset_path(tmp_path_factory), home.settings.datasets_dir / "ds")
-    s = Serve(home, free_port())
-    try:
-        s.wait_ready()
-        yield s
-    finally:
-        s.proc.stop(timeout=30)
-        home.close()
+    yield from serving(home)
 
 
 def poll(predicate, timeout: float, what: str, home: Home | None = None) -> None:

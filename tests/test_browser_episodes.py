@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from daemon_fixtures import Home, free_port
-from test_browser import Serve, Shots, browser  # noqa: F401 - `browser` is a fixture used here
+from daemon_fixtures import Home
+from test_browser import Shots, browser, serving  # noqa: F401 - `browser` is a fixture used here
 from test_episode_upload import pi_package, xr_zip, zip_of
 
 pytestmark = pytest.mark.slow
@@ -32,13 +32,7 @@ DROP = """([name, b64]) => {
 @pytest.fixture
 def serve(tmp_path):
     home = Home(tmp_path / "home")
-    s = Serve(home, free_port())
-    try:
-        s.wait_ready()
-        yield s
-    finally:
-        s.proc.stop(timeout=30)
-        home.close()
+    yield from serving(home)
 
 
 def drop(page, name: str, data: bytes) -> None:

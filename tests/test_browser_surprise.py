@@ -15,8 +15,8 @@ import shutil
 
 import pytest
 
-from daemon_fixtures import Home, free_port
-from test_browser import ARTIFACTS, Serve, browser, poll  # noqa: F401 - browser is a fixture
+from daemon_fixtures import Home
+from test_browser import ARTIFACTS, browser, poll, serving  # noqa: F401 - browser is a fixture
 from test_eval_reflex_surprise import JUMP_S, JUMP_SEED, assert_spike, promote_all, surprise_models
 
 pytestmark = pytest.mark.slow
@@ -32,13 +32,7 @@ def serve_with_mid(tmp_path, tmp_path_factory):
     models = surprise_models(tmp_path_factory)
     home = Home(tmp_path / "home")
     promote_all(home.path, models)
-    s = Serve(home, free_port())
-    try:
-        s.wait_ready()
-        yield s
-    finally:
-        s.proc.stop(timeout=30)
-        home.close()
+    yield from serving(home)
 
 
 def _records(page) -> int:
