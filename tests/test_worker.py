@@ -113,6 +113,31 @@ def test_embedded_transport_polls_fast_on_a_wal_file(tmp_path):
     assert sqlite3.connect(db).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
+def test_embedded_transport_drain_keeps_its_timeout_but_not_past_a_worker_stop(tmp_path, monkeypatch):
+    """Celery's loop for polling transports asks for 2 s waits and looks at its stop flag only
+    between them: once the worker is asked to stop, a wait ends within a slice; otherwise a
+    caller still waits as long as it asked."""
+    import socket
+
+    from celery.worker import state
+    from kombu import Connection, Consumer, Queue
+
+    from registry.broker_transport import DRAIN_SLICE_S
+
+    db = tmp_path / "broker" / "broker.sqlite"
+    with Connection(f"sqlite:///{db}", transport="registry.broker_transport:Transport") as conn:
+        with Consumer(conn, queues=[Queue("pi")], accept=["json"]):
+            started = time.monotonic()
+            with pytest.raises(socket.timeout):
+                conn.drain_events(timeout=1.0)
+            assert 1.0 <= time.monotonic() - started < 3.0
+            monkeypatch.setattr(state, "should_stop", 0)  # what Celery's SIGTERM handler sets
+            started = time.monotonic()
+            with pytest.raises(socket.timeout):
+                conn.drain_events(timeout=10.0)
+            assert time.monotonic() - started < DRAIN_SLICE_S + 0.5
+
+
 RACE_SCRIPT = r"""
 import multiprocessing as mp, os, sys
 from kombu import Connection

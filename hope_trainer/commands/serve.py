@@ -277,6 +277,7 @@ class Serve:
         return left
 
     def stop(self) -> None:
+        log.info("stopping%s", " now (forced)" if self.force.is_set() else "")
         self.daemon_stop.set()  # no new dispatches from here on
         if self.daemon is not None:
             self.daemon.wake()  # leave the tick's wait now
