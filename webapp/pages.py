@@ -1,6 +1,7 @@
 """The Robot Editor's pages: one HTML shell and our static JS/CSS (webapp/static/).
 
-    GET /                        the editor (login, then Jobs, Episodes, System, Models, Inference via #hash)
+    GET /                        the editor (login, then Jobs, Run, Compare, Episodes, System, Workers, Models,
+                                 Inference via #hash; #run/<id> opens one run)
     GET /jobs, /episodes, ...    the same shell (a bookmarked or reloaded page lands where it was)
 
 The pages themselves are open: they hold no data. Everything they show comes from /api/ with the
@@ -21,7 +22,7 @@ from webapp.build_assets import VENDOR_FILES, missing_vendor_files
 
 bp = Blueprint("pages", __name__)
 
-PAGES = ("jobs", "episodes", "system", "models", "inference")
+PAGES = ("jobs", "run", "compare", "episodes", "system", "workers", "models", "inference")
 # 'unsafe-inline' styles only: Chart.js sizes its canvas through style attributes.
 CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
        "connect-src 'self' ws: wss:; frame-ancestors 'none'; base-uri 'none'; form-action 'self'")
@@ -44,6 +45,6 @@ def index():
     return _shell("jobs")
 
 
-@bp.get("/<any(jobs, episodes, system, models, inference):page>")
+@bp.get("/<any(jobs, run, compare, episodes, system, workers, models, inference):page>")
 def page(page: str):
     return _shell(page)

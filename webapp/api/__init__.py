@@ -1,13 +1,13 @@
-"""The JSON API blueprints: health, runs (+ metrics), training, brain, system, sim, and the Continuon
-app's calls (handoff, episodes, learning, app_models, app_metrics)."""
+"""The JSON API blueprints: health, runs (+ metrics, series, provenance, artifacts), training, brain,
+system, workers, sim, and the Continuon app's calls (handoff, episodes, learning, app_models, app_metrics)."""
 from __future__ import annotations
 
 from importlib import import_module
 
 from flask import Flask
 
-BLUEPRINTS = ("health", "runs", "training", "brain", "system", "sim", "handoff", "episodes", "learning",
-              "app_models", "app_metrics")
+BLUEPRINTS = ("health", "runs", "run_series", "run_artifacts", "training", "brain", "system", "workers", "sim",
+              "handoff", "episodes", "learning", "app_models", "app_metrics")
 
 
 def register(app: Flask) -> None:

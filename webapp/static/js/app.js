@@ -1,20 +1,25 @@
 // The Robot Editor's core: the token login, the API client, the Socket.IO connection and the
-// page switcher. Each page is a small module (jobs.js, episodes.js, system.js, models.js, inference.js) with
+// page switcher. Each page is a small module (jobs.js, run.js, compare.js, episodes.js, system.js,
+// workers.js, models.js, inference.js) with
 //   init(ctx)    once, after login: wire its forms
-//   show()       each time it becomes visible: reload its state from the API (so a reload of the
-//                browser or a missed event never leaves it stale)
+//   show(arg)    each time it becomes visible: reload its state from the API (so a reload of the
+//                browser or a missed event never leaves it stale); `arg` is what follows the page
+//                name in the hash (#run/<run id>, #compare/<id>,<id>), or null
 //   events       {socket event name: handler}, live updates while logged in.
 // No framework and no build step: the vendor globals `io` and `Chart` come from
 // webapp/static/vendor/ (npm, copied at setup).
 import * as jobs from "./jobs.js";
+import * as run from "./run.js";
+import * as compare from "./compare.js";
 import * as episodes from "./episodes.js";
 import * as system from "./system.js";
+import * as workers from "./workers.js";
 import * as models from "./models.js";
 import * as inference from "./inference.js";
 import { $, setText } from "./util.js";
 
 const TOKEN_KEY = "hope.token";
-const PAGES = { jobs, episodes, system, models, inference };
+const PAGES = { jobs, run, compare, episodes, system, workers, models, inference };
 const EVENTS = ["run.state", "run.progress", "run.log", "system.stats", "system.throttle",
                 "brain.reloaded", "sim.frame"];
 
@@ -122,7 +127,8 @@ function connectSocket() {
   socket.on("connect", () => {
     conn.textContent = "live"; conn.classList.add("live");
     // events sent while we were away are in the API: reload what is on screen
-    current()?.show();
+    const [hashName, arg] = hashParts();
+    current()?.show(hashName === pageName() ? arg : null);
   });
   socket.on("disconnect", () => { conn.textContent = "offline"; conn.classList.remove("live"); });
   socket.on("connect_error", (err) => {
@@ -143,9 +149,16 @@ function connectSocket() {
 
 // -- pages ------------------------------------------------------------------------------------
 
-function pageName() {
+// "#run/r-123" -> ["run", "r-123"]; a bare "#system" -> ["system", null]
+function hashParts() {
   const hash = location.hash.replace(/^#/, "");
-  if (hash in PAGES) return hash;
+  const cut = hash.indexOf("/");
+  return cut < 0 ? [hash, null] : [hash.slice(0, cut), decodeURIComponent(hash.slice(cut + 1)) || null];
+}
+
+function pageName() {
+  const [name] = hashParts();
+  if (name in PAGES) return name;
   const path = location.pathname.replace(/^\//, "");
   return path in PAGES ? path : "jobs";
 }
@@ -158,7 +171,8 @@ function route() {
   for (const p of Object.keys(PAGES)) $(`#page-${p}`).hidden = p !== name;
   for (const a of document.querySelectorAll("#nav a")) a.classList.toggle("active", a.dataset.page === name);
   ctx.flash("");
-  PAGES[name].show().catch((err) => { if (!(err instanceof AuthError)) ctx.flash(err.message, true); });
+  const [hashName, arg] = hashParts();
+  PAGES[name].show(hashName === name ? arg : null).catch((err) => { if (!(err instanceof AuthError)) ctx.flash(err.message, true); });
 }
 
 window.addEventListener("hashchange", route);
