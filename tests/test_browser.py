@@ -107,9 +107,13 @@ def poll(predicate, timeout: float, what: str, home: Home | None = None) -> None
 
 
 class Shots:
-    def __init__(self, tmp_path: Path):
+    """Full-page screenshots, numbered in the order taken; keep() copies them to
+    test-artifacts/browser/<name>/ (one folder per test, replaced by its next run)."""
+
+    def __init__(self, tmp_path: Path, name: str = "editor"):
         self.dir = tmp_path / "screenshots"
         self.dir.mkdir()
+        self.name = name
         self.n = 0
 
     def take(self, page, name: str) -> None:
@@ -117,10 +121,11 @@ class Shots:
         page.screenshot(path=str(self.dir / f"{self.n:02d}-{name}.png"), full_page=True)
 
     def keep(self) -> None:
-        shutil.rmtree(ARTIFACTS, ignore_errors=True)  # this run's screenshots only
-        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        out = ARTIFACTS / self.name
+        shutil.rmtree(out, ignore_errors=True)
+        out.mkdir(parents=True, exist_ok=True)
         for png in self.dir.glob("*.png"):
-            shutil.copy2(png, ARTIFACTS / png.name)
+            shutil.copy2(png, out / png.name)
 
 
 def test_robot_editor_end_to_end(browser, serve, tmp_path):
