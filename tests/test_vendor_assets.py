@@ -16,7 +16,7 @@ def test_the_committed_vendor_files_are_the_locked_packages_files():
     node_modules = REPO / "node_modules"
     lock = json.loads((REPO / "package-lock.json").read_text(encoding="utf-8"))["packages"]
     for name, src in VENDOR_FILES.items():
-        package = src.split("/dist/")[0]
+        package = src.split("/")[0]  # no scoped (@org/...) package is vendored
         shipped = node_modules / src
         assert shipped.is_file(), f"{shipped}: missing; `make setup` runs npm ci"
         installed = json.loads((node_modules / package / "package.json").read_text(encoding="utf-8"))["version"]

@@ -20,10 +20,14 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 VENDOR_DIR = Path(__file__).resolve().parent / "static" / "vendor"
 
-# vendor file name -> the file inside node_modules/ (UMD builds: plain <script> globals `io`, `Chart`)
+# vendor file name -> the file inside node_modules/ (UMD builds: plain <script> globals `io`, `Chart`,
+# `Hammer`, `ChartZoom`). The page loads them in this order: the zoom plugin needs Chart and Hammer
+# (touch pan and pinch) before it, and registers itself with Chart when it loads.
 VENDOR_FILES = {
     "socket.io.min.js": "socket.io-client/dist/socket.io.min.js",
     "chart.umd.min.js": "chart.js/dist/chart.umd.min.js",
+    "hammer.min.js": "hammerjs/hammer.min.js",
+    "chartjs-plugin-zoom.min.js": "chartjs-plugin-zoom/dist/chartjs-plugin-zoom.min.js",
 }
 
 
