@@ -2,7 +2,7 @@
 
 `SystemMonitor.sample()` is one snapshot, the payload of the `system.stats` event:
 
-    {"time": ISO UTC, "mem_total_mb", "mem_available_mb", "mem_percent", "cpu_percent",
+    {"time": ISO UTC, "mem_total_mb", "mem_used_mb", "mem_available_mb", "mem_percent", "cpu_percent",
      "temp_c": float | None, "throttled": {...vcgencmd flags...} | None,
      "sources": {"thermal_zone": {"path", "ok", "error"}, "vcgencmd": {"command", "ok", "error"}}}
 
@@ -40,7 +40,8 @@ LEVELS = (0, 1, 2)
 
 class SystemMonitor:
     """Samples memory and CPU every call, the thermal sources at most every `thermal_interval_s`
-    (vcgencmd is a subprocess; the daemon ticks twice a second)."""
+    (vcgencmd is a subprocess; the daemon ticks twice a second). mem_used_mb is total - available,
+the memory mem_percent counts (psutil's own "used" leaves out what the kernel cannot reclaim)."""
 
     def __init__(self, settings: Any = None, *, zone_path: str | None | bool = False,
                  vcgencmd: str | None | bool = False, thermal_interval_s: float = 1.0,
@@ -95,6 +96,7 @@ class SystemMonitor:
         return {
             "time": datetime.now(timezone.utc).isoformat(),
             "mem_total_mb": round(mem.total / MB, 1),
+            "mem_used_mb": round((mem.total - mem.available) / MB, 1),
             "mem_available_mb": round(mem.available / MB, 1),
             "mem_percent": float(mem.percent),
             "cpu_percent": float(psutil.cpu_percent(interval=None)),

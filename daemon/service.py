@@ -18,7 +18,9 @@ Each tick, in this order:
    (dispatch.py), none on a hot host, none on a local queue while the app paused learning;
 6. remote control: the control state of every running remote run is published to Redis;
 7. retention: old runs' dirs pruned once a run has finished (disk_guard.py, settings.keep_runs);
-   events: new run_events rows to the sink; `system.stats` every stats_every_s;
+   events: new run_events rows to the sink; `system.stats` every stats_every_s (the monitor's
+   sample + "throttle_level"); the host's history: a sample every settings.system_sample_s into
+   a one-hour ring and the registry (system_history.py; refilled from the registry at start);
 8. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
 
 Which runs are remote: with remote_reports=True (`run_trainer.py daemon`) and a Redis URL, those
@@ -47,6 +49,7 @@ from daemon.monitor import SystemMonitor, ThrottleChange, ThrottlePolicy
 from daemon.reconcile import Reconciler
 from daemon.remote import RemoteReports
 from daemon.sdnotify import SdNotifier
+from daemon.system_history import SystemHistory
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +87,7 @@ class Daemon:
         self.remote: RemoteReports | None = None
         self.autopromoter: AutoPromoter | None = None
         self.learning: ContinuousLearning | None = None
+        self.history: SystemHistory | None = None
         self._remote_failures = 0
         self.last_sample: dict[str, Any] | None = None
         self._stats_at: float | None = None
@@ -109,6 +113,7 @@ class Daemon:
         self.learning = ContinuousLearning(self.settings, self.registry, local_queues=self.local_queues,
                                            disk_guard=self.dispatcher.disk, autopromoter=self.autopromoter)
         self.learning.start()
+        self._start_history()
         if self.remote_reports:
             client = self._redis_client
             if client is None:
@@ -127,8 +132,18 @@ class Daemon:
                  "jobs on other queues report through Redis" if self.remote_reports
                  else "every job writes the registry directly")
 
+    def _start_history(self) -> None:
+        self.history = SystemHistory(self.registry, getattr(self.settings, "system_sample_s", 5.0))
+        try:
+            log.info("system history: %d sample(s) of the last hour from the registry", self.history.refill())
+        except Exception as exc:  # noqa: BLE001 - an empty chart is no reason not to start
+            log.warning("system history: could not read the last hour from the registry: %s: %s",
+                        type(exc).__name__, exc)
+
     def stop(self) -> None:
         self.notifier.stopping()
+        if self.history is not None and self.registry is not None:
+            self.history.flush()
         if self.autopromoter is not None:
             self.autopromoter.close()  # stops a gate still running (its child has its own session)
         if self.registry is not None and self._own_registry:
@@ -178,6 +193,7 @@ class Daemon:
         self.last_sample = sample
         change = self.policy.update_from_sample(sample)
         self.apply_throttle(change)
+        self._observe(sample)
         if self.remote is not None:
             self.remote_step(self.remote.poll)
         self.dispatcher.requeue_paused(self.policy.level, sample.get("mem_available_mb"))
@@ -195,6 +211,14 @@ class Daemon:
             self.tailer.push(STATS_EVENT, {**sample, "throttle_level": self.policy.level})
         self.ticks += 1
         self._update_status()
+
+    def _observe(self, sample: dict[str, Any]) -> None:
+        if self.history is None:
+            return
+        try:
+            self.history.observe(sample, self.policy.level)  # its registry writes catch their own errors
+        except Exception:  # noqa: BLE001 - a malformed sample must not stop the tick
+            log.exception("system history: sample not recorded")
 
     def remote_step(self, step) -> None:
         """Redis being away must not stop the rest of the tick (local runs, monitors, events):

@@ -74,6 +74,11 @@ class Settings:
     auto_train_min_new_episodes: int = 20
     auto_train_components: list[str] = field(default_factory=lambda: ["vqvae", "fast_loop", "mid_loop"])
     auto_train_steps: int = 0
+    # what the Robot Editor's System and Workers pages show: the daemon samples the host every
+    # system_sample_s into its history (daemon/system_history.py); a Celery worker beats every
+    # worker_heartbeat_s (workers/heartbeat.py) and is offline after 3 missed beats
+    system_sample_s: float = 5.0
+    worker_heartbeat_s: float = 5.0
 
     @property
     def datasets_dir(self) -> Path:
@@ -121,6 +126,8 @@ _ENV = {
     "HOPE_AUTO_TRAIN_MIN_NEW_EPISODES": "auto_train_min_new_episodes",
     "HOPE_AUTO_TRAIN_COMPONENTS": "auto_train_components",
     "HOPE_AUTO_TRAIN_STEPS": "auto_train_steps",
+    "HOPE_SYSTEM_SAMPLE_S": "system_sample_s",
+    "HOPE_WORKER_HEARTBEAT_S": "worker_heartbeat_s",
 }
 # the promotion gate's part of _ENV: the daemon passes these to the gate it spawns
 GATE_ENV = {var: name for var, name in _ENV.items() if name.startswith("gate_")}
@@ -131,6 +138,8 @@ _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_refle
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
             "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
             "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
+# fields that must be above zero (an interval of 0 s would spin)
+_POSITIVE = {"system_sample_s", "worker_heartbeat_s"}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
 _WORD_LISTS = {"allowed_hosts", "auto_train_components"}
@@ -172,6 +181,8 @@ def _coerce(name: str, value, where: str, from_env: bool = False):
 
 
 def _at_least(name: str, value, where: str):
+    if name in _POSITIVE and not value > 0:
+        raise SettingsError(f"{where}: setting {name!r} = {value!r} must be > 0")
     low = _MINIMUM.get(name)
     if low is not None and value < low:
         raise SettingsError(f"{where}: setting {name!r} = {value!r} must be >= {low}")

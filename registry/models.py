@@ -1,5 +1,6 @@
-"""The registry's tables: runs, their events, trained models (candidates and promotions), and the
-continuous-learning state (one row: paused from the app, the daemon's phase, the last auto run).
+"""The registry's tables: runs, their events, trained models (candidates and promotions), the
+continuous-learning state (one row: paused from the app, the daemon's phase, the last auto run),
+the host's sampled history (system_samples) and the Celery workers that beat (workers).
 
 Times are timezone-aware UTC datetimes in Python. SQLite has no datetime type, so they are stored
 as naive UTC text ("YYYY-MM-DD HH:MM:SS.ffffff", SQLAlchemy's format), which sorts in time order.
@@ -255,3 +256,43 @@ class LearningState(Base):
 
     def __repr__(self) -> str:
         return f"<LearningState paused={self.paused} phase={self.phase!r}>"
+
+
+class SystemSample(Base):
+    """One sample of the daemon's host (daemon/system_history.py writes them, the last 24 h are
+    kept; registry/system_samples.py reads them). Every measure may be null: a host without a
+    thermal zone has no temp_c."""
+
+    __tablename__ = "system_samples"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    time: Mapped[datetime] = mapped_column(UTCDateTime, index=True)
+    mem_percent: Mapped[float | None] = mapped_column(Float)
+    mem_used_mb: Mapped[float | None] = mapped_column(Float)
+    mem_available_mb: Mapped[float | None] = mapped_column(Float)
+    mem_total_mb: Mapped[float | None] = mapped_column(Float)
+    temp_c: Mapped[float | None] = mapped_column(Float)
+    cpu_percent: Mapped[float | None] = mapped_column(Float)
+    throttle_level: Mapped[int | None] = mapped_column(Integer)
+
+
+class Worker(Base):
+    """A Celery worker parent, by its node name ("pi@raspberrypi"): what it serves and when it last
+    beat (workers/heartbeat.py; a remote one's beats arrive through Redis, daemon/remote.py).
+    current_run_id is the run its pool child is executing, as the parent sees it."""
+
+    __tablename__ = "workers"
+
+    name: Mapped[str] = mapped_column(String(255), primary_key=True)
+    host: Mapped[str] = mapped_column(String(255))
+    pid: Mapped[int] = mapped_column(Integer)
+    queues: Mapped[list[str]] = mapped_column(JSON)
+    report: Mapped[str] = mapped_column(String(8))  # db | redis: how its jobs report (registry/report_protocol.py)
+    heartbeat_s: Mapped[float] = mapped_column(Float)  # its beat interval: offline after 3 missed
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    last_seen: Mapped[datetime] = mapped_column(UTCDateTime)
+    stopped_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    current_run_id: Mapped[str | None] = mapped_column(String(64))
+
+    def __repr__(self) -> str:
+        return f"<Worker {self.name} {self.queues} last_seen={self.last_seen}>"

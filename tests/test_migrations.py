@@ -22,7 +22,7 @@ from registry.models import Base
 from hope_models.settings import load_settings
 
 REPO = Path(__file__).resolve().parents[1]
-TABLES = {"runs", "run_events", "models", "learning_state"}
+TABLES = {"runs", "run_events", "models", "learning_state", "system_samples", "workers"}
 
 
 def head() -> str:

@@ -6,6 +6,19 @@
                "queued": [run summary, dispatch order], "paused": [run summary]},
      "process": {"pid", "rss_mb"}}
 
+GET /api/system/history[?seconds=N]: the host over time (the System page's chart). N is an
+integer from 1 to 86400 (default 3600; anything else is a 400 naming `seconds`).
+
+    {"interval_s": <seconds between samples>, "source": "daemon" | "registry",
+     "samples": [{"time": ISO-8601 UTC, "mem_percent", "mem_used_mb", "mem_available_mb",
+                  "mem_total_mb", "temp_c", "cpu_percent", "throttle_level"}...]}   oldest first
+
+Under `serve` the daemon's one-hour ring answers ("daemon"; a longer span reads the registry and
+adds the samples the daemon has not written yet); the standalone webapp reads the registry, which
+the daemon fills in batches about every 30 s and prunes to 24 h (daemon/system_history.py). The
+live `system.stats` Socket.IO event carries the same field names and "time", so a browser appends
+it to the chart it loaded here.
+
 Under `serve` the daemon runs in this process: its last sample and its throttle level are the ones
 it acts on. The standalone webapp (systemd, the daemon in another process) samples the host itself
 with the same SystemMonitor, and reads the level the daemon wrote on the running runs (no running
@@ -18,9 +31,13 @@ import threading
 from flask import Blueprint, current_app, jsonify
 from sqlalchemy import func, select
 
+from webapp.api.validation import query_args, query_int
+
 bp = Blueprint("system", __name__, url_prefix="/api")
 
 LIST_LIMIT = 20
+HISTORY_DEFAULT_S = 3600
+HISTORY_MAX_S = 86400
 _monitor_lock = threading.Lock()
 
 
@@ -81,3 +98,23 @@ def system():
     rss = psutil.Process(os.getpid()).memory_info().rss
     return jsonify({"stats": sample, "throttle": {"level": level, "source": source}, "queue": queue,
                     "process": {"pid": os.getpid(), "rss_mb": round(rss / 2**20, 1)}})
+
+
+@bp.get("/system/history")
+def system_history():
+    from registry import system_samples
+
+    query_args("seconds")
+    seconds = query_int("seconds", default=HISTORY_DEFAULT_S, minimum=1, maximum=HISTORY_MAX_S)
+    state = current_app.extensions["hope"]
+    history = getattr(state.daemon, "history", None)
+    if history is not None and seconds <= history.window_s:
+        return jsonify({"interval_s": history.interval_s, "source": "daemon", "samples": history.samples(seconds)})
+    with state.registry.session(readonly=True) as s:
+        samples = system_samples.recent_samples(s, seconds)
+    if history is not None:  # what the daemon in this process has not written yet
+        last = samples[-1]["time"] if samples else None
+        last_at = system_samples.as_time(last) if last else None
+        samples += [x for x in history.unflushed() if last_at is None or system_samples.as_time(x["time"]) > last_at]
+    interval = history.interval_s if history is not None else state.settings.system_sample_s
+    return jsonify({"interval_s": interval, "source": "registry", "samples": samples})
