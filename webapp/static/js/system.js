@@ -1,8 +1,12 @@
 // System: memory and temperature gauges and the throttle state, from GET /api/system and then the
-// daemon's system.stats samples; throttle changes (system.throttle) go in a history list. The
-// history before this page was opened comes from the running / recent runs' recorded throttle
-// events (their metrics.jsonl, through the API), so a reload does not empty it.
-import { $, setText, el, time } from "./util.js";
+// daemon's system.stats samples; charts of the last hour (system_charts.js) from
+// GET /api/system/history, which the daemon samples whether a run is active or not, then the live
+// system.stats samples. Throttle changes (system.throttle) go in a history list. The history
+// before this page was opened comes from the sampled history's level changes and the running /
+// recent runs' recorded throttle events (their metrics.jsonl, through the API), so a reload does
+// not empty it.
+import { $, setText, el, time, duration } from "./util.js";
+import * as charts from "./system_charts.js";
 
 const LEVELS = { 0: "normal", 1: "slowed", 2: "paused (too hot)" };
 const HISTORY_MAX = 100;
@@ -19,11 +23,36 @@ export async function show() {
   const counts = Object.entries(data.queue?.counts || {}).map(([k, v]) => `${k} ${v}`).join(", ");
   setText("#queue-counts", counts || "no runs");
   setText("#process-text", data.process ? `webapp process ${data.process.pid}: ${data.process.rss_mb} MB RSS` : "");
-  await loadHistory(data.queue);
+  const samples = await loadSamples();
+  await loadHistory(data.queue, samples);
+}
+
+// The charts' hour; a failure leaves the gauges and says why under the charts.
+async function loadSamples() {
+  let data;
+  try {
+    data = await ctx.api(`/api/system/history?seconds=${charts.WINDOW_MS / 1000}`);
+  } catch (err) {
+    charts.load([]);
+    setText("#system-sampling", `No sampled history: ${err.message}`);
+    return [];
+  }
+  const samples = data.samples || [];
+  charts.load(samples);
+  const from = data.source === "daemon" ? "the daemon's in-memory ring" : data.source === "registry"
+    ? "the registry (the daemon runs in another process)" : (data.source || "?");
+  const span = samples.length > 1 ? (Date.parse(samples[samples.length - 1].time) - Date.parse(samples[0].time)) / 1000 : 0;
+  setText("#system-sampling", `One sample every ${duration(data.interval_s)}, from ${from}: ` +
+          `${samples.length} samples over ${duration(span)}; live samples are added as they arrive.`);
+  return samples;
 }
 
 export const events = {
-  "system.stats": (d) => { renderStats(d); if ("throttle_level" in d) renderThrottle(d.throttle_level, "daemon"); },
+  "system.stats": (d) => {
+    renderStats(d);
+    if ("throttle_level" in d) renderThrottle(d.throttle_level, "daemon");
+    if (!$("#page-system").hidden) charts.append(d);  // show() reloads the hour when it comes back
+  },
   "system.throttle": (d) => {
     addHistory(d.time ? new Date(d.time) : new Date(), d.level, d.reason || d.message || "", d.run_id);
     renderThrottle(d.level, d.source || "event");
@@ -75,8 +104,14 @@ function addHistory(when, level, text, runId) {
   if (!history.length) ul.append(el("li", { class: "muted", text: "no throttle changes recorded" }));
 }
 
-async function loadHistory(queue) {
+async function loadHistory(queue, samples) {
   history.length = 0;
+  let level = null;
+  for (const s of samples) {  // the sampled level changes: no reason recorded, only when
+    if (typeof s.throttle_level !== "number") continue;
+    if (level !== null && s.throttle_level !== level) addHistory(new Date(s.time), s.throttle_level, "sampled change");
+    level = s.throttle_level;
+  }
   const ids = new Set([...(queue?.running || []), ...(queue?.paused || [])].map((r) => r.id));
   try {
     const recent = await ctx.api("/api/runs?limit=5");
