@@ -250,6 +250,7 @@ class _Trainer:
         import torch
 
         from hope_models.train.metrics import MetricsLog, convergence_summary
+        from hope_models.train.provenance import write_provenance
 
         cfg = self.cfg
         torch.set_num_threads(cfg.threads)
@@ -293,6 +294,7 @@ class _Trainer:
         self.last_ckpt_time = time.monotonic()
         start_step = self.last_ckpt_step
 
+        write_provenance(self.run_dir, cfg, cache, self.vqvae_dir)  # what this attempt is made from
         self.metrics = MetricsLog(self.run_dir, emit=self._emit_fn)
         try:
             if resumed_from is not None:

@@ -1,6 +1,117 @@
-"""Placeholder: being written."""
+"""What a run was made from and what it left, over HTTP (bearer token): the Robot Editor's run page.
+
+    GET /api/runs/<id>/provenance
+        -> {"run_id", "component", "config": <the full resolved configuration>, "config_source",
+            "dataset": {"path", "fingerprint", "episodes", "steps", "imagined_episodes", "imagined_share", ...},
+            "vqvae": {"dir", "run_id", "version"} | null,
+            "code": {"version", "git_commit", "git_dirty"},
+            "gate": [{"model_id", "version", "verdict", "checks", "at", "reasons", "promoted"}, ...],
+            "recorded_at": unix s | null}
+    GET /api/runs/<id>/artifacts
+        -> {"run_id", "artifacts": [{"name", "kind", "size", "url", "media_type", "description"
+                                     (, "step" for a checkpoint)}, ...]}
+    GET /api/runs/<id>/artifacts/<name>   the file, as an attachment (Content-Disposition names it)
+
+Provenance: where each field comes from is webapp/api/run_provenance.py's docstring; a field no
+record holds is null, never made up (a run trained before provenance.json existed has no dataset
+counts and no code version).
+
+Artifacts, in this order, those that exist: "metrics.jsonl" (kind "metrics"), "metrics.mcap",
+"metrics.1.mcap", ... (kind "mcap": open in Foxglove), "result.json" (kind "result", once the run
+ended), "provenance.json" (kind "provenance"), "gate.json" (kind "gate", when a gate report was
+written into the run dir; the gate today records into the registry, shown by /provenance), then
+"checkpoint-<step>.tar" per checkpoint dir, oldest first (kind "checkpoint", "step"; size is the
+sum of its files). `url` is the download's path. A file is sent with Content-Length (and Range /
+conditional requests); a checkpoint as an uncompressed tar streamed from the dir, members named
+"checkpoint-<step>/<file>". A name must be one the listing has: anything else, a path included,
+is 404; a file or checkpoint that resolves outside the run dir (a symlink) is 404 too, with the
+reason (webapp/api/run_files.py). Errors: 404 unknown run or artifact.
+"""
 from __future__ import annotations
 
-from flask import Blueprint
+from pathlib import Path
+
+from flask import Blueprint, Response, current_app, jsonify, send_file
+
+from webapp.api.run_series import run_dir_of
+from webapp.api.validation import query_args
+from webapp.errors import ApiError
 
 bp = Blueprint("run_artifacts", __name__, url_prefix="/api")
+
+
+@bp.get("/runs/<run_id>/provenance")
+def provenance(run_id: str):
+    from registry.models import Run
+
+    from webapp.api.run_provenance import gate_records, provenance as assemble
+
+    query_args()
+    with current_app.extensions["hope"].registry.session(readonly=True) as s:
+        run = s.get(Run, run_id)
+        if run is None:
+            raise ApiError(f"no run {run_id}", 404)
+        obj = assemble(run, gate_records(s, run_id))
+    return jsonify(obj)
+
+
+@bp.get("/runs/<run_id>/artifacts")
+def artifacts(run_id: str):
+    from webapp.api.run_files import UnsafeFile, artifact_size, list_artifacts
+
+    query_args()
+    run_dir = Path(run_dir_of(run_id))
+    out = []
+    for art in list_artifacts(run_dir):
+        try:
+            size = artifact_size(run_dir, art)
+        except (OSError, UnsafeFile):
+            continue  # gone (pruned) or changed since it was listed
+        item = {"name": art.name, "kind": art.kind, "size": size, "url": f"/api/runs/{run_id}/artifacts/{art.name}",
+                "media_type": art.media_type, "description": art.description}
+        if art.step is not None:
+            item["step"] = art.step
+        out.append(item)
+    return jsonify({"run_id": run_id, "artifacts": out})
+
+
+@bp.get("/runs/<run_id>/artifacts/<path:name>")
+def download(run_id: str, name: str):
+    from webapp.api.run_files import UnsafeFile, list_artifacts, open_checkpoint_tar, open_confined
+
+    query_args()
+    run_dir = Path(run_dir_of(run_id))
+    found = {a.name: a for a in list_artifacts(run_dir)}
+    art = found.get(name)
+    if art is None:
+        # the listing leaves out files that resolve outside the run dir: say so rather than "no such"
+        if name in _unsafe_names(run_dir):
+            raise ApiError(f"artifact {name}: resolves outside the run dir; refused", 404)
+        raise ApiError(f"run {run_id} has no artifact {name[:100]!r} (GET /api/runs/{run_id}/artifacts lists them)", 404)
+    try:
+        if art.kind == "checkpoint":
+            blocks, length = open_checkpoint_tar(run_dir, art)
+            response = Response(blocks, mimetype=art.media_type, direct_passthrough=True)
+            response.headers["Content-Length"] = str(length)
+            response.headers["Content-Disposition"] = f"attachment; filename={art.name}"
+            return response
+        f, st = open_confined(run_dir, art.path)
+    except UnsafeFile as exc:
+        raise ApiError(f"artifact {name}: {exc}; refused", 404) from None
+    except FileNotFoundError:
+        raise ApiError(f"artifact {name}: gone (pruned or replaced since it was listed)", 404) from None
+    return send_file(f, mimetype=art.media_type, as_attachment=True, download_name=art.name, conditional=True,
+                     etag=f"{st.st_ino}-{st.st_size}-{st.st_mtime_ns}", last_modified=st.st_mtime, max_age=0)
+
+
+def _unsafe_names(run_dir: Path) -> set[str]:
+    """Names an artifact would have, whose files exist but were left out of the listing."""
+    from hope_models.train.checkpoint import list_step_dirs
+    from hope_models.train.metrics import mcap_segments
+
+    from webapp.api.run_files import SINGLE_FILES
+
+    names = {n for n, *_ in SINGLE_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()}
+    names.update(p.name for p in mcap_segments(run_dir))
+    names.update(f"checkpoint-{step}.tar" for step, _ in list_step_dirs(run_dir))
+    return names
