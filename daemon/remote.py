@@ -10,6 +10,9 @@ job child reports through Redis (registry/report_protocol.py) and the daemon, ev
   run on a queue that is not local, which the remote child reads between steps: desired state,
   throttle level, and whose run it is. A report from a child the run no longer belongs to gets
   the current state published at once, so that child stops even if the run is not running now.
+A remote worker PARENT's beats ("worker" reports: alive, its queues, its current run; "stopped" at
+its shutdown) come through the same list and go to the workers table (registry/workers.py) with
+report "redis", for the Workers page.
 
 Reports are read with LRANGE and trimmed once applied (at least once, not at most once): a daemon
 killed mid-batch applies the rest again at its next start rather than losing a finish. Applying
@@ -26,8 +29,8 @@ from typing import Any, Iterable
 
 from sqlalchemy import select
 
-from registry import runs
-from registry.models import Run
+from registry import runs, workers
+from registry.models import Run, Worker
 from registry.report_channel import RegistryChannel
 from registry.report_protocol import (ANSWER_TTL_S, CONTROL_TTL_S, REPORTS_KEY, BadReport, ChannelError, ControlRow,
                                       StaleDelivery, claim_key, control_key, dumps, parse_report)
@@ -88,6 +91,9 @@ class RemoteReports:
 
     def apply(self, raw: bytes | str) -> None:
         msg = parse_report(raw)
+        if msg["type"] == "worker":
+            self._worker(msg)
+            return
         channel = RegistryChannel(self.registry, msg["run_id"], msg["task_id"], msg["attempt"], msg["pid"],
                                   msg["host"])
         kind = msg["type"]
@@ -114,6 +120,21 @@ class RemoteReports:
             mine = False  # the run has left running (or was not this child's): say so
         if not mine:
             self.publish(msg["run_id"])
+
+    def _worker(self, msg: dict[str, Any]) -> None:
+        beat = msg["beat"]
+        with self.registry.session() as s:
+            if msg["event"] == "stopped":
+                if workers.mark_stopped(s, beat.name, beat.pid, at=beat.at):
+                    log.info("worker %s (pid %d on %s) stopped", beat.name, beat.pid, beat.host)
+                return
+            known = s.get(Worker, beat.name)
+            if known is None or known.pid != beat.pid or known.stopped_at is not None:
+                log.info("worker %s (pid %d on %s, queues %s) beats through Redis", beat.name, beat.pid, beat.host,
+                         ",".join(beat.queues))
+            if known is not None and known.last_seen > beat.at:
+                return  # an older beat applied late (a backlog replayed): the row has a newer one
+            workers.record_beat(s, beat)
 
     def _claim(self, channel: RegistryChannel) -> None:
         key = claim_key(channel.run_id, channel.task_id)

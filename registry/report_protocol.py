@@ -16,22 +16,32 @@ The Redis protocol (JSON only, keys under "hope:"):
                                                         | {"ok": false, "status", "why"}   (TTL; a child
                                                           that gives up sets it itself, NX: withdrawn)
                      SET hope:control:<run_id>          ControlRow, every daemon tick   (TTL)
+A remote Celery worker PARENT (not a job) beats through the same list (workers/heartbeat.py):
+    RPUSH hope:reports  {"type": "worker", "event": "beat" | "stopped", "name", "host", "pid",
+                         "queues": [queue...], "heartbeat_s", "started_at": epoch s, "time": epoch s,
+                         "current_run_id": run id | null}
+which the daemon writes to the workers table (registry/workers.py) with report "redis".
 parse_report() is the shape a report must have (the daemon drops any other). Nothing here
 imports torch.
 """
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
 from typing import Any
 
 from hope_models.json_finite import finite
 from registry.models import Run
 from registry.run_states import HEARTBEAT_FIELDS
+from registry.workers import WorkerBeat
 
 REPORT_MODES = ("db", "redis")
 REPORTS_KEY = "hope:reports"
-REPORT_TYPES = ("claim", "heartbeat", "event", "control_request", "finish")
+REPORT_TYPES = ("claim", "heartbeat", "event", "control_request", "finish", "worker")
+WORKER_EVENTS = ("beat", "stopped")
+_QUEUE_RE = re.compile(r"[a-z0-9_-]{1,64}")
 REQUESTS = ("shutdown", "thermal")
 ANSWER_TTL_S = 300  # claim answers and control states expire: nothing is left behind in Redis
 CONTROL_TTL_S = 300
@@ -161,6 +171,8 @@ def parse_report(raw: bytes | str) -> dict[str, Any]:
         raise BadReport(f"not a JSON object but {type(msg).__name__}")
     if msg.get("type") not in REPORT_TYPES:
         raise BadReport(f"type {msg.get('type')!r} is not one of {', '.join(REPORT_TYPES)}")
+    if msg["type"] == "worker":
+        return _parse_worker(msg)
     for key, kind in (("run_id", str), ("task_id", str), ("host", str), ("attempt", int), ("pid", int),
                       ("time", (int, float))):
         _need(msg, key, kind)
@@ -182,6 +194,41 @@ def parse_report(raw: bytes | str) -> dict[str, Any]:
     return msg
 
 
+def _parse_worker(msg: dict) -> dict[str, Any]:
+    for key, kind in (("name", str), ("host", str), ("pid", int), ("queues", list), ("heartbeat_s", (int, float)),
+                      ("started_at", (int, float)), ("time", (int, float))):
+        _need(msg, key, kind)
+    _need(msg, "current_run_id", str, optional=True)
+    if msg.get("event") not in WORKER_EVENTS:
+        raise BadReport(f"event {msg.get('event')!r} is not one of {', '.join(WORKER_EVENTS)}")
+    if not 0 < len(msg["name"]) <= 255 or not 0 < len(msg["host"]) <= 255 or msg["pid"] < 1:
+        raise BadReport("name and host must be 1..255 characters, pid >= 1")
+    if not msg["queues"] or len(msg["queues"]) > 32 or not all(
+            isinstance(q, str) and _QUEUE_RE.fullmatch(q) for q in msg["queues"]):
+        raise BadReport(f"queues must be 1..32 names matching [a-z0-9_-]+, got {msg['queues']!r}")
+    if not 0 < msg["heartbeat_s"] <= 3600:
+        raise BadReport(f"heartbeat_s must be in (0, 3600], got {msg['heartbeat_s']!r}")
+    if msg.get("current_run_id") is not None and not 0 < len(msg["current_run_id"]) <= 64:
+        raise BadReport("current_run_id must be 1..64 characters")
+    try:
+        started = datetime.fromtimestamp(msg["started_at"], timezone.utc)
+        at = datetime.fromtimestamp(msg["time"], timezone.utc)
+    except (OverflowError, OSError, ValueError) as exc:
+        raise BadReport(f"started_at / time are not times: {exc}") from None
+    msg["beat"] = WorkerBeat(name=msg["name"], host=msg["host"], pid=msg["pid"], queues=list(msg["queues"]),
+                             report="redis", heartbeat_s=float(msg["heartbeat_s"]), started_at=started,
+                             current_run_id=msg.get("current_run_id"), at=at)
+    return msg
+
+
+def worker_report(beat: WorkerBeat, event: str = "beat") -> str:
+    """The report a remote worker parent pushes (workers/heartbeat.py)."""
+    return dumps({"type": "worker", "event": event, "name": beat.name, "host": beat.host, "pid": beat.pid,
+                  "queues": list(beat.queues), "heartbeat_s": beat.heartbeat_s,
+                  "started_at": beat.started_at.timestamp(), "time": beat.at.timestamp(),
+                  "current_run_id": beat.current_run_id})
+
+
 __all__ = ["ANSWER_TTL_S", "CONTROL_TTL_S", "BadReport", "ChannelError", "ControlRow", "REPORTS_KEY", "REPORT_MODES",
-           "REPORT_TYPES", "REQUESTS", "ROW_FIELDS", "RunSnapshot", "StaleDelivery", "claim_key", "control_key",
-           "dumps", "parse_report"]
+           "REPORT_TYPES", "REQUESTS", "ROW_FIELDS", "RunSnapshot", "StaleDelivery", "WORKER_EVENTS", "claim_key",
+           "control_key", "dumps", "parse_report", "worker_report"]

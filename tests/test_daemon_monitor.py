@@ -31,11 +31,12 @@ def test_sample_has_memory_cpu_and_the_zone_temperature(tmp_path):
     zone.write_text("48312\n")  # millidegrees, as the kernel writes them
     mon = SystemMonitor(None, zone_path=str(zone), vcgencmd=None)
     s = mon.sample()
-    assert set(s) == {"time", "mem_total_mb", "mem_available_mb", "mem_percent", "cpu_percent", "temp_c",
-                      "throttled", "sources"}
+    assert set(s) == {"time", "mem_total_mb", "mem_used_mb", "mem_available_mb", "mem_percent", "cpu_percent",
+                      "temp_c", "throttled", "sources"}
     total = psutil.virtual_memory().total / 2**20
     assert s["mem_total_mb"] == pytest.approx(total, rel=1e-3)
     assert 0 < s["mem_available_mb"] <= s["mem_total_mb"] and 0 <= s["mem_percent"] <= 100
+    assert s["mem_used_mb"] == pytest.approx(s["mem_total_mb"] - s["mem_available_mb"], abs=0.2)
     assert 0 <= s["cpu_percent"] <= 100
     assert s["temp_c"] == pytest.approx(48.312) and s["throttled"] is None
     assert s["sources"]["thermal_zone"] == {"path": str(zone), "ok": True, "error": None}

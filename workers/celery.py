@@ -16,7 +16,9 @@ duplicate delivery is refused by claim()), trains, and records the outcome there
 - prefetch 1, concurrency 1, a new child per task (its memory, torch included, goes back to
   the OS when it exits; the parent never imports torch);
 - stopping the worker does not wait for a job that may run for hours: the job checkpoints and
-  goes back to the queue (see _stop_the_running_job and workers.job).
+  goes back to the queue (see _stop_the_running_job and workers.job);
+- the parent beats (workers/heartbeat.py) from worker_ready to worker_shutdown: name, queues,
+  current run, for the Workers page; Celery's own heartbeat/gossip stay off (workers/cli.py).
 
 Importing this module builds `app` from the environment ($HOPE_HOME, HOPE_REDIS_URL) and does
 nothing else: no connection, no files (the embedded broker's dir is made on first connect).
@@ -26,7 +28,7 @@ from __future__ import annotations
 import os
 import signal
 
-from celery.signals import setup_logging, worker_init, worker_shutting_down
+from celery.signals import setup_logging, worker_init, worker_ready, worker_shutdown, worker_shutting_down
 
 from hope_models.log_format import configure_logging
 from hope_models.settings import Settings, load_settings, use_private_umask
@@ -113,6 +115,31 @@ def _stop_the_running_job(**_kw) -> None:
                 os.kill(pid, signal.SIGTERM)
             except OSError:  # already gone
                 pass
+
+
+_heartbeat = None  # this parent's workers.heartbeat.WorkerHeartbeat, between ready and shutdown
+
+
+@worker_ready.connect
+def _start_heartbeat(sender=None, **_kw) -> None:
+    """The worker consumes now: beat from a daemon thread of this (parent) process. `sender` is
+    Celery's consumer: its node name and the queues it consumes."""
+    global _heartbeat
+    from workers.heartbeat import WorkerHeartbeat
+
+    settings = getattr(sender.app, "hope_settings", None) or load_settings()
+    queues = sorted(sender.app.amqp.queues.consume_from or sender.app.amqp.queues)
+    _heartbeat = WorkerHeartbeat(settings, sender.hostname, queues)
+    _heartbeat.start()
+
+
+@worker_shutdown.connect
+def _stop_heartbeat(**_kw) -> None:
+    """Warm shutdown done (sent in the parent only): the last beat says "stopped"."""
+    global _heartbeat
+    if _heartbeat is not None:
+        _heartbeat.stop()
+        _heartbeat = None
 
 
 # The `celery -A workers.celery:app` entry point: settings from $HOPE_HOME / the environment.
