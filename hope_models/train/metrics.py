@@ -15,6 +15,12 @@ footer are missing. An MCAP cannot be appended to after it is finished, so a res
 (MetricsLog on a run dir that already has one) writes the next segment, metrics.1.mcap,
 metrics.2.mcap, ..., and appends to metrics.jsonl.
 
+The end of a run: when the trainer's last "state" event says the run ended for good
+(FINAL_STATES: completed, failed, cancelled) and close() runs, every segment is rewritten into one
+indexed metrics.mcap (chunked, with indexes, statistics and a summary; atomic, the streaming files
+kept until the indexed one is in place: train/mcap_index.py). A paused run (memory, disk, user,
+shutdown) keeps its streaming segments: it resumes, and a pause must not wait for a rewrite.
+
 A resumed run repeats the steps after its last checkpoint; the loop records an event of kind
 "resume" with {"step": N}, and read_metrics / load_losses drop the earlier records of the steps
 after N, so a summary sees each step once.
@@ -47,6 +53,7 @@ METRICS_TOPIC = "/metrics"
 EVENTS_TOPIC = "/events"
 PROFILE = "hope.train.metrics"
 RESERVED = ("type", "step", "wall_time")
+FINAL_STATES = ("completed", "failed", "cancelled")  # a "state" event naming one ends the run for good
 
 METRIC_SCHEMA = {
     "title": "hope.train.Metric",
@@ -116,12 +123,20 @@ def mcap_segments(run_dir: str | os.PathLike) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
+def _segment_number(name: str) -> int:
+    return 0 if name == f"{MCAP_STEM}.mcap" else int(name.split(".")[1])
+
+
 def _next_segment(run: Path) -> Path:
+    """The next unused segment name; past the names a merged metrics.mcap already holds, so a
+    segment written after a merge is never mistaken for one it merged (train/mcap_index.py)."""
+    from hope_models.train.mcap_index import merged_names
+
     existing = mcap_segments(run)
     if not existing:
         return run / f"{MCAP_STEM}.mcap"
-    last = existing[-1].name
-    n = 0 if last == f"{MCAP_STEM}.mcap" else int(last.split(".")[1])
+    merged = [n for n in merged_names(existing[0]) if re.fullmatch(rf"{MCAP_STEM}(?:\.\d+)?\.mcap", n)]
+    n = max(_segment_number(p.name) for p in existing + [run / m for m in merged])
     return run / f"{MCAP_STEM}.{n + 1}.mcap"
 
 
@@ -157,6 +172,8 @@ class MetricsLog:
         jsonl = self.run_dir / JSONL_NAME
         if jsonl.exists():
             _truncate_partial_line(jsonl)
+        from hope_models.train.mcap_index import clean_merged
+        clean_merged(self.run_dir)  # segments a merge crashed before deleting: never counted twice
         self.jsonl_path = jsonl
         # Line buffering would split nothing we care about; we flush explicitly after each line.
         self._jsonl = open(jsonl, "a", encoding="utf-8")
@@ -176,6 +193,7 @@ class MetricsLog:
         self._mcap_file.flush()
         self._sequence = 0
         self._closed = False
+        self._final = False  # the run ended for good: close() indexes the segments
 
     def _write(self, topic: str, record: dict) -> None:
         if self._closed:
@@ -208,6 +226,8 @@ class MetricsLog:
         clean = _clean(dict(payload or {}))
         record = {"type": "event", "kind": kind, "wall_time": round(time.time(), 6), "payload": clean}
         self._write(EVENTS_TOPIC, record)
+        if kind == "state":
+            self._final = clean.get("state") in FINAL_STATES
         if self._emit is not None:
             self._emit(kind, clean)
         return record
@@ -221,8 +241,10 @@ class MetricsLog:
         self._mcap_file.flush()
         os.fsync(self._mcap_file.fileno())
 
-    def close(self) -> None:
-        """Finish the MCAP (summary and footer) and close both files. Idempotent."""
+    def close(self, index: bool | None = None) -> None:
+        """Finish the MCAP (summary and footer) and close both files. Idempotent. Then, when the
+        last "state" event ended the run for good (or index=True), rewrite the segments as one
+        indexed metrics.mcap (train/mcap_index.py: seconds for 100k records; never raises)."""
         if self._closed:
             return
         try:
@@ -233,6 +255,9 @@ class MetricsLog:
             self._mcap_file.close()
             self._jsonl.close()
         fsync_path(self.run_dir)
+        if self._final if index is None else index:
+            from hope_models.train.mcap_index import index_segments
+            index_segments(self.run_dir)
 
     def __enter__(self) -> "MetricsLog":
         return self

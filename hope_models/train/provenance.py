@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -45,12 +46,21 @@ def package_version() -> str | None:
 
 
 def _git(repo: Path, *args: str) -> str | None:
+    """git's stdout, or None (no git, an error, or killed after GIT_TIMEOUT_S). The timeout is a
+    timer that kills the child, not subprocess's timeout, whose wait polls with time.sleep (which
+    the loop's tests count)."""
     try:
-        out = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True,
-                             timeout=GIT_TIMEOUT_S, check=False)
-    except (OSError, subprocess.SubprocessError):
+        proc = subprocess.Popen(["git", "-C", str(repo), *args], stdout=subprocess.PIPE,
+                                stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL, text=True)
+    except OSError:
         return None
-    return out.stdout if out.returncode == 0 else None
+    timer = threading.Timer(GIT_TIMEOUT_S, proc.kill)
+    timer.start()
+    try:
+        out, _ = proc.communicate()
+    finally:
+        timer.cancel()
+    return out if proc.returncode == 0 else None
 
 
 def code_info() -> dict[str, Any]:
