@@ -23,8 +23,8 @@ export async function show() {
   const counts = Object.entries(data.queue?.counts || {}).map(([k, v]) => `${k} ${v}`).join(", ");
   setText("#queue-counts", counts || "no runs");
   setText("#process-text", data.process ? `webapp process ${data.process.pid}: ${data.process.rss_mb} MB RSS` : "");
-  const samples = await loadSamples();
-  await loadHistory(data.queue, samples);
+  const { samples, intervalS } = await loadSamples();
+  await loadHistory(data.queue, samples, intervalS);
 }
 
 // The charts' hour; a failure leaves the gauges and says why under the charts.
@@ -35,7 +35,7 @@ async function loadSamples() {
   } catch (err) {
     charts.load([]);
     setText("#system-sampling", `No sampled history: ${err.message}`);
-    return [];
+    return { samples: [] };
   }
   const samples = data.samples || [];
   charts.load(samples);
@@ -44,7 +44,7 @@ async function loadSamples() {
   const span = samples.length > 1 ? (Date.parse(samples[samples.length - 1].time) - Date.parse(samples[0].time)) / 1000 : 0;
   setText("#system-sampling", `One sample every ${duration(data.interval_s)}, from ${from}: ` +
           `${samples.length} samples over ${duration(span)}; live samples are added as they arrive.`);
-  return samples;
+  return { samples, intervalS: data.interval_s };
 }
 
 export const events = {
@@ -104,14 +104,8 @@ function addHistory(when, level, text, runId) {
   if (!history.length) ul.append(el("li", { class: "muted", text: "no throttle changes recorded" }));
 }
 
-async function loadHistory(queue, samples) {
+async function loadHistory(queue, samples, intervalS) {
   history.length = 0;
-  let level = null;
-  for (const s of samples) {  // the sampled level changes: no reason recorded, only when
-    if (typeof s.throttle_level !== "number") continue;
-    if (level !== null && s.throttle_level !== level) addHistory(new Date(s.time), s.throttle_level, "sampled change");
-    level = s.throttle_level;
-  }
   const ids = new Set([...(queue?.running || []), ...(queue?.paused || [])].map((r) => r.id));
   try {
     const recent = await ctx.api("/api/runs?limit=5");
@@ -127,6 +121,20 @@ async function loadHistory(queue, samples) {
         }
       }
     } catch { /* a run without metrics yet */ }
+  }
+  // The sampled level changes (no reason recorded, only when), unless a run's event (with its
+  // reason) already says it: the sample comes within an interval or two of the event.
+  const near = 1000 * (2 * (intervalS || 5) + 1);
+  const events = history.slice();
+  let level = null;
+  for (const s of samples) {
+    if (typeof s.throttle_level !== "number") continue;
+    const when = new Date(s.time);
+    if (level !== null && s.throttle_level !== level &&
+        !events.some((h) => h.level === s.throttle_level && Math.abs(h.when - when) <= near)) {
+      addHistory(when, s.throttle_level, "sampled change");
+    }
+    level = s.throttle_level;
   }
   if (!history.length) $("#throttle-history").replaceChildren(el("li", { class: "muted", text: "no throttle changes recorded" }));
 }

@@ -125,7 +125,7 @@ function renderQueues(queues) {
              el("span", { text: String(q[k] ?? 0) }))));
     tr.classList.toggle("stalled", stalled);
     if (stalled) {
-      hints.push(el("li", {}, el("span", { text: `${waiting} run${waiting === 1 ? "" : "s"} wait on queue "${q.name}" ` +
+      hints.push(el("li", {}, el("span", { text: `${waiting} run${waiting === 1 ? " waits" : "s wait"} on queue "${q.name}" ` +
                                                   "and no worker serves it: start one with " }),
                     el("code", { text: `run_trainer.py worker --queue ${q.name}` })));
     }
