@@ -21,8 +21,8 @@ Artifacts, in this order, those that exist: "metrics.jsonl" (kind "metrics"), "m
 ended), "provenance.json" (kind "provenance"), "gate.json" (kind "gate", when a gate report was
 written into the run dir; the gate today records into the registry, shown by /provenance), then
 "checkpoint-<step>.tar" per checkpoint dir, oldest first (kind "checkpoint", "step"; size is the
-sum of its files). `url` is the download's path. A file is sent with Content-Length (and Range /
-conditional requests); a checkpoint as an uncompressed tar streamed from the dir, members named
+sum of its files). `url` is the download's path. A file is sent with Content-Length (its size
+when the request opened it; Range and conditional requests work); a checkpoint as an uncompressed tar streamed from the dir, members named
 "checkpoint-<step>/<file>". A name must be one the listing has: anything else, a path included,
 is 404; a file or checkpoint that resolves outside the run dir (a symlink) is 404 too, with the
 reason (webapp/api/run_files.py). Errors: 404 unknown run or artifact.
@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from flask import Blueprint, Response, current_app, jsonify, send_file
+from flask import Blueprint, Response, current_app, jsonify, request
 
 from webapp.api.run_series import run_dir_of
 from webapp.api.validation import query_args
@@ -100,8 +100,28 @@ def download(run_id: str, name: str):
         raise ApiError(f"artifact {name}: {exc}; refused", 404) from None
     except FileNotFoundError:
         raise ApiError(f"artifact {name}: gone (pruned or replaced since it was listed)", 404) from None
-    return send_file(f, mimetype=art.media_type, as_attachment=True, download_name=art.name, conditional=True,
-                     etag=f"{st.st_ino}-{st.st_size}-{st.st_mtime_ns}", last_modified=st.st_mtime, max_age=0)
+    rv = Response(_limited(f, st.st_size), mimetype=art.media_type, direct_passthrough=True)
+    rv.content_length = st.st_size
+    rv.last_modified = st.st_mtime
+    rv.set_etag(f"{st.st_ino}-{st.st_size}-{st.st_mtime_ns}")
+    rv.cache_control.no_cache = True
+    rv.headers["Content-Disposition"] = f"attachment; filename={art.name}"
+    return rv.make_conditional(request.environ, accept_ranges=True, complete_length=st.st_size)
+
+
+def _limited(f, size: int, chunk: int = 256 * 1024):
+    """The file's first `size` bytes (its size when it was opened: a live run's metrics.jsonl
+    grows while it is sent, and the answer must match its Content-Length)."""
+    try:
+        left = size
+        while left > 0:
+            data = f.read(min(chunk, left))
+            if not data:
+                break
+            left -= len(data)
+            yield data
+    finally:
+        f.close()
 
 
 def _unsafe_names(run_dir: Path) -> set[str]:
