@@ -8,7 +8,8 @@ that minute as the API serves it, gain live system.stats points within seconds, 
 temperature chart follows a thermal zone file the test writes.
 Workers: serve's own worker is online on queue "pi"; a short real fast_loop run shows as its
 current job (a link to #run/<id>) and is gone once it finished; a run on a queue no worker serves
-highlights that queue with the command that starts one.
+highlights that queue with the command that starts one. The page reloads every heartbeat while it
+is visible and stops while it is hidden.
 Screenshots of both pages at 1280 px and 390 px go to test-artifacts/browser/system/; at 390 px
 the pages do not scroll sideways.
 """
@@ -190,6 +191,17 @@ def test_workers_page_shows_the_worker_its_job_and_a_queue_without_worker(page, 
     expect(stalled).to_have_attribute("data-stalled", "1", timeout=15_000)
     expect(page.locator("#queues-hint")).to_contain_text("run_trainer.py worker --queue gpu")
     expect(page.locator('#queues-table tr[data-queue="pi"]')).to_have_attribute("data-stalled", "0")
+    # reloaded every heartbeat (1 s) while visible, not at all while hidden
+    loads = lambda: int(page.get_attribute("#page-workers", "data-loaded") or 0)  # noqa: E731
+    seen = loads()
+    poll(lambda: loads() >= seen + 2, 10, "the Workers page reloading every heartbeat", serve.home)
+    page.click('#nav a[data-page="system"]')
+    time.sleep(1.2)  # a reload already in flight when the page was hidden may still land
+    hidden_at = loads()
+    time.sleep(2.5)
+    assert loads() == hidden_at, "the Workers page kept reloading while hidden"
+    page.click('#nav a[data-page="workers"]')
+    expect(page.locator('#queues-table tr[data-queue="gpu"]')).to_have_attribute("data-stalled", "1")
     shots.take(page, "workers-desktop")
     page.set_viewport_size({"width": 390, "height": 844})
     _no_sideways_scroll(page)
