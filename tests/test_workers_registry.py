@@ -15,7 +15,7 @@ import fakeredis
 import pytest
 
 from daemon.remote import RemoteReports
-from daemon_fixtures import Home, home, procs, start_worker, tiny_dataset, wait_until  # noqa: F401
+from daemon_fixtures import Home, home, procs, redis_server, start_worker, tiny_dataset, wait_until  # noqa: F401
 from registry import runs, workers
 from registry.models import new_run_id
 from registry.report_protocol import REPORTS_KEY, worker_report
@@ -196,3 +196,33 @@ def test_a_real_local_worker_beats_with_its_queue_and_current_run(tmp_path, tiny
         assert "heartbeat every 0.3 s into the registry" in Path(worker.log).read_text()
     finally:
         home.close()
+
+
+def test_a_real_remote_worker_beats_through_a_real_redis(tmp_path, redis_server, procs):
+    """The worker parent on "another machine" (its own HOPE_HOME, no registry) beats through a real
+    redis-server; the daemon's side (RemoteReports) writes its row with report "redis"."""
+    import redis
+
+    pi = Home(tmp_path / "pi", redis_url=redis_server.url)
+    desk = Home(tmp_path / "desk", redis_url=redis_server.url, extra_env={"HOPE_WORKER_HEARTBEAT_S": "0.3"})
+    client = redis.Redis.from_url(redis_server.url)
+    try:
+        remote = RemoteReports(pi.registry, client, local_queues=("pi",))
+        worker = start_worker(desk, "gpu")
+        procs.append(worker)
+
+        def listed():
+            remote.poll()
+            with pi.registry.session(readonly=True) as s:
+                return workers.list_workers(s)
+
+        (w,) = wait_until(lambda: [w for w in listed() if w["state"] == "online"], 60, "the remote worker's beat", desk)
+        assert (w["name"], w["pid"], w["queues"], w["report"]) == (f"worker-gpu@{w['host']}", worker.pid, ["gpu"],
+                                                                  "redis")
+        assert not (desk.path / "hope.db").exists(), "the remote worker opened a registry of its own"
+        assert worker.stop() == 0
+        (w,) = listed()
+        assert w["state"] == "stopped" and remote.dropped == 0
+    finally:
+        client.close()
+        pi.close()
