@@ -70,7 +70,7 @@ def test_listing_and_every_download(api):
     assert list(arts) == ["metrics.jsonl", "metrics.mcap", "metrics.1.mcap", "result.json",
                           "checkpoint-10.tar", "checkpoint-20.tar"]
     assert [a["kind"] for a in arts.values()] == ["metrics", "mcap", "mcap", "result", "checkpoint", "checkpoint"]
-    assert "Foxglove" in arts["metrics.mcap"]["description"]
+    assert arts["metrics.mcap"]["description"].startswith("metrics.mcap opens in Foxglove")
     for name, a in arts.items():
         assert a["url"] == f"/api/runs/{rid}/artifacts/{name}"
         assert a["media_type"] and a["description"]

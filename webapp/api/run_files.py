@@ -110,8 +110,8 @@ def list_artifacts(run_dir: Path) -> list[Artifact]:
         out.append(Artifact(name, kind, media, text, run_dir / name))
     for seg in mcap_segments(run_dir):
         if _safe(run_dir, seg):
-            out.append(Artifact(seg.name, "mcap", MCAP_TYPE, "the metrics and events as MCAP: opens in Foxglove "
-                                "(plot /metrics.loss against time)", seg))
+            out.append(Artifact(seg.name, "mcap", MCAP_TYPE, f"{seg.name} opens in Foxglove: the metrics and events "
+                                "as MCAP (plot /metrics.loss against time)", seg))
     for name, kind, media, text in SINGLE_FILES[1:]:
         if _safe(run_dir, run_dir / name):
             out.append(Artifact(name, kind, media, text, run_dir / name))
