@@ -24,13 +24,14 @@ report in place for the next tick. Nothing here crashes the daemon or imports to
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from datetime import datetime, timezone
 from typing import Any, Iterable
 
 from sqlalchemy import select
 
 from registry import runs, workers
-from registry.models import Run, Worker
+from registry.models import Run, Worker, utcnow
 from registry.report_channel import RegistryChannel
 from registry.report_protocol import (ANSWER_TTL_S, CONTROL_TTL_S, REPORTS_KEY, BadReport, ChannelError, ControlRow,
                                       StaleDelivery, claim_key, control_key, dumps, parse_report)
@@ -122,7 +123,10 @@ class RemoteReports:
             self.publish(msg["run_id"])
 
     def _worker(self, msg: dict[str, Any]) -> None:
-        beat = msg["beat"]
+        # last_seen is when we applied the beat, not the remote clock's "time": the two machines'
+        # clocks may differ by more than 3 intervals (a Pi has no RTC), which would show a live
+        # worker offline. Reports are applied every tick and in order, so this is at most a tick late.
+        beat = replace(msg["beat"], at=utcnow())
         with self.registry.session() as s:
             if msg["event"] == "stopped":
                 if workers.mark_stopped(s, beat.name, beat.pid, at=beat.at):
@@ -132,8 +136,6 @@ class RemoteReports:
             if known is None or known.pid != beat.pid or known.stopped_at is not None:
                 log.info("worker %s (pid %d on %s, queues %s) beats through Redis", beat.name, beat.pid, beat.host,
                          ",".join(beat.queues))
-            if known is not None and known.last_seen > beat.at:
-                return  # an older beat applied late (a backlog replayed): the row has a newer one
             workers.record_beat(s, beat)
 
     def _claim(self, channel: RegistryChannel) -> None:

@@ -96,7 +96,9 @@ def worker_json(session, row: Worker, now: datetime) -> dict[str, Any]:
 
 def list_workers(session, now: datetime | None = None) -> list[dict[str, Any]]:
     now = now or utcnow()
-    rows = session.scalars(select(Worker).order_by(Worker.last_seen.desc(), Worker.name)).all()
+    recent = now - timedelta(seconds=KEEP_S)  # a worker gone for a week is history (prune() removes it)
+    rows = session.scalars(select(Worker).where(Worker.last_seen >= recent)
+                           .order_by(Worker.last_seen.desc(), Worker.name)).all()
     out = [worker_json(session, r, now) for r in rows]
     return sorted(out, key=lambda w: w["state"] != "online")  # stable: last_seen desc within each group
 
