@@ -16,6 +16,7 @@ let chart = null;
 let lastStep = -1;             // the chart's newest step: older progress events are ignored
 let peakRss = null;
 let refreshTimer = null;
+const ticked = new Set();     // run ids ticked for Compare (2-5)
 
 export function init(c) {
   ctx = c;
@@ -23,6 +24,10 @@ export function init(c) {
   for (const r of document.querySelectorAll('input[name="mode"]')) r.addEventListener("change", onMode);
   $("#refresh-runs").addEventListener("click", () => loadRuns());
   $("#runs-table tbody").addEventListener("click", onTableClick);
+  $("#runs-table tbody").addEventListener("change", onCompareTick);
+  $("#compare-runs-button").addEventListener("click", () => {
+    location.hash = `#compare/${[...ticked].map(encodeURIComponent).join(",")}`;
+  });
   $("#promote-run").addEventListener("click", onPromote);
   selected = localStorage.getItem(SELECTED_KEY);
 }
@@ -90,7 +95,7 @@ async function loadRuns() {
   const tbody = $("#runs-table tbody");
   tbody.replaceChildren();
   if (!data.runs.length) {
-    tbody.append(el("tr", {}, el("td", { colSpan: 6, class: "muted", text: "No runs yet: queue one." })));
+    tbody.append(el("tr", {}, el("td", { colSpan: 7, class: "muted", text: "No runs yet: queue one." })));
   }
   for (const r of data.runs) tbody.append(el("tr", { "data-run": r.id }));
   for (const r of data.runs) renderRow(r);
@@ -118,7 +123,9 @@ function renderRow(run) {
        ...(run.waiting ? [el("div", { class: "muted waiting", text: shortWaiting(run), title: run.waiting })] : [])),
     el("td", { text: `${run.step ?? 0}/${run.total_steps ?? "?"} (${pct}%)` }),
     el("td", { text: num(run.loss) }),
-    el("td", {}, ...controls(run)));
+    el("td", {}, ...controls(run)),
+    el("td", { class: "open-cell" }, el("a", { href: `#run/${encodeURIComponent(run.id)}`, text: "open", "data-open": run.id }),
+       el("input", { type: "checkbox", value: run.id, checked: ticked.has(run.id), title: `compare ${run.id}`, "data-compare": run.id })));
   tr.classList.toggle("selected", run.id === selected);
   tr.dataset.state = run.state;
 }
@@ -128,9 +135,18 @@ function shortWaiting(run) {
   return run.state === "starting" ? `waiting for a worker on queue '${run.queue}'` : run.waiting.split(" (")[0];
 }
 
+function onCompareTick(event) {
+  const box = event.target.closest("input[data-compare]");
+  if (!box) return;
+  if (box.checked) ticked.add(box.value); else ticked.delete(box.value);
+  const button = $("#compare-runs-button");
+  button.disabled = ticked.size < 2 || ticked.size > 5;
+  button.textContent = `Compare ticked (${ticked.size})`;
+}
+
 async function onTableClick(event) {
   const tr = event.target.closest("tr[data-run]");
-  if (!tr) return;
+  if (!tr || event.target.closest("a, input")) return;  // "open" and the compare tick do their own thing
   const action = event.target.dataset.action;
   if (action) {
     event.stopPropagation();
