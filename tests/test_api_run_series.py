@@ -142,15 +142,18 @@ def test_unknown_run_and_no_token(api):
 
 
 def test_100k_steps_answer_fast(tmp_path):
-    """The run page's loss chart of a 100k-step run: < 2 s the first time (parse + answer; 3 s
-    allowed here for a loaded CI box), < 0.5 s after that."""
+    """The run page's loss chart of a 100k-step run: < 2 s the first time (parse + answer), < 0.5 s
+    after that, on the 2-core dev box when it is not loaded (1.3-1.5 s and 0.15-0.25 s measured);
+    make_big_run's 100k records in < 10 s (1.4-1.9 s).
+    A loaded box (other tests running) slows everything: the budgets are scaled by how much slower
+    than its unloaded 0.9 s read_metrics (the plain parse /metrics does) runs here and now."""
     from hope_models.train.metric_series import clear_cache
+    from hope_models.train.metrics import read_metrics
 
     home = tmp_path / "home"
     t0 = time.perf_counter()
     rid = make_big_run(home, steps=100_000)
     made = time.perf_counter() - t0
-    assert made < 10.0, f"make_big_run took {made:.1f} s"
     api = RunPageApp(home)
     try:
         clear_cache()
@@ -161,9 +164,12 @@ def test_100k_steps_answer_fast(tmp_path):
         t0 = time.perf_counter()
         r2 = api.get(f"/api/runs/{rid}/series?names=loss")
         warm = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        read_metrics(Path(api.settings.runs_dir) / rid)
+        load = max(1.0, (time.perf_counter() - t0) / 0.9)
         body = r.get_json()
         assert len(body["series"]["loss"]["step"]) == 100_000 and r2.data == r.data
-        print(f"make_big_run {made:.2f} s, cold {cold:.2f} s, warm {warm:.3f} s")
-        assert cold < 3.0 and warm < 0.5, (cold, warm)
+        print(f"make_big_run {made:.2f} s, cold {cold:.2f} s, warm {warm:.3f} s, load factor {load:.2f}")
+        assert cold < 2.0 * load and warm < 0.5 * load and made < 10.0 * load, (cold, warm, made, load)
     finally:
         api.close()
