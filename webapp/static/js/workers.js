@@ -3,7 +3,7 @@
 // each queue's runs by state with the number of workers online for it. What Flower would show,
 // for this product's queues. From GET /api/workers:
 //   {"heartbeat_s", "workers": [{"name", "host", "pid", "queues", "report", "started_at",
-//    "last_seen", "state": "online"|"offline"|"stopped", "current": {"run_id", "component",
+//    "last_seen", "stopped_at", "state": "online"|"offline"|"stopped", "current": {"run_id", "component",
 //    "state", "step", "total_steps"} | null}],
 //    "queues": [{"name", "queued", "starting", "running", "paused", "workers_online"}]}
 // Reloaded every heartbeat_s while the page is visible (the timer stops when it is hidden) and on
@@ -98,7 +98,8 @@ function renderWorkers(workers, heartbeatS) {
   const rows = workers.map((w) => {
     const seen = el("span", { class: "ago", "data-time": w.last_seen || "", text: agoText(w.last_seen) });
     seen.title = w.last_seen ? `last heartbeat ${new Date(w.last_seen).toLocaleString()}` +
-      (w.started_at ? `; started ${new Date(w.started_at).toLocaleString()}` : "") : "";
+      (w.started_at ? `; started ${new Date(w.started_at).toLocaleString()}` : "") +
+      (w.stopped_at ? `; stopped ${new Date(w.stopped_at).toLocaleString()}` : "") : "";
     const tr = el("tr", { "data-worker": w.name, "data-state": w.state || "" },
       cell("name", "Name", el("span", { class: "worker-name", text: w.name })),
       cell("host", "Host", el("span", { text: w.host + (w.pid ? ` (pid ${w.pid})` : "") })),
