@@ -28,8 +28,8 @@ from test_browser import Shots, browser, poll, serving  # noqa: F401 - browser i
 
 pytestmark = pytest.mark.slow
 
-STEPS = 1500      # 3-15 ms a step: several 2 s live refreshes before it ends
-CFG = {"batch_size": 8, "threads": 1, "log_every": 5, "warmup": 5, "checkpoint_every_steps": 500, "seed": 0}
+STEPS = 1000      # 3-15 ms a step: at least one 2 s live refresh before it ends
+CFG = {"batch_size": 8, "threads": 1, "log_every": 4, "warmup": 5, "checkpoint_every_steps": 400, "seed": 0}
 LR_B = 0.0005
 
 CHART = """(sel) => {

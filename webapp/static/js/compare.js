@@ -88,7 +88,8 @@ async function loadRun(id) {
   const [r, s, prov] = await Promise.all([ctx.api(`/api/runs/${enc}`), ctx.api(`/api/runs/${enc}/series`),
     ctx.api(`/api/runs/${enc}/provenance`).catch(() => null)]);
   return { run: r.run, series: s.series, names: s.series.map((x) => x.name),
-           config: (prov && prov.config) || r.run.config || {} };
+           config: (prov && prov.config) || r.run.config || {},
+           fingerprint: (prov && prov.dataset && prov.dataset.fingerprint) || r.run.dataset_fingerprint };
 }
 
 function checkedIds() {
@@ -130,7 +131,7 @@ function renderSummary(loaded) {
     ["steps", loaded.map((x) => `${x.run.step ?? 0} of ${x.run.total_steps ?? "?"}`)],
     ["final loss", loaded.map((x) => num(x.run.loss))],
     ["duration", loaded.map((x) => duration(took(x.run)))],
-    ["dataset", loaded.map((x) => x.run.dataset_fingerprint)],
+    ["dataset", loaded.map((x) => x.fingerprint)],
   ];
   const heldOut = [...new Set(loaded.flatMap((x) => Object.keys(x.run.validation || {})))].sort();
   for (const k of heldOut) rows.push([`held-out ${k}`, loaded.map((x) => num((x.run.validation || {})[k]))]);
