@@ -9,7 +9,8 @@ are metrics.jsonl's (`read_jsonl`'s rules: a damaged line is skipped, a last lin
 newline is not read yet) with the steps a resume trained again counted once (`latest_timeline`'s
 rule: after a "resume" event at step N, the earlier records of steps > N are dropped).
 
-Cost: parsing a 100k-record metrics.jsonl takes about a second on a Pi-class core, so the parsed
+Cost: parsing a 100k-record metrics.jsonl takes 1-1.5 s on the dev box's x86 core (json.loads
+is most of it; several times that on a Pi), so the parsed
 columns are kept per run dir (at most CACHE_RUNS of them, least recently used dropped), keyed on
 the file's identity (device, inode) and how far it was read. A file that only grew (a live run
 appending) is read from where the last read stopped; one that shrank or was replaced is read
