@@ -12,7 +12,8 @@ records (not type/step/wall_time; strings and booleans are not series), "loss" f
 by name; `points` is how many records have a finite number for it, `last` the newest of them.
 
 With `names` (comma-separated, at most 12, each [A-Za-z0-9_.:/-]{1,100}): per name only the
-records with a finite number for it, steps ascending, step > `after` when given (an integer >= 0),
+records with a finite number for it, steps ascending, step > `after` when given (an integer >= 0;
+only with names),
 the steps a resume trained again counted once (the rule of GET /api/runs/<id>/metrics). A name the
 run has not recorded (yet) has empty arrays. A client polling a live run asks again with
 after=<the last step it has>; `last_step` is the newest metric step of any name.
