@@ -41,6 +41,17 @@ CHART = """(sel) => {
 }"""
 
 
+ZOOM_MS = """(sel) => {
+  const chart = Chart.getChart(document.querySelector(sel));
+  let t = performance.now();
+  chart.zoom(2, "none");
+  const zoom = performance.now() - t;
+  t = performance.now();
+  chart.resetZoom("none");
+  return [Math.round(zoom), Math.round(performance.now() - t)];
+}"""
+
+
 def card(metric: str, page_id: str = "run") -> str:
     return f'#{page_id}-charts .metric-card[data-metric="{metric}"] canvas'
 
@@ -236,6 +247,15 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
             check_artifact(art, got, run_dir, tmp_path)
         expect(page.locator("#run-download-status")).to_contain_text("downloaded")
         page.locator("#run-artifacts").screenshot(path=str(shots.dir / "91-downloads-card.png"))
+
+        # the Run tab alone reopens the last run read
+        page.click('#nav a[data-page="jobs"]')
+        expect(page.locator(f'#runs-table tr[data-run="{a}"] a[data-open]')).to_be_visible()
+        before_ms = page.get_attribute("#page-run", "data-rendered-ms")
+        page.click('#nav a[data-page="run"]')
+        expect(page.locator("#page-run")).to_be_visible()
+        poll(lambda: page.get_attribute("#page-run", "data-rendered-ms") != before_ms, 10, "the run page reloaded")
+        rendered(page, a)
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#run/{a}", shots, "run-phone", "run", a)
     except BaseException:
@@ -276,6 +296,9 @@ def test_compare_overlays_two_runs_and_lists_the_config_differences(browser, ser
     shots = Shots(tmp_path, "compare")
     context = browser.new_context(viewport={"width": 1280, "height": 900})
     page = login(context, serve)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
+    page.on("console", lambda m: errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
     try:
         # from the Jobs queue: tick both, Compare
         page.goto(serve.url + "#jobs")
@@ -306,6 +329,7 @@ def test_compare_overlays_two_runs_and_lists_the_config_differences(browser, ser
         page.goto(serve.url + f"#compare/{a},{b}")
         rendered(page, f"{a},{b}", "compare")
         shots.take(page, "compare-desktop")
+        assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#compare/{a},{b}", shots, "compare-phone", "compare", f"{a},{b}")
     except BaseException:
         shots.take(page, "failure")
@@ -320,7 +344,7 @@ def test_a_100k_step_run_page_draws_in_under_2_s(browser, serve, runs, tmp_path)
 
     big = make_big_run(serve.home.path, steps=100_000)
     shots = Shots(tmp_path, "run-100k")
-    figures, browser_ms = {}, {}
+    figures, browser_ms, zoom_ms = {}, {}, {}
     # The server reads a run's metrics.jsonl into columns once (hope_models/train/metric_series.py)
     # and then only as far as it grew: the first open after serve started pays that read (37 MB
     # here), printed apart; the 2 s budget is for the page itself.
@@ -341,6 +365,8 @@ def test_a_100k_step_run_page_draws_in_under_2_s(browser, serve, runs, tmp_path)
             assert page.get_attribute('#run-charts .metric-card[data-metric="loss"]', "data-points") == "100000"
             drawn = page.evaluate(CHART, card("loss"))["datasets"][0]["data"]
             assert 100 < len(drawn) <= 4 * viewport["width"], len(drawn)  # decimated to ~2 per pixel
+            # interactive: one zoom (decimation of the visible range + draw) and its reset, in ms
+            zoom_ms[name] = page.evaluate(ZOOM_MS, card("loss"))
             shots.take(page, f"100k-{name}")
         finally:
             context.close()
@@ -348,6 +374,8 @@ def test_a_100k_step_run_page_draws_in_under_2_s(browser, serve, runs, tmp_path)
     print(f"\n100k-step run page drawn in {figures['desktop']:.2f} s (1280 px), "
           f"{figures['phone-4x-cpu']:.2f} s (390 px, 4x CPU throttling); the first open after serve "
           f"started (the server's first read of the metrics) {figures['desktop-first-open']:.2f} s; "
-          f"in the browser's clock from navigation start (ms): {browser_ms}")
+          f"in the browser's clock from navigation start (ms): {browser_ms}; a zoom and its reset redraw in "
+          f"(ms): {zoom_ms}")
     assert figures["desktop"] < 2.0, figures
+    assert max(zoom_ms["desktop"]) < 500, zoom_ms
     assert figures["phone-4x-cpu"] < 15.0, figures  # a figure for the docs; only an absurd one fails

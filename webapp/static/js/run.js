@@ -26,6 +26,7 @@ const FINISHED = new Set(["completed", "failed", "cancelled"]);
 const PICKS_KEY = (component) => `hope.run.metrics.${component}`;
 const SMOOTH_KEY = "hope.run.smoothing";
 const XMODE_KEY = "hope.run.xaxis";
+const LAST_KEY = "hope.run.last";
 const POLL_MS = 2000;
 const MAX_NAMES = 12;  // the series API's limit per request
 
@@ -78,6 +79,7 @@ function reload(arg) {
 
 async function load(arg) {
   stopPoll();
+  arg = arg || localStorage.getItem(LAST_KEY);  // the Run tab alone reopens the last run read
   const page = $("#page-run");
   page.dataset.rendered = "0";
   page.dataset.run = arg || "";
@@ -86,10 +88,17 @@ async function load(arg) {
   if (!arg) { clearCharts(); runId = null; return; }
   const seq = ++loadSeq;
   runId = arg;
+  localStorage.setItem(LAST_KEY, arg);
   const enc = encodeURIComponent(arg);
   // loss is nearly always picked: its points are asked for beside the listing, not after it
   const lossFirst = fetchSeries(["loss"]).catch(() => null);
-  const [r, list] = await Promise.all([ctx.api(`/api/runs/${enc}`), ctx.api(`/api/runs/${enc}/series`)]);
+  let r, list;
+  try {
+    [r, list] = await Promise.all([ctx.api(`/api/runs/${enc}`), ctx.api(`/api/runs/${enc}/series`)]);
+  } catch (err) {
+    if (err.status === 404 && localStorage.getItem(LAST_KEY) === arg) localStorage.removeItem(LAST_KEY);
+    throw err;
+  }
   if (seq !== loadSeq) return;
   run = r.run;
   renderHead();
