@@ -78,3 +78,10 @@ def test_elapsed_labels_and_flattened_config():
     cfg = {"lr": 0.001, "model_config": {"d_model": 64, "ssm": {"blocks": 2}}, "data": "ds", "tags": [1, 2]}
     assert run_node(f"rp.flatten({json.dumps(cfg)})") == [
         ["data", "ds"], ["lr", 0.001], ["model_config.d_model", 64], ["model_config.ssm.blocks", 2], ["tags", [1, 2]]]
+
+
+def test_gate_checks_read_as_one_line():
+    checks = [{"check": "finite", "status": "passed", "detail": ""},
+              {"check": "baselines", "status": "failed", "detail": "nll 1.6 >= copy-last 1.5"}]
+    assert run_node(f"rp.checksText({json.dumps(checks)})") == "finite: passed; baselines: failed (nll 1.6 >= copy-last 1.5)"
+    assert run_node("rp.checksText(null)") == "–"

@@ -56,18 +56,21 @@ export function renderProvenance(prov) {
     c.git_commit ? `commit ${c.git_commit}${c.git_dirty ? " (with uncommitted changes)" : ""}` : null].filter(Boolean).join(" · ") || "unknown");
   const gate = prov.gate || [];
   $("#run-gate tbody").replaceChildren(...(gate.length ? gate.map((g) => el("tr", { "data-verdict": show(g.verdict) },
-    el("td", { text: show(g.version ?? g.model_id) }), el("td", { text: show(g.verdict) }),
-    el("td", { class: "wrap", text: checksText(g.checks) }), el("td", { text: g.at ? new Date(g.at).toLocaleString() : "–" })))
+    el("td", { text: show(g.version ?? g.model_id) }),
+    el("td", { text: `${show(g.verdict)}${g.promoted ? " · promoted" : ""}` }),
+    el("td", { class: "wrap", text: [g.checks ? checksText(g.checks) : null, ...(Array.isArray(g.reasons) ? g.reasons : [])]
+      .filter(Boolean).join("; ") || "–" }), el("td", { text: g.at ? new Date(g.at).toLocaleString() : "–" })))
     : [el("tr", {}, el("td", { colSpan: 4, class: "muted", text: "Not gated yet (the gate runs at promotion)." }))]));
 }
 
 function setText(sel, text) { $(sel).textContent = text ?? ""; }
 
-function checksText(checks) {
+// the gate's checks ([{check, status, detail}], hope_models/promote/gate.py) as one line
+export function checksText(checks) {
   if (!checks) return "–";
   if (Array.isArray(checks)) {
     return checks.map((c) => (c && typeof c === "object"
-      ? `${c.name ?? c.check ?? "?"}: ${show(c.verdict ?? c.passed ?? c.ok)}${c.detail ? ` (${c.detail})` : ""}` : show(c))).join("; ");
+      ? `${c.check ?? c.name ?? "?"}: ${show(c.status ?? c.verdict ?? c.passed)}${c.detail ? ` (${c.detail})` : ""}` : show(c))).join("; ");
   }
   if (typeof checks === "object") return Object.entries(checks).map(([k, v]) => `${k}: ${show(v)}`).join("; ");
   return show(checks);
