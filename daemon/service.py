@@ -19,8 +19,9 @@ Each tick, in this order:
 6. remote control: the control state of every running remote run is published to Redis;
 7. retention: old runs' dirs pruned once a run has finished (disk_guard.py, settings.keep_runs);
    events: new run_events rows to the sink; `system.stats` every stats_every_s (the monitor's
-   sample + "throttle_level"); the host's history: a sample every settings.system_sample_s into
-   a one-hour ring and the registry (system_history.py; refilled from the registry at start);
+   sample + "throttle_level"; by default settings.system_sample_s); the host's history: a sample
+   every settings.system_sample_s into a one-hour ring and the registry (system_history.py;
+   refilled from the registry at start);
 8. sd_notify WATCHDOG (when systemd asked for it), after a tick that worked.
 
 Which runs are remote: with remote_reports=True (`run_trainer.py daemon`) and a Redis URL, those
@@ -58,7 +59,7 @@ START_BATCHES = 200  # reports applied at start, in batches: a backlog of hours 
 
 class Daemon:
     def __init__(self, settings: Any, sink: EventSink | None = None, *, tick_s: float = 0.5,
-                 stats_every_s: float = 5.0, heartbeat_timeout_s: float = 30.0, claim_timeout_s: float = 600.0,
+                 stats_every_s: float | None = None, heartbeat_timeout_s: float = 30.0, claim_timeout_s: float = 600.0,
                  memory_retry_s: float = 60.0, local_queues: Iterable[str] = ("pi",),
                  monitor: SystemMonitor | None = None, policy: ThrottlePolicy | None = None,
                  celery_app: Any = None, notifier: SdNotifier | None = None, host: str | None = None,
@@ -66,7 +67,8 @@ class Daemon:
         self.settings = settings
         self.sink = sink or NullSink()
         self.tick_s = float(tick_s)
-        self.stats_every_s = float(stats_every_s)
+        # the live chart gets a point per history sample unless asked otherwise
+        self.stats_every_s = float(getattr(settings, "system_sample_s", 5.0) if stats_every_s is None else stats_every_s)
         self.heartbeat_timeout_s = float(heartbeat_timeout_s)
         self.claim_timeout_s = float(claim_timeout_s)
         self.memory_retry_s = float(memory_retry_s)

@@ -49,7 +49,7 @@ def test_episodes_page_upload_verdicts_and_tags(browser, serve, tmp_path, sample
     xr.write_bytes(xr_zip(samples_dir))
     token = (serve.home.path / "token").read_text().strip()
     inbox = serve.home.settings.inbox_dir
-    shots = Shots(tmp_path)
+    shots = Shots(tmp_path, "episodes")
     errors: list[str] = []
     context = browser.new_context(viewport={"width": 1280, "height": 900})
     page = context.new_page()
@@ -112,3 +112,4 @@ def test_episodes_page_upload_verdicts_and_tags(browser, serve, tmp_path, sample
         assert [e for e in errors if "400 (BAD REQUEST)" not in e] == [], errors
     finally:
         context.close()
+        shots.keep()

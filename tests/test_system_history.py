@@ -18,6 +18,13 @@ from registry.system_samples import FIELDS
 NOW = datetime.now(timezone.utc)
 
 
+@pytest.fixture(autouse=True)
+def _now():
+    """Each test's own NOW (set at import it would be minutes old when a test runs under xdist)."""
+    global NOW
+    NOW = datetime.now(timezone.utc)
+
+
 class Clock:
     def __init__(self):
         self.t = 1000.0

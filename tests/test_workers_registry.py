@@ -25,6 +25,14 @@ from workers.heartbeat import WorkerHeartbeat, report_mode
 NOW = datetime.now(timezone.utc)
 
 
+@pytest.fixture(autouse=True)
+def _now():
+    """Each test's own NOW: set at import, it would be minutes old by the time a test runs under
+    xdist, and beats 'a second ago' would read as long silent."""
+    global NOW
+    NOW = datetime.now(timezone.utc)
+
+
 def api_get(home, path: str):
     from webapp import create_app
     from webapp.auth import load_or_create_token

@@ -33,8 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a running job silent for this long is taken for dead and requeued (default 30)")
     parser.add_argument("--claim-timeout-s", type=positive_float, default=600.0, metavar="S",
                         help="a sent task not picked up for this long is sent again (default 600)")
-    parser.add_argument("--stats-every-s", type=positive_float, default=5.0, metavar="S",
-                        help="system.stats event interval (default 5)")
+    parser.add_argument("--stats-every-s", type=positive_float, default=None, metavar="S",
+                        help="system.stats event interval (default: system_sample_s, HOPE_SYSTEM_SAMPLE_S, 5)")
     parser.add_argument("--local-queues", default="pi", metavar="LIST",
                         help="comma-separated queues whose worker runs on this host: this host's temperature "
                              "and memory govern them, and their jobs write the registry directly. Jobs on "
