@@ -49,6 +49,8 @@ def _records(steps: int, t0: float, rng: random.Random, component: str):
                "steps_per_s": 20.0 + rng.gauss(0, 0.5), "rss_mb": 310.0 + 20 * frac + rng.random(),
                "temp_c": None, "throttle_level": "none", "throttle": False,
                **component_metrics(component, loss, frac, rng)}
+        if component == "mid_loop":  # the Mid Loop's loss is a code nll, in nats
+            rec["loss"] = 12.0 + 2.0 * loss
         yield rec
         if s % checkpoint_every == 0:
             yield {"type": "event", "kind": "checkpoint", "wall_time": rec["wall_time"],

@@ -96,6 +96,8 @@ def test_reference_lines_gate_verdicts_and_two_components_compared(browser, serv
         expect(page.locator('#run-gate tr[data-verdict="passed"]')).to_have_count(1)
         expect(page.locator('#run-gate tr[data-verdict="refused"]')).to_have_count(1)
         expect(page.locator('#run-gate tr[data-verdict="refused"]')).to_contain_text("copy-last")
+        refused = page.locator('#run-gate tr[data-verdict="refused"]').text_content()
+        assert refused.count("held-out 0.5s") == 1, refused  # the check's detail, not again as a reason
         expect(page.locator("#run-gate")).to_contain_text("mid_loop-gain-0.5")
         shots.take(page, "mid-loop-reference-lines")
 

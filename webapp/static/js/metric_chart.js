@@ -74,14 +74,17 @@ const refLinesPlugin = {
     if (!lines.length || !y) return;
     ctx.save();
     ctx.font = "11px system-ui, sans-serif";
-    ctx.textAlign = "right";
+    const right = [];  // the label heights taken at the right edge: a close one goes to the left
     for (const line of lines) {
       const py = y.getPixelForValue(line.y);
       if (!isFinite(py) || py < area.top || py > area.bottom) continue;
       ctx.strokeStyle = line.color; ctx.lineWidth = 1.5; ctx.setLineDash(line.dash || []);
       ctx.beginPath(); ctx.moveTo(area.left, py); ctx.lineTo(area.right, py); ctx.stroke();
       ctx.fillStyle = line.color;
-      ctx.fillText(line.label, area.right - 4, py - 3);
+      const crowded = right.some((other) => Math.abs(other - py) < 12);
+      ctx.textAlign = crowded ? "left" : "right";
+      ctx.fillText(line.label, crowded ? area.left + 4 : area.right - 4, py - 3);
+      if (!crowded) right.push(py);
     }
     ctx.restore();
   },

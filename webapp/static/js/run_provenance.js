@@ -58,9 +58,15 @@ export function renderProvenance(prov) {
   $("#run-gate tbody").replaceChildren(...(gate.length ? gate.map((g) => el("tr", { "data-verdict": show(g.verdict) },
     el("td", { text: show(g.version ?? g.model_id) }),
     el("td", { text: `${show(g.verdict)}${g.promoted ? " · promoted" : ""}` }),
-    el("td", { class: "wrap", text: [g.checks ? checksText(g.checks) : null, ...(Array.isArray(g.reasons) ? g.reasons : [])]
+    el("td", { class: "wrap", text: [g.checks ? checksText(g.checks) : null, ...extraReasons(g)]
       .filter(Boolean).join("; ") || "–" }), el("td", { text: g.at ? new Date(g.at).toLocaleString() : "–" })))
     : [el("tr", {}, el("td", { colSpan: 4, class: "muted", text: "Not gated yet (the gate runs at promotion)." }))]));
+}
+
+// the gate's reasons repeat its failed checks' details: only the others (its notes) are added
+function extraReasons(g) {
+  const details = new Set(Array.isArray(g.checks) ? g.checks.map((c) => c && c.detail) : []);
+  return Array.isArray(g.reasons) ? g.reasons.filter((r) => !details.has(r)) : [];
 }
 
 function setText(sel, text) { $(sel).textContent = text ?? ""; }
