@@ -16,6 +16,7 @@ and 390 px go to test-artifacts/browser/run/.
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 import tarfile
 import time
 import urllib.request
@@ -114,6 +115,25 @@ def rendered(page, run_id, page_id="run", timeout=20_000):
     assert page.get_attribute(f"#page-{page_id}", "data-run" if page_id == "run" else "data-runs") == run_id
 
 
+@contextmanager
+def editor_page(browser, serve, shots, **context_kw):
+    """A logged-in desktop page and the errors its console and scripts report; a failure's
+    screenshot is taken, and the screenshots are kept, whatever happens."""
+    context = browser.new_context(viewport={"width": 1280, "height": 900}, **context_kw)
+    page = login(context, serve)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
+    page.on("console", lambda m: errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
+    try:
+        yield page, errors
+    except BaseException:
+        shots.take(page, "failure")
+        raise
+    finally:
+        shots.keep()
+        context.close()
+
+
 def debiased_ema(values, w):
     out, last = [], 0.0
     for n, v in enumerate(values, 1):
@@ -141,12 +161,7 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
     api = Api(serve)
     a, _ = runs
     shots = Shots(tmp_path, "run")
-    errors: list[str] = []
-    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
-    page = login(context, serve)
-    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
-    page.on("console", lambda m: errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
-    try:
+    with editor_page(browser, serve, shots, accept_downloads=True) as (page, errors):
         # live: the run page of a training run gains points by the 2 s refresh, not by a reload
         page.goto(serve.url + f"#run/{a}")
         loss_card = page.locator('#run-charts .metric-card[data-metric="loss"]')
@@ -258,12 +273,6 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
         rendered(page, a)
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#run/{a}", shots, "run-phone", "run", a)
-    except BaseException:
-        shots.take(page, "failure")
-        raise
-    finally:
-        shots.keep()
-        context.close()
 
 
 def check_artifact(art, got: bytes, run_dir: Path, tmp_path: Path) -> None:
@@ -294,12 +303,7 @@ def test_compare_overlays_two_runs_and_lists_the_config_differences(browser, ser
     wait_completed(api, serve, a)
     wait_completed(api, serve, b)
     shots = Shots(tmp_path, "compare")
-    context = browser.new_context(viewport={"width": 1280, "height": 900})
-    page = login(context, serve)
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
-    page.on("console", lambda m: errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
-    try:
+    with editor_page(browser, serve, shots) as (page, errors):
         # from the Jobs queue: tick both, Compare
         page.goto(serve.url + "#jobs")
         for rid in (a, b):
@@ -331,12 +335,6 @@ def test_compare_overlays_two_runs_and_lists_the_config_differences(browser, ser
         shots.take(page, "compare-desktop")
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#compare/{a},{b}", shots, "compare-phone", "compare", f"{a},{b}")
-    except BaseException:
-        shots.take(page, "failure")
-        raise
-    finally:
-        shots.keep()
-        context.close()
 
 
 def test_a_100k_step_run_page_draws_in_under_2_s(browser, serve, runs, tmp_path):

@@ -15,7 +15,7 @@ import pytest
 
 from daemon_fixtures import Home
 from test_browser import Shots, browser, serving  # noqa: F401 - browser is a fixture
-from test_browser_run import CHART, card, login, phone_fits, rendered
+from test_browser_run import CHART, card, editor_page, phone_fits, rendered
 
 pytestmark = pytest.mark.slow
 
@@ -73,12 +73,7 @@ def test_reference_lines_gate_verdicts_and_two_components_compared(browser, serv
 
     mid, vq = serve.home.mid, serve.home.vq
     shots = Shots(tmp_path, "run-reference")
-    context = browser.new_context(viewport={"width": 1280, "height": 900})
-    page = login(context, serve)
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
-    page.on("console", lambda m: errors.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
-    try:
+    with editor_page(browser, serve, shots) as (page, errors):
         page.goto(serve.url + f"#run/{mid}")
         rendered(page, mid)
         for metric in ("nll_0.5s", "obs_mse_1s"):
@@ -123,9 +118,3 @@ def test_reference_lines_gate_verdicts_and_two_components_compared(browser, serv
         shots.take(page, "compare-mid-loop-vqvae")
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#run/{mid}", shots, "mid-loop-phone", "run", mid)
-    except BaseException:
-        shots.take(page, "failure")
-        raise
-    finally:
-        shots.keep()
-        context.close()

@@ -8,8 +8,8 @@ The pages themselves are open: they hold no data. Everything they show comes fro
 bearer token the user typed at the login (kept in the browser's localStorage) and from Socket.IO
 with the same token (webapp/auth.py refuses either without it).
 
-The browser libraries (socket.io-client, chart.js) are served from webapp/static/vendor/, copied
-there from npm at setup time (webapp/build_assets.py): no CDN, a robot is often offline. When they
+The browser libraries (socket.io-client, chart.js, hammer.js, chartjs-plugin-zoom) are served from
+webapp/static/vendor/, copied there from npm at setup time (webapp/build_assets.py): no CDN, a robot is often offline. When they
 are missing the page says what to run instead of failing silently.
 
 A strict Content-Security-Policy: scripts only from this server, connections only back to it.
