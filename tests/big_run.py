@@ -9,8 +9,8 @@ component's own figures: a vqvae's recon_loss, commit_loss, recon_nmse, perplexi
 mid_loop's nll / copy-last / code-frequency / observation error per horizon; a noisy decaying loss,
 the lr of a warmup + cosine schedule), events (checkpoints, the final state), result.json (its
 summary.val = `validation`, the held-out figures), provenance.json and one small
-checkpoint dir, and puts the run in that home's registry (migrated) through the registry's own
-moves: created, dispatched, claimed, finished completed. 100k steps write in about 1 s.
+checkpoint dir, the saved metric columns, and puts the run in that home's registry (migrated)
+through the registry's own moves: created, dispatched, claimed, finished completed. 100k steps write in about 1 s.
 """
 from __future__ import annotations
 
@@ -118,4 +118,7 @@ def make_big_run(home_path: Path, steps: int = 100_000, run_id: str | None = Non
             run.finished_at = datetime.fromtimestamp(last["wall_time"], timezone.utc)
     finally:
         registry.close()
+    from hope_models.train.metric_series import write_columns
+
+    write_columns(run_dir)  # what the trainer's metrics log leaves when a run ends
     return rid

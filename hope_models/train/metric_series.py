@@ -15,11 +15,19 @@ columns are kept per run dir (at most CACHE_RUNS of them, least recently used dr
 the file's identity (device, inode) and how far it was read. A file that only grew (a live run
 appending) is read from where the last read stopped; one that shrank or was replaced is read
 again from the start. Thread-safe: one lock around the cache and the reads.
+
+A run that ended for good also leaves its columns beside the file (`write_columns`, called when
+its metrics log closes: metrics.columns, a JSON header line then the arrays' raw bytes), so the
+first look at a finished run after a restart loads them in milliseconds instead of parsing. They
+are used only while metrics.jsonl has exactly the size and mtime they were made from; anything
+else (a retry appended, a damaged or foreign file) falls back to parsing.
 """
 from __future__ import annotations
 
 import json
+import logging
 import os
+import sys
 import threading
 from array import array
 from bisect import bisect_right
@@ -29,7 +37,11 @@ from pathlib import Path
 
 from hope_models.train.metrics import JSONL_NAME, RESERVED
 
+log = logging.getLogger(__name__)
+
 CACHE_RUNS = 4
+COLUMNS_NAME = "metrics.columns"
+COLUMNS_FORMAT = 1
 NAN = float("nan")
 _NUMBERS = frozenset((float, int))
 _RESERVED = frozenset(RESERVED)
@@ -213,7 +225,7 @@ def series_columns(run_dir: str | os.PathLike) -> MetricColumns:
         cols = _cache.get(key)
         identity = (st.st_dev, st.st_ino)
         if cols is None or cols.identity != identity or st.st_size < cols.offset:
-            cols = MetricColumns(identity=identity)
+            cols = load_columns(Path(run_dir), st) or MetricColumns(identity=identity)
         if st.st_size > cols.offset:
             # a copy, so a reader holding the cached object never sees it half updated
             cols = _extend(path, cols)
@@ -233,3 +245,77 @@ def _extend(path: Path, cols: MetricColumns) -> MetricColumns:
 def clear_cache() -> None:
     with _lock:
         _cache.clear()
+
+
+# -- the columns of a finished run, saved beside its metrics.jsonl ------------------------------
+
+def _stamp(st: os.stat_result) -> dict:
+    return {"jsonl_size": st.st_size, "jsonl_mtime_ns": st.st_mtime_ns}
+
+
+def write_columns(run_dir: str | os.PathLike) -> Path | None:
+    """Parse metrics.jsonl and save its columns as metrics.columns (written to a temp file and
+    renamed: a crash leaves the old file or none). Returns the path, or None when there is no
+    metrics.jsonl or writing failed (logged; the file is then parsed when first read)."""
+    run = Path(run_dir)
+    path = run / JSONL_NAME
+    try:
+        st = os.stat(path)
+        cols = MetricColumns(identity=(st.st_dev, st.st_ino))
+        _read_from(path, cols)
+        names = cols.names()
+        header = {"format": COLUMNS_FORMAT, "byteorder": sys.byteorder, **_stamp(st), "offset": cols.offset,
+                  "records": cols.records,
+                  "columns": [{"name": n, "points": len(cols.columns[n].step),
+                               "missing_wall": cols.columns[n].missing_wall} for n in names]}
+        out = run / COLUMNS_NAME
+        tmp = out.with_name(out.name + ".tmp")
+        with open(tmp, "wb") as f:
+            f.write(json.dumps(header, separators=(",", ":")).encode() + b"\n")
+            f.write(cols.record_steps.tobytes())
+            for n in names:
+                c = cols.columns[n]
+                f.write(c.step.tobytes() + c.wall_time.tobytes() + c.value.tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+        return out
+    except (OSError, ValueError) as exc:
+        log.warning("%s: metric columns not saved (%s); the run page parses metrics.jsonl instead", run, exc)
+        return None
+
+
+def load_columns(run_dir: Path, st: os.stat_result) -> MetricColumns | None:
+    """The saved columns when they were made from metrics.jsonl exactly as it is now (`st`);
+    None otherwise (missing, stale, damaged, another machine's byte order)."""
+    try:
+        with open(run_dir / COLUMNS_NAME, "rb") as f:
+            header = json.loads(f.readline())
+            if (not isinstance(header, dict) or header.get("format") != COLUMNS_FORMAT
+                    or header.get("byteorder") != sys.byteorder
+                    or {k: header.get(k) for k in _stamp(st)} != _stamp(st)):
+                return None
+            cols = MetricColumns(identity=(st.st_dev, st.st_ino))
+            cols.offset = int(header["offset"])
+            cols.record_steps = _array("q", f, int(header["records"]))
+            for spec in header["columns"]:
+                n = int(spec["points"])
+                cols.columns[str(spec["name"])] = Column(_array("q", f, n), _array("d", f, n), _array("d", f, n),
+                                                         bool(spec["missing_wall"]))
+            if f.read(1):
+                return None  # more bytes than the header says: not what write_columns wrote
+            return cols
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("%s: saved metric columns unreadable (%s); parsing metrics.jsonl", run_dir, exc)
+        return None
+
+
+def _array(typecode: str, f, n: int) -> array:
+    a = array(typecode)
+    data = f.read(n * a.itemsize)
+    if len(data) != n * a.itemsize:
+        raise ValueError(f"{COLUMNS_NAME} is shorter than its header says")
+    a.frombytes(data)
+    return a

@@ -244,7 +244,8 @@ class MetricsLog:
     def close(self, index: bool | None = None) -> None:
         """Finish the MCAP (summary and footer) and close both files. Idempotent. Then, when the
         last "state" event ended the run for good (or index=True), rewrite the segments as one
-        indexed metrics.mcap (train/mcap_index.py: seconds for 100k records; never raises)."""
+        indexed metrics.mcap (train/mcap_index.py: seconds for 100k records; never raises) and
+        save the metric columns (train/metric_series.py)."""
         if self._closed:
             return
         try:
@@ -257,7 +258,9 @@ class MetricsLog:
         fsync_path(self.run_dir)
         if self._final if index is None else index:
             from hope_models.train.mcap_index import index_segments
+            from hope_models.train.metric_series import write_columns
             index_segments(self.run_dir)
+            write_columns(self.run_dir)  # the run page's first look at it loads, not parses
 
     def __enter__(self) -> "MetricsLog":
         return self
