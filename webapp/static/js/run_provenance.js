@@ -57,10 +57,17 @@ export function renderProvenance(prov) {
   const gate = prov.gate || [];
   $("#run-gate tbody").replaceChildren(...(gate.length ? gate.map((g) => el("tr", { "data-verdict": show(g.verdict) },
     el("td", { text: show(g.version ?? g.model_id) }),
-    el("td", { text: `${show(g.verdict)}${g.promoted ? " · promoted" : ""}` }),
-    el("td", { class: "wrap", text: [g.checks ? checksText(g.checks) : null, ...extraReasons(g)]
-      .filter(Boolean).join("; ") || "–" }), el("td", { text: g.at ? new Date(g.at).toLocaleString() : "–" })))
+    el("td", { text: `${show(g.verdict)}${g.promoted && g.verdict !== "promoted" ? " · promoted" : ""}` }),
+    el("td", { class: "wrap" }, checksList(g)), el("td", { text: g.at ? new Date(g.at).toLocaleString() : "–" })))
     : [el("tr", {}, el("td", { colSpan: 4, class: "muted", text: "Not gated yet (the gate runs at promotion)." }))]));
+}
+
+// one line per check ("baselines: passed (detail)"), then the reasons that are not a check's detail
+function checksList(g) {
+  const lines = [...(Array.isArray(g.checks) ? g.checks.map((c) => checksText([c])) : g.checks ? [checksText(g.checks)] : []),
+                 ...extraReasons(g)];
+  if (!lines.length) return document.createTextNode("–");
+  return el("ul", { class: "checks" }, ...lines.map((line) => el("li", { text: line })));
 }
 
 // the gate's reasons repeat its failed checks' details: only the others (its notes) are added
