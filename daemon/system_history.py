@@ -62,18 +62,12 @@ class SystemHistory:
     # -- writing -------------------------------------------------------------------------------
 
     def refill(self) -> int:
-        """The registry's last window, into the ring (oldest first); how many samples."""
+        """At start, before the first observe(): the registry's last window into the ring (oldest
+        first); how many samples."""
         with self.registry.session(readonly=True) as s:
             rows = system_samples.recent_samples(s, self.window_s)
         with self._lock:
-            known = {t for t, _ in self._ring}
-            for sample in rows:
-                at = system_samples.as_time(sample["time"])
-                if at not in known:
-                    self._ring.append((at, sample))
-            ordered = sorted(self._ring, key=lambda item: item[0])
-            self._ring.clear()
-            self._ring.extend(ordered)
+            self._ring.extend((system_samples.as_time(r["time"]), r) for r in rows)
         return len(rows)
 
     def observe(self, sample: dict[str, Any], throttle_level: int | None) -> bool:

@@ -14,8 +14,8 @@ however long the run). A segment cut short by a kill contributes every message b
 The new file carries a metadata record "hope.metrics" {"merged_segments": "metrics.mcap,...",
 "sizes": "<bytes>,..."}, and a later attempt's segment is numbered past those names.
 
-Atomic: the new file is written to a temp file in the run dir (.metrics.mcap.tmp-<pid>), fsynced
-and renamed over metrics.mcap, the dir fsynced, and only then are metrics.1.mcap, ... deleted.
+Atomic: the new file is written to a temp file in the run dir (.metrics.mcap.tmp-<pid>-<random>,
+durable.atomic_open), fsynced and renamed over metrics.mcap, the dir fsynced, and only then are metrics.1.mcap, ... deleted.
 A crash before the rename leaves the segments as they were (and a temp file, removed by the next
 index_segments); a crash after it leaves the merged metrics.mcap plus segments it already holds:
 the next MetricsLog or index_segments (`clean_merged`) deletes the segments the metadata record
@@ -33,12 +33,12 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from hope_models.durable import fsync_path
+from hope_models.durable import atomic_open, fsync_path
 
 log = logging.getLogger(__name__)
 
 MERGED_METADATA = "hope.metrics"
-TMP_PREFIX = ".metrics.mcap.tmp-"
+TMP_PREFIX = ".metrics.mcap.tmp-"  # hope_models/durable.py's temp name for metrics.mcap
 
 
 def _compression() -> CompressionType:
@@ -143,9 +143,8 @@ def index_segments(run_dir: str | os.PathLike) -> Path | None:
     if not segments:
         return None
     target = run / f"{MCAP_STEM}.mcap"
-    tmp = run / f"{TMP_PREFIX}{os.getpid()}"
     try:
-        with open(tmp, "wb") as f:
+        with atomic_open(target, "wb") as f:  # its temp file is TMP_PREFIX + pid + random
             writer = Writer(f, use_chunking=True, compression=_compression())
             writer.start(profile=PROFILE, library="hope-seed-trainer")
             writer.add_metadata(MERGED_METADATA, {"merged_segments": ",".join(s.name for s in segments),
@@ -154,13 +153,8 @@ def index_segments(run_dir: str | os.PathLike) -> Path | None:
             for seg in segments:
                 copier.copy(seg)
             writer.finish()
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-        fsync_path(run)
     except Exception as exc:  # noqa: BLE001  never lose the streaming files over the index
         log.warning("%s: MCAP segments not indexed (the streaming files are kept): %s", run, exc)
-        tmp.unlink(missing_ok=True)
         return None
     for seg in segments:
         if seg != target:

@@ -35,6 +35,7 @@ from collections import OrderedDict
 from math import fsum, isfinite
 from pathlib import Path
 
+from hope_models.durable import atomic_open
 from hope_models.train.metrics import JSONL_NAME, RESERVED
 
 log = logging.getLogger(__name__)
@@ -254,8 +255,8 @@ def _stamp(st: os.stat_result) -> dict:
 
 
 def write_columns(run_dir: str | os.PathLike) -> Path | None:
-    """Parse metrics.jsonl and save its columns as metrics.columns (written to a temp file and
-    renamed: a crash leaves the old file or none). Returns the path, or None when there is no
+    """Parse metrics.jsonl and save its columns as metrics.columns (durable.atomic_open: a crash
+    leaves the old file or none). Returns the path, or None when there is no
     metrics.jsonl or writing failed (logged; the file is then parsed when first read)."""
     run = Path(run_dir)
     path = run / JSONL_NAME
@@ -269,16 +270,12 @@ def write_columns(run_dir: str | os.PathLike) -> Path | None:
                   "columns": [{"name": n, "points": len(cols.columns[n].step),
                                "missing_wall": cols.columns[n].missing_wall} for n in names]}
         out = run / COLUMNS_NAME
-        tmp = out.with_name(out.name + ".tmp")
-        with open(tmp, "wb") as f:
+        with atomic_open(out, "wb") as f:
             f.write(json.dumps(header, separators=(",", ":")).encode() + b"\n")
             f.write(cols.record_steps.tobytes())
             for n in names:
                 c = cols.columns[n]
                 f.write(c.step.tobytes() + c.wall_time.tobytes() + c.value.tobytes())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, out)
         return out
     except (OSError, ValueError) as exc:
         log.warning("%s: metric columns not saved (%s); the run page parses metrics.jsonl instead", run, exc)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 from flask import Blueprint, Response, current_app, jsonify, request
 
-from webapp.api.run_series import run_dir_of
+from webapp.api.runs import run_dir_of, run_or_404
 from webapp.api.validation import query_args
 from webapp.errors import ApiError
 
@@ -42,16 +42,11 @@ bp = Blueprint("run_artifacts", __name__, url_prefix="/api")
 
 @bp.get("/runs/<run_id>/provenance")
 def provenance(run_id: str):
-    from registry.models import Run
-
     from webapp.api.run_provenance import gate_records, provenance as assemble
 
     query_args()
     with current_app.extensions["hope"].registry.session(readonly=True) as s:
-        run = s.get(Run, run_id)
-        if run is None:
-            raise ApiError(f"no run {run_id}", 404)
-        obj = assemble(run, gate_records(s, run_id))
+        obj = assemble(run_or_404(s, run_id), gate_records(s, run_id))
     return jsonify(obj)
 
 
@@ -77,17 +72,16 @@ def artifacts(run_id: str):
 
 @bp.get("/runs/<run_id>/artifacts/<path:name>")
 def download(run_id: str, name: str):
-    from webapp.api.run_files import UnsafeFile, list_artifacts, open_checkpoint_tar, open_confined
+    from webapp.api.run_files import UnsafeFile, candidates, is_safe, open_checkpoint_tar, open_confined
 
     query_args()
     run_dir = Path(run_dir_of(run_id))
-    found = {a.name: a for a in list_artifacts(run_dir)}
-    art = found.get(name)
+    art = {a.name: a for a in candidates(run_dir)}.get(name)
     if art is None:
-        # the listing leaves out files that resolve outside the run dir: say so rather than "no such"
-        if name in _unsafe_names(run_dir):
-            raise ApiError(f"artifact {name}: resolves outside the run dir; refused", 404)
         raise ApiError(f"run {run_id} has no artifact {name[:100]!r} (GET /api/runs/{run_id}/artifacts lists them)", 404)
+    if not is_safe(run_dir, art):
+        # the listing leaves it out: say why rather than "no such"
+        raise ApiError(f"artifact {name}: resolves outside the run dir; refused", 404)
     try:
         if art.kind == "checkpoint":
             blocks, length = open_checkpoint_tar(run_dir, art)
@@ -122,16 +116,3 @@ def _limited(f, size: int, chunk: int = 256 * 1024):
             yield data
     finally:
         f.close()
-
-
-def _unsafe_names(run_dir: Path) -> set[str]:
-    """Names an artifact would have, whose files exist but were left out of the listing."""
-    from hope_models.train.checkpoint import list_step_dirs
-    from hope_models.train.metrics import mcap_segments
-
-    from webapp.api.run_files import SINGLE_FILES
-
-    names = {n for n, *_ in SINGLE_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()}
-    names.update(p.name for p in mcap_segments(run_dir))
-    names.update(f"checkpoint-{step}.tar" for step, _ in list_step_dirs(run_dir))
-    return names

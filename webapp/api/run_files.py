@@ -1,9 +1,9 @@
 """The files of a run dir a client may download, and how they are read safely (GET
 /api/runs/<id>/artifacts in webapp/api/run_artifacts.py).
 
-An artifact's name is one this module lists (`list_artifacts`), never a path taken from the
-request. Every file is resolved and refused when its real path leaves the run dir (a symlink
-escape) or it is not a regular file; it is opened by that real path with O_NOFOLLOW, and its
+An artifact's name is one this module finds in the run dir (`candidates`), never a path taken
+from the request; `list_artifacts` is those that pass `is_safe`. Every file is resolved and
+refused when its real path leaves the run dir (a symlink escape) or it is not a regular file; it is opened by that real path with O_NOFOLLOW, and its
 size is the opened file's, so what is checked is what is sent.
 
 A checkpoint is sent as an uncompressed tar of its dir, members "checkpoint-<step>/<file>": the
@@ -75,14 +75,6 @@ def open_confined(run_dir: Path, path: Path) -> tuple[IO[bytes], os.stat_result]
     return os.fdopen(fd, "rb"), st
 
 
-def _safe(run_dir: Path, path: Path) -> bool:
-    try:
-        real = confined(run_dir, path)
-    except UnsafeFile:
-        return False
-    return real.is_file()
-
-
 def checkpoint_files(run_dir: Path, ckdir: Path) -> list[Path]:
     """The regular files of a checkpoint dir, sorted; UnsafeFile when the dir or one of them
     resolves outside the run dir."""
@@ -96,34 +88,46 @@ def checkpoint_files(run_dir: Path, ckdir: Path) -> list[Path]:
     return out
 
 
-def list_artifacts(run_dir: Path) -> list[Artifact]:
-    """What the run dir holds for download, in a fixed order; files that resolve outside it are
-    left out."""
+def candidates(run_dir: Path) -> list[Artifact]:
+    """Every artifact the run dir seems to hold, in a fixed order, before the confinement check
+    (`is_safe`): names a client may ask for, some of which may be refused."""
     from hope_models.train.checkpoint import list_step_dirs
     from hope_models.train.metrics import mcap_segments
 
     if not run_dir.is_dir():
         return []
-    out = []
-    name, kind, media, text = SINGLE_FILES[0]
-    if _safe(run_dir, run_dir / name):
-        out.append(Artifact(name, kind, media, text, run_dir / name))
-    for seg in mcap_segments(run_dir):
-        if _safe(run_dir, seg):
-            out.append(Artifact(seg.name, "mcap", MCAP_TYPE, f"{seg.name} opens in Foxglove: the metrics and events "
-                                "as MCAP (plot /metrics.loss against time)", seg))
-    for name, kind, media, text in SINGLE_FILES[1:]:
-        if _safe(run_dir, run_dir / name):
-            out.append(Artifact(name, kind, media, text, run_dir / name))
-    for step, ckdir in sorted(list_step_dirs(run_dir)):
-        try:
-            checkpoint_files(run_dir, ckdir)
-        except (UnsafeFile, OSError):
-            continue
-        out.append(Artifact(f"checkpoint-{step}.tar", "checkpoint", TAR_TYPE,
-                            f"the checkpoint of step {step} (weights, config, optimizer state) as a tar",
-                            ckdir, step))
+
+    def single(name, kind, media, text):
+        path = run_dir / name
+        return [Artifact(name, kind, media, text, path)] if path.exists() or path.is_symlink() else []
+
+    out = single(*SINGLE_FILES[0])
+    out += [Artifact(seg.name, "mcap", MCAP_TYPE, f"{seg.name} opens in Foxglove: the metrics and events "
+                     "as MCAP (plot /metrics.loss against time)", seg) for seg in mcap_segments(run_dir)]
+    for spec in SINGLE_FILES[1:]:
+        out += single(*spec)
+    out += [Artifact(f"checkpoint-{step}.tar", "checkpoint", TAR_TYPE,
+                     f"the checkpoint of step {step} (weights, config, optimizer state) as a tar", ckdir, step)
+            for step, ckdir in sorted(list_step_dirs(run_dir))]
     return out
+
+
+def is_safe(run_dir: Path, art: Artifact) -> bool:
+    """The artifact's file (or every file of its checkpoint dir) is a regular file whose real path
+    is inside the run dir."""
+    try:
+        if art.kind == "checkpoint":
+            checkpoint_files(run_dir, art.path)
+            return True
+        return confined(run_dir, art.path).is_file()
+    except (UnsafeFile, OSError):
+        return False
+
+
+def list_artifacts(run_dir: Path) -> list[Artifact]:
+    """What the run dir holds for download, in a fixed order; files that resolve outside it are
+    left out."""
+    return [a for a in candidates(run_dir) if is_safe(run_dir, a)]
 
 
 def artifact_size(run_dir: Path, art: Artifact) -> int:

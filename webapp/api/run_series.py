@@ -27,8 +27,9 @@ from __future__ import annotations
 import json
 import re
 
-from flask import Blueprint, Response, current_app, jsonify, request
+from flask import Blueprint, Response, jsonify, request
 
+from webapp.api.runs import run_dir_of
 from webapp.api.validation import query_args, query_int
 from webapp.errors import ApiError
 
@@ -36,17 +37,6 @@ bp = Blueprint("run_series", __name__, url_prefix="/api")
 
 MAX_NAMES = 12
 NAME_RE = re.compile(r"[A-Za-z0-9_.:/-]{1,100}")
-
-
-def run_dir_of(run_id: str) -> str:
-    """The registry's run dir of run_id; 404 for an unknown run."""
-    from registry.models import Run
-
-    with current_app.extensions["hope"].registry.session(readonly=True) as s:
-        run = s.get(Run, run_id)
-        if run is None:
-            raise ApiError(f"no run {run_id}", 404)
-        return run.run_dir
 
 
 def _names() -> list[str] | None:

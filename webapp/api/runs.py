@@ -48,13 +48,20 @@ def _state():
     return current_app.extensions["hope"]
 
 
-def _get(s, run_id: str):
+def run_or_404(s, run_id: str):
+    """The registry's Run row of run_id (inside session s); 404 for an unknown run."""
     from registry.models import Run
 
     run = s.get(Run, run_id)
     if run is None:
         raise ApiError(f"no run {run_id}", 404)
     return run
+
+
+def run_dir_of(run_id: str) -> str:
+    """The run dir of run_id; 404 for an unknown run."""
+    with _state().registry.session(readonly=True) as s:
+        return run_or_404(s, run_id).run_dir
 
 
 @bp.get("")
@@ -101,7 +108,7 @@ def get_run(run_id: str):
 
     query_args()
     with _state().registry.session(readonly=True) as s:
-        obj = runs.to_json(s, [_get(s, run_id)])[0]
+        obj = runs.to_json(s, [run_or_404(s, run_id)])[0]
     # the held-out figures the gate judges (with the baselines), once the run has finished
     obj["validation"] = held_out_figures(obj["run_dir"]) if obj.get("run_dir") else None
     return jsonify({"run": obj})
@@ -117,8 +124,7 @@ def metrics(run_id: str):
     events = request.args.get("events", "0")
     if events not in ("0", "1", "true", "false"):
         raise ApiError(f"events: {events[:20]!r} is not 0 or 1", 400)
-    with _state().registry.session(readonly=True) as s:
-        run_dir = _get(s, run_id).run_dir
+    run_dir = run_dir_of(run_id)
     floor = -1 if after is None else after
     with_events = events in ("1", "true")
     rows = []
@@ -157,7 +163,7 @@ def _control(run_id: str, action: str):
     no_body()
     state = _state()
     with state.registry.session() as s:
-        _get(s, run_id)
+        run_or_404(s, run_id)
         try:
             obj = runs.request_control(s, run_id, action).to_json_obj()
         except runs.RunError as exc:

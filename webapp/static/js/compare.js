@@ -13,13 +13,12 @@
 //     (datasets carry hopeRun = run id)
 //   #compare-diff tr[data-key] (td per run), #compare-same; #compare-summary tr[data-key]
 import { $, el, num, duration } from "./util.js";
-import { MetricChart } from "./metric_chart.js";
+import { MetricChart, fetchSeries } from "./metric_chart.js";
 import { MetricPicker } from "./metric_picker.js";
 import { flatten, show as showValue } from "./run_provenance.js";
 
 const MIN_RUNS = 2, MAX_RUNS = 5;
 const PICKS_KEY = "hope.compare.metrics";
-const MAX_NAMES = 12;
 
 let ctx, picker;
 let loadSeq = 0;
@@ -162,15 +161,6 @@ function clearCharts() {
   $("#compare-charts").replaceChildren();
 }
 
-async function fetchFor(runId, names) {
-  const out = {};
-  for (let i = 0; i < names.length; i += MAX_NAMES) {
-    const q = names.slice(i, i + MAX_NAMES).map(encodeURIComponent).join(",");
-    Object.assign(out, (await ctx.api(`/api/runs/${encodeURIComponent(runId)}/series?names=${q}`)).series);
-  }
-  return out;
-}
-
 async function buildCharts(picks, seq) {
   for (const [name, { mc, card }] of charts) {
     if (!picks.includes(name)) { mc.destroy(); card.remove(); charts.delete(name); }
@@ -189,7 +179,7 @@ async function buildCharts(picks, seq) {
   }
   for (const name of picks) box.append(charts.get(name).card);
   if (!fresh.length) return;
-  const perRun = await Promise.all(runs.map((r) => fetchFor(r.id, fresh.filter((n) => seriesNames.get(r.id).has(n)))));
+  const perRun = await Promise.all(runs.map(async (r) => (await fetchSeries(ctx.api, r.id, fresh.filter((n) => seriesNames.get(r.id).has(n)))).series));
   if (seq !== loadSeq) return;
   for (const name of fresh) {
     const { mc, card } = charts.get(name) || {};

@@ -5,6 +5,7 @@
 //   mc.append(runId, { step, wall_time, value })                            (live: points after the last)
 //   mc.configure({ smoothing, xMode: "step" | "wall", logY, refs: [{ y, label, color, dash }] })
 //   mc.render(); mc.resetZoom(); mc.destroy()
+//   fetchSeries(ctx.api, runId, names[, after])   the points of any number of names
 //
 // The raw arrays stay here; every change of smoothing or axis rebuilds the datasets from them. Per
 // run there are two datasets: the raw values ({x, y}, faint once smoothing is on) and, when the
@@ -47,6 +48,23 @@ const GATE_VQVAE_MAX_NMSE = 0.05;  // settings.gate_vqvae_max_nmse's default (ho
 
 // The horizontal lines a chart of `metric` gets from a finished run's held-out figures
 // (result.json summary.val): the figure itself and its baselines of the same horizon.
+const MAX_NAMES = 12;  // the series API's limit per request
+
+// GET /api/runs/<id>/series?names=... for any number of names (in requests of MAX_NAMES):
+// {series: {name: {step, wall_time, value}}, last: the newest step any answer had, or null}
+export async function fetchSeries(api, runId, names, after = null) {
+  const series = {};
+  let last = null;
+  for (let i = 0; i < names.length; i += MAX_NAMES) {
+    const chunk = names.slice(i, i + MAX_NAMES).map(encodeURIComponent).join(",");
+    const q = after === null ? "" : `&after=${after}`;
+    const data = await api(`/api/runs/${encodeURIComponent(runId)}/series?names=${chunk}${q}`);
+    Object.assign(series, data.series);
+    if (typeof data.last_step === "number") last = Math.max(last ?? data.last_step, data.last_step);
+  }
+  return { series, last };
+}
+
 export function referenceLines(metric, validation, component) {
   const v = validation || {};
   const out = [];

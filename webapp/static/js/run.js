@@ -18,7 +18,7 @@
 // picked series are refetched every 2 s with ?after=<last step> (only the new points). run.state to
 // a finished state reloads the page's data (the held-out figures arrive with it).
 import { $, el, fillKv, num, duration } from "./util.js";
-import { MetricChart, referenceLines } from "./metric_chart.js";
+import { MetricChart, referenceLines, fetchSeries as fetchSeriesOf } from "./metric_chart.js";
 import { MetricPicker } from "./metric_picker.js";
 import { renderProvenance, renderDownloads } from "./run_provenance.js";
 
@@ -28,7 +28,6 @@ const SMOOTH_KEY = "hope.run.smoothing";
 const XMODE_KEY = "hope.run.xaxis";
 const LAST_KEY = "hope.run.last";
 const POLL_MS = 2000;
-const MAX_NAMES = 12;  // the series API's limit per request
 
 let ctx, picker;
 let runId = null;
@@ -213,18 +212,7 @@ function makeCard(name) {
   return { mc, card };
 }
 
-async function fetchSeries(names, after = null) {
-  const out = {};
-  let last = null;
-  for (let i = 0; i < names.length; i += MAX_NAMES) {
-    const chunk = names.slice(i, i + MAX_NAMES).map(encodeURIComponent).join(",");
-    const q = after === null ? "" : `&after=${after}`;
-    const data = await ctx.api(`/api/runs/${encodeURIComponent(runId)}/series?names=${chunk}${q}`);
-    Object.assign(out, data.series);
-    if (typeof data.last_step === "number") last = Math.max(last ?? data.last_step, data.last_step);
-  }
-  return { series: out, last };
-}
+function fetchSeries(names, after = null) { return fetchSeriesOf(ctx.api, runId, names, after); }
 
 // one card per picked name, in picking order; only the new ones fetch their data
 async function buildCharts(picks, seq, prefetched = null) {
