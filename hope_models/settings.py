@@ -44,6 +44,12 @@ class Settings:
     # (webapp/hosts.py): a browser reaching it through any other name may be DNS rebinding.
     allowed_hosts: list[str] = field(default_factory=list)
     max_connections: int = 200  # open HTTP/WebSocket connections at once; more get 503 (webapp/server.py)
+    # open connections from one client address at once (a browser's six, its editor tabs' WebSockets
+    # and the phone app stay far below); one neighbour cannot take the whole server (webapp/server.py)
+    max_connections_per_client: int = 32
+    # the robot's door: POST /api/brain/infer, GET /api/brain, /api/ping and /api/health on a
+    # listener of their own, which nothing on the Robot Editor's side can fill (0 = any free port)
+    inference_port: int = 8766
     # Engine.IO's ping interval for Socket.IO sessions (python-engineio's default): how often the
     # server pings a browser, and how long a closed session's ping thread lingers (webapp/socket_guard.py)
     socketio_ping_interval_s: float = 25.0
@@ -106,6 +112,8 @@ _ENV = {
     "HOPE_MEMORY_BUDGET_MB": "memory_budget_mb",
     "HOPE_ALLOWED_HOSTS": "allowed_hosts",
     "HOPE_MAX_CONNECTIONS": "max_connections",
+    "HOPE_MAX_CONNECTIONS_PER_CLIENT": "max_connections_per_client",
+    "HOPE_INFERENCE_PORT": "inference_port",
     "HOPE_SOCKETIO_PING_INTERVAL_S": "socketio_ping_interval_s",
     "HOPE_THERMAL_ZONE": "thermal_zone_path",
     "HOPE_VCGENCMD": "vcgencmd_path",
@@ -136,7 +144,8 @@ _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
-            "max_connections": 8, "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
+            "max_connections": 8, "max_connections_per_client": 2, "inference_port": 0,
+            "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
             "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
 # fields that must be above zero (an interval of 0 s would spin)
 _POSITIVE = {"system_sample_s", "worker_heartbeat_s"}

@@ -107,6 +107,7 @@ if [ ! -e "$defaults_file" ]; then
 # HOPE_MEMORY_BUDGET_MB=3072
 # HOPE_HOST=127.0.0.1
 # HOPE_PORT=8765
+# HOPE_INFERENCE_PORT=8766
 EOF
   chmod 0640 "$defaults_file"
   echo "wrote $defaults_file"

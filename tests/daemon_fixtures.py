@@ -63,7 +63,9 @@ class Home:
                          "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                          # Gating imports torch in a child per completed run; tests of promotion
                          # turn it back on.
-                         "HOPE_AUTO_PROMOTE": "0"})
+                         "HOPE_AUTO_PROMOTE": "0",
+                         # the robot's door on any free port: tests run side by side
+                         "HOPE_INFERENCE_PORT": "0"})
         self.env.pop("NOTIFY_SOCKET", None)
         self.env.pop("WATCHDOG_USEC", None)
         if redis_url:

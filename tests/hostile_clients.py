@@ -10,6 +10,7 @@ import base64
 import json
 import os
 import socket
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -225,3 +226,121 @@ class SocketIOClient:
             self.ws.close()
         except Exception:  # noqa: BLE001 - already gone
             pass
+
+
+def raw_request(port: int, method: str, path: str, *, source: str = "127.0.0.1", timeout: float = 5.0,
+                stop=None, body: bytes = b"", headers: dict | None = None) -> int:
+    """One request from the loopback address `source` (127.0.0.2 is another client); its status,
+    0 when the server closed without answering, -1 when it could not connect, -2 when `stop` was
+    set while waiting (the socket is closed then: the attacker left)."""
+    head = {"Host": f"127.0.0.1:{port}", "Connection": "close", "Content-Length": str(len(body)), **(headers or {})}
+    lines = [f"{method} {path} HTTP/1.1"] + [f"{k}: {v}" for k, v in head.items()]
+    try:
+        s = socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
+    except OSError:
+        return -1
+    deadline = time.monotonic() + timeout
+    try:
+        s.settimeout(0.25)
+        s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode() + body)
+        raw = b""
+        while b"\r\n" not in raw and time.monotonic() < deadline:
+            if stop is not None and stop.is_set():
+                return -2
+            try:
+                data = s.recv(4096)
+            except socket.timeout:
+                continue
+            if not data:
+                break
+            raw += data
+    except OSError:
+        return 0
+    finally:
+        s.close()
+    return int(raw.split(b" ", 2)[1]) if raw.startswith(b"HTTP/") else 0
+
+
+class LongPollFlood:
+    """The long-poll flood: one Engine.IO polling handshake, then `concurrency` long-poll GETs on its
+    session id at once, each re-sent as soon as it returns, and a fresh handshake every `refresh_s`
+    (or as soon as the session is refused), no token needed. From `source`, a loopback address.
+
+        flood = LongPollFlood(port, source="127.0.0.2").start()
+        ...
+        flood.stop()   # every socket closed, every thread joined; flood.statuses counts the answers
+    """
+
+    def __init__(self, port: int, concurrency: int = 200, refresh_s: float = 8.0, source: str = "127.0.0.1",
+                 retry_pause_s: float = 0.2, hold_s: float = 60.0):
+        self.port, self.concurrency, self.refresh_s = port, concurrency, refresh_s
+        self.source, self.retry_pause_s, self.hold_s = source, retry_pause_s, hold_s
+        self.statuses: dict[int, int] = {}
+        self.handshakes = 0
+        self._sid: str | None = None
+        self._stale = True
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def _handshake(self) -> None:
+        try:
+            s = socket.create_connection(("127.0.0.1", self.port), timeout=5, source_address=(self.source, 0))
+        except OSError:
+            return
+        try:
+            s.sendall(f"GET /socket.io/?EIO=4&transport=polling HTTP/1.1\r\nHost: 127.0.0.1:{self.port}\r\n"
+                      "Connection: close\r\n\r\n".encode())
+            raw = b""
+            while not _complete(raw):
+                data = s.recv(65536)
+                if not data:
+                    break
+                raw += data
+        except OSError:
+            return
+        finally:
+            s.close()
+        head, _, body = raw.partition(b"\r\n\r\n")
+        body = _dechunk(body) if b"transfer-encoding: chunked" in head.lower() else body
+        if raw.startswith(b"HTTP/1.1 200") and body.startswith(b"0"):
+            with self._lock:
+                self._sid, self._stale = json.loads(body[1:])["sid"], False
+                self.handshakes += 1
+
+    def _refresher(self) -> None:
+        last = 0.0
+        while not self._stop.is_set():
+            if self._stale or time.monotonic() - last >= self.refresh_s:
+                self._handshake()
+                last = time.monotonic()
+            self._stop.wait(0.5)
+
+    def _poller(self) -> None:
+        while not self._stop.is_set():
+            sid = self._sid
+            if sid is None:
+                self._stop.wait(0.1)
+                continue
+            status = raw_request(self.port, "GET", f"/socket.io/?EIO=4&transport=polling&sid={sid}",
+                                 source=self.source, timeout=self.hold_s, stop=self._stop)
+            with self._lock:
+                self.statuses[status] = self.statuses.get(status, 0) + 1
+                if status == 400:
+                    self._stale = True
+            if status != 200:
+                self._stop.wait(self.retry_pause_s)
+
+    def start(self) -> "LongPollFlood":
+        self._threads = [threading.Thread(target=self._refresher, name="flood-handshakes", daemon=True)]
+        self._threads += [threading.Thread(target=self._poller, name=f"flood-{i}", daemon=True)
+                          for i in range(self.concurrency)]
+        for t in self._threads:
+            t.start()
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.1, deadline - time.monotonic()))

@@ -409,7 +409,9 @@ def _infer_cli(home: Path, *args: str, port: int | None = None) -> subprocess.Co
     import os
 
     env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
-    env.update(HOPE_HOME=str(home), HOPE_HOST="127.0.0.1", HOPE_PORT=str(port or _free_port()))
+    port = port or _free_port()
+    # infer asks the inference port; this test's server answers every route on one port
+    env.update(HOPE_HOME=str(home), HOPE_HOST="127.0.0.1", HOPE_PORT=str(_free_port()), HOPE_INFERENCE_PORT=str(port))
     return subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "infer", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=120)
 

@@ -5,7 +5,7 @@ gives every connection a thread and waits on it as long as the client likes, so 
 opens sockets and sends nothing (or half a request line) would take a thread each until the
 process runs out of threads or descriptors. Here every connection lives under limits:
 
-    accept --(cap reached?)-- yes --> "503 too many connections", closed at once
+    accept --(cap reached, or this client address's cap?)-- yes --> "503 too many connections", closed
        |
        v  one thread per connection (as Werkzeug)
     headers  -- all of the request line and headers within `header_timeout_s`
@@ -47,23 +47,28 @@ class ServerError(RuntimeError):
 @dataclass(frozen=True)
 class ConnectionLimits:
     max_connections: int = 200
+    # one address's share: a neighbour holding long requests cannot take every connection (0 = no cap)
+    max_per_client: int = 32
     header_timeout_s: float = 10.0
     body_timeout_s: float = 30.0
     io_timeout_s: float = 30.0
     ws_idle_timeout_s: float = 60.0  # > Engine.IO ping interval + ping timeout (25 + 20 s)
     drain_timeout_s: float = 2.0  # after the answer: reading what is left of an unread request body
     min_body_rate: int = 64 << 10  # bytes/s a body must average to be given time past body_timeout_s
+    websockets: bool = True  # False: an Upgrade request is an ordinary one, under the ordinary deadlines
 
     @classmethod
     def from_settings(cls, settings) -> "ConnectionLimits":
-        return cls(max_connections=int(getattr(settings, "max_connections", cls.max_connections)))
+        return cls(max_connections=int(getattr(settings, "max_connections", cls.max_connections)),
+                   max_per_client=int(getattr(settings, "max_connections_per_client", cls.max_per_client)))
 
 
 class _Connection:
-    __slots__ = ("sock", "phase", "deadline", "opened", "evicted")
+    __slots__ = ("sock", "client", "phase", "deadline", "opened", "evicted")
 
-    def __init__(self, sock, deadline: float):
+    def __init__(self, sock, client: str, deadline: float):
         self.sock = sock
+        self.client = client
         self.phase = "headers"
         self.deadline: float | None = deadline
         self.opened = time.monotonic()
@@ -85,8 +90,14 @@ _CONN_KEY = "hope.connection"
 EVICTION_SLACK = 32
 
 
-def _refusal(limit: int) -> bytes:
-    body = json.dumps({"error": f"the server has {limit} connections open, its limit; try again shortly"}).encode()
+def _client_key(client_address) -> str:
+    """The address a connection counts against (an IPv4-mapped IPv6 address as its IPv4 one)."""
+    host = client_address[0] if isinstance(client_address, tuple) and client_address else "local"
+    return host[7:] if isinstance(host, str) and host.startswith("::ffff:") else str(host)
+
+
+def _refusal(why: str) -> bytes:
+    body = json.dumps({"error": f"{why}; try again shortly"}).encode()
     head = ("HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 2\r\n"
             f"Connection: close\r\nContent-Length: {len(body)}\r\n\r\n").encode()
     return head + body
@@ -105,7 +116,7 @@ class GuardedRequestHandler(WSGIRequestHandler):
         environ[_CONN_KEY] = conn
         limits = self.server.limits
         if conn is not None:
-            if environ.get("HTTP_UPGRADE", "").lower() == "websocket":
+            if limits.websockets and environ.get("HTTP_UPGRADE", "").lower() == "websocket":
                 conn.enter("websocket", None)
                 self.connection.settimeout(limits.ws_idle_timeout_s)
             elif _has_body(environ):
@@ -127,6 +138,7 @@ class GuardedServer(ThreadedWSGIServer):
     def __init__(self, *args, limits: ConnectionLimits, **kwargs):
         self.limits = limits
         self._conns: dict[int, _Connection] = {}
+        self._per_client: dict[str, int] = {}
         self._conns_lock = threading.Lock()
         self.refused = 0
         super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
@@ -143,24 +155,44 @@ class GuardedServer(ThreadedWSGIServer):
         with self._conns_lock:
             return len(self._conns)
 
+    def _admit(self, client: str) -> tuple[str | None, _Connection | None]:
+        """(why a newcomer from `client` is refused, or None; the stalled connection to evict for it),
+        under the lock. A client still sending its request after others have been served is the
+        one to drop (slow-header floods), not the newcomer: the oldest such, from the same address
+        when that address is at its own cap."""
+        limits = self.limits
+        mine = self._per_client.get(client, 0)
+        if limits.max_per_client and mine >= limits.max_per_client:
+            why = f"{client} has {mine} connections open, the limit for one client address"
+            pool = [c for c in self._conns.values() if c.client == client]
+            cap = limits.max_per_client
+        elif len(self._conns) >= limits.max_connections:
+            why = f"the server has {limits.max_connections} connections open, its limit"
+            pool, cap = list(self._conns.values()), limits.max_connections
+        else:
+            return None, None
+        if len(pool) >= cap + EVICTION_SLACK:
+            return why, None  # the evicted ones have not left yet
+        stalled = [c for c in pool if c.phase in ("headers", "body") and not c.evicted]
+        if not stalled:
+            return why, None
+        victim = min(stalled, key=lambda c: c.opened)
+        victim.evicted = True
+        return None, victim
+
     def process_request(self, request, client_address):
-        victim = None
+        client = _client_key(client_address)
         with self._conns_lock:
-            full = len(self._conns) >= self.limits.max_connections
-            if full and len(self._conns) < self.limits.max_connections + EVICTION_SLACK:
-                # A client still sending its request after others have been served is the one
-                # to drop (slow-header floods), not the newcomer: evict the oldest such.
-                stalled = [c for c in self._conns.values() if c.phase in ("headers", "body") and not c.evicted]
-                if stalled:
-                    victim = min(stalled, key=lambda c: c.opened)
-                    victim.evicted, full = True, False
-            if not full:
-                self._conns[id(request)] = _Connection(request, time.monotonic() + self.limits.header_timeout_s)
+            why, victim = self._admit(client)
+            if why is None:
+                self._conns[id(request)] = _Connection(request, client,
+                                                       time.monotonic() + self.limits.header_timeout_s)
+                self._per_client[client] = self._per_client.get(client, 0) + 1
         if victim is not None:
             victim.cut()
-        if full:
+        if why is not None:
             self.refused += 1
-            self._refuse(request)
+            self._refuse(request, why)
             return
         try:
             super().process_request(request, client_address)
@@ -177,9 +209,15 @@ class GuardedServer(ThreadedWSGIServer):
 
     def _forget(self, request) -> None:
         with self._conns_lock:
-            self._conns.pop(id(request), None)
+            conn = self._conns.pop(id(request), None)
+            if conn is not None:
+                left = self._per_client.get(conn.client, 1) - 1
+                if left > 0:
+                    self._per_client[conn.client] = left
+                else:
+                    self._per_client.pop(conn.client, None)
 
-    def _refuse(self, request) -> None:
+    def _refuse(self, request, why: str) -> None:
         # On the accepting thread: never block it. Read what the client already sent (so closing
         # does not reset the connection before it sees the answer), say why, close.
         try:
@@ -188,12 +226,11 @@ class GuardedServer(ThreadedWSGIServer):
                 request.recv(65536)
             except OSError:
                 pass
-            request.send(_refusal(self.limits.max_connections))
+            request.send(_refusal(why))
         except OSError:
             pass
         if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
-            log.warning("refused a connection: %d open, the limit (%d refused so far)",
-                        self.limits.max_connections, self.refused)
+            log.warning("refused a connection: %s (%d refused so far)", why, self.refused)
         self.shutdown_request(request)
 
     def _reap(self) -> None:
@@ -314,7 +351,8 @@ def _bounded_drain(app, drain_s: float):
 
 
 class HttpServer:
-    def __init__(self, app, host: str, port: int, limits: ConnectionLimits | None = None):
+    def __init__(self, app, host: str, port: int, limits: ConnectionLimits | None = None, *,
+                 name: str = "webapp", port_hint: str = "--port or HOPE_PORT"):
         # Werkzeug logs every request at INFO; keep the service logs about the service.
         logging.getLogger("werkzeug").setLevel(logging.WARNING)
         self.limits = limits or ConnectionLimits()
@@ -329,12 +367,13 @@ class HttpServer:
             self._server = GuardedServer(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
                                          fd=sock.fileno(), limits=self.limits)
         except OSError as exc:
-            raise ServerError(f"cannot listen on {host}:{port}: {exc.strerror or exc} "
-                              "(set another port with --port or HOPE_PORT)") from None
+            raise ServerError(f"{name}: cannot listen on {host}:{port}: {exc.strerror or exc} "
+                              f"(set another port with {port_hint})") from None
         finally:
             sock.close()  # the server holds its own duplicate of the descriptor
         self.host = host
         self.port = bound_port
+        self.name = name
         self._thread: threading.Thread | None = None
 
     @property
@@ -355,12 +394,14 @@ class HttpServer:
         return self._server.refused
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._server.serve_forever, name="http", daemon=True)
+        self._thread = threading.Thread(target=self._server.serve_forever, name=f"http-{self.name}", daemon=True)
         self._thread.start()
-        log.info("webapp listening on %s (at most %d connections)", self.url, self.limits.max_connections)
+        log.info("%s listening on %s (at most %d connections, %d per client address)", self.name, self.url,
+                 self.limits.max_connections, self.limits.max_per_client)
 
     def stop(self, timeout: float = 5.0) -> None:
-        self._server.shutdown()
+        if self._thread is not None:  # shutdown() waits for serve_forever, which never ran otherwise
+            self._server.shutdown()
         self._server.server_close()
         if self._thread is not None:
             self._thread.join(timeout)

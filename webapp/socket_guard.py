@@ -18,6 +18,12 @@ Two holes in python-engineio (4.15) as Flask-SocketIO runs it in threading mode,
    are therefore limited: at most `max_pending` waiting to log in at once, and no more than
    `sessions_per_s` (with a burst) started; beyond that the handshake is refused (401 with a
    message) and a real client retries, as it does after any refused connection.
+4. A long-polling GET waits for packets up to ping_interval + ping_timeout (45 s), and any number of
+   them may wait on one session, so one handshake and a few hundred GETs held every thread of the
+   server. Here a session has at most one long-poll GET at a time, as the Engine.IO protocol says:
+   a second one while the first waits is answered 400 at once and closes the session (which wakes
+   the first). A long-poll is answered within `poll_deadline_s` (a NOOP packet when nothing came;
+   the client simply polls again), and a closed session wakes every GET still waiting on it.
 
 Closing a WebSocket session from the server only sends a close frame: simple-websocket then waits
 for the client's answer (a silent client never gives one) until the socket's idle timeout. A session
@@ -44,6 +50,34 @@ DEFAULT_AUTH_TIMEOUT_S = 10.0
 MAX_PENDING = 64
 SESSIONS_PER_S = 20.0
 SESSIONS_BURST = 60
+POLL_DEADLINE_S = 15.0  # well under Engine.IO's 45 s; a browser polls again at once
+
+
+def _bounded_poll_socket_class(base: type, guard: "SocketGuard") -> type:
+    from engineio import packet
+
+    class BoundedPollSocket(base):
+        def poll(self):
+            empty = self.server.get_queue_empty_exception()
+            try:
+                first = self.queue.get(timeout=guard.poll_deadline_s)
+                self.queue.task_done()
+            except empty:
+                return [packet.Packet(packet.NOOP)]  # the answer's deadline; the session lives on
+            packets = []
+            pkt = first
+            while True:
+                if pkt is None:  # closed: leave the marker for every other GET waiting here
+                    self.queue.put(None)
+                    return packets
+                packets.append(pkt)
+                try:
+                    pkt = self.queue.get(block=False)
+                    self.queue.task_done()
+                except empty:
+                    return packets
+
+    return BoundedPollSocket
 
 
 def _non_waiting_engineio_class(base: type) -> type:
@@ -59,6 +93,22 @@ def _non_waiting_engineio_class(base: type) -> type:
     return NonWaitingEngineIOServer
 
 
+def _polling_get_sid(environ: dict) -> str | None:
+    """The session id of a long-polling GET (not a WebSocket upgrade), else None."""
+    if environ.get("REQUEST_METHOD") != "GET" or environ.get("HTTP_UPGRADE"):
+        return None
+    query = parse_qs(environ.get("QUERY_STRING", ""))
+    if query.get("transport", [None])[0] != "polling":
+        return None
+    return query.get("sid", [None])[0]
+
+
+def _second_poll_refused(start_response):
+    body = b'{"error": "a second long-poll GET on a session whose GET is still waiting; the session is closed"}'
+    start_response("400 Bad Request", [("Content-Type", "application/json"), ("Content-Length", str(len(body)))])
+    return [body]
+
+
 def mark_authorized(environ: dict) -> None:
     """Called by the Socket.IO connect handler once the token checked out."""
     environ[AUTHORIZED_KEY] = True
@@ -67,7 +117,7 @@ def mark_authorized(environ: dict) -> None:
 class SocketGuard:
     def __init__(self, socketio: Any, auth_timeout_s: float = DEFAULT_AUTH_TIMEOUT_S, *,
                  max_pending: int = MAX_PENDING, sessions_per_s: float = SESSIONS_PER_S,
-                 sessions_burst: int = SESSIONS_BURST):
+                 sessions_burst: int = SESSIONS_BURST, poll_deadline_s: float = POLL_DEADLINE_S):
         import engineio
 
         eio = socketio.server.eio
@@ -76,6 +126,12 @@ class SocketGuard:
                                "webapp/socket_guard.py must be revisited")
         eio.__class__ = _non_waiting_engineio_class(engineio.Server)
         self.eio = eio
+        from engineio.socket import Socket
+
+        self.poll_deadline_s = float(poll_deadline_s)
+        self._socket_class = _bounded_poll_socket_class(Socket, self)
+        self._polling: dict[str, dict] = {}  # session id -> environ of its waiting long-poll GET
+        self.second_polls = 0
         self.auth_timeout_s = float(auth_timeout_s)
         self._pending: dict[str, tuple[float, dict]] = {}
         self._websockets: dict[str, dict] = {}  # session id -> environ of its WebSocket request
@@ -97,6 +153,9 @@ class SocketGuard:
                     self._ensure_reaper()
             if refusal is not None:
                 return refusal  # engineio drops the session before its ping thread starts
+            session = eio.sockets.get(eio_sid)
+            if session is not None and type(session) is Socket:
+                session.__class__ = self._socket_class  # before its first poll (in this same request)
             return inner_connect(eio_sid, environ, *args) if inner_connect else None
 
         def on_disconnect(eio_sid, *args):
@@ -111,6 +170,9 @@ class SocketGuard:
         """WSGI: remember which TCP connection carries each session's WebSocket while it is open."""
 
         def remember_websockets(environ, start_response):
+            polling_sid = _polling_get_sid(environ)
+            if polling_sid is not None:
+                return self._one_poll_per_session(app, polling_sid, environ, start_response)
             if environ.get("HTTP_UPGRADE", "").lower() != "websocket":
                 return app(environ, start_response)
             sid = parse_qs(environ.get("QUERY_STRING", "")).get("sid", [None])[0]
@@ -126,6 +188,28 @@ class SocketGuard:
                         del self._websockets[sid]
 
         return remember_websockets
+
+    def _one_poll_per_session(self, app, sid: str, environ, start_response):
+        with self._lock:
+            waiting = self._polling.get(sid)
+            if waiting is None:
+                self._polling[sid] = environ
+        if waiting is not None:
+            self.second_polls += 1
+            if self.second_polls in (1, 10, 100) or self.second_polls % 1000 == 0:
+                log.warning("closed a Socket.IO session that sent a second long-poll GET while one waited "
+                            "(%d so far)", self.second_polls)
+            try:
+                self.eio.disconnect(sid)  # the waiting GET gets the CLOSE packet
+            except Exception:  # noqa: BLE001 - the session may have gone meanwhile
+                log.debug("closing %s failed", sid, exc_info=True)
+            return _second_poll_refused(start_response)
+        try:
+            return app(environ, start_response)  # threading mode: returns once the poll is answered
+        finally:
+            with self._lock:
+                if self._polling.get(sid) is environ:
+                    del self._polling[sid]
 
     @staticmethod
     def _cut(environ: dict | None) -> None:

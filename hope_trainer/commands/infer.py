@@ -4,8 +4,10 @@
                          [--session S] [--reset] [--action '[0.2, -0.1]'] [--json] [--local] [--timeout 5]
 
 By default it asks the running service (`hope-trainer serve` or `webapp`): POST /api/brain/infer
-on the configured host/port with the token from $HOPE_HOME/token, so the answer comes from the
-BrainService the robot uses (and a --session there keeps its recurrent state between calls).
+on the configured host and inference port (the robot's door, 8766, HOPE_INFERENCE_PORT; the
+editor's port when that setting is 0, "any free port", which a second process cannot know) with the
+token from $HOPE_HOME/token, so the answer comes from the BrainService the robot uses, through the
+robot's own door (and a --session there keeps its recurrent state between calls).
 When nothing answers it says so and suggests `serve`, or --local, which loads BrainService in this
 process from the promotion pointer and answers one tick (torch-free, like the service; a --session
 then lasts only this command, so every --local call is an episode's first tick).
@@ -80,12 +82,13 @@ def _observation(text: str, flag: str = "--observation") -> list[float]:
 
 
 def _base_url(settings) -> str:
+    port = settings.inference_port or settings.port
     host = settings.host
     if host in ("", "0.0.0.0", "::"):  # bound to every interface: this machine answers on loopback
         host = "127.0.0.1"
     if ":" in host:
         host = f"[{host}]"
-    return f"http://{host}:{settings.port}"
+    return f"http://{host}:{port}"
 
 
 def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """`hope-trainer serve`: the all-in-one mode (first run, a laptop, a bench Pi). No Redis needed.
 
-    hope-trainer serve [--host 127.0.0.1] [--port 8765] [--no-worker] [--queue pi]
+    hope-trainer serve [--host 127.0.0.1] [--port 8765] [--inference-port 8766] [--no-worker] [--queue pi]
 
 One process runs the webapp (REST + Socket.IO) and the daemon (a background thread pushing events
 straight into this process's Socket.IO), and supervises the Celery worker as a child process
@@ -15,7 +15,8 @@ The next `serve` finds the runs as they were left and resumes the queued one fro
 A second Ctrl-C skips the waiting. Exit 0 after a clean stop, 2 when it cannot start (port taken,
 unreadable token), 1 when the daemon loop died.
 BrainService (the promoted models, hot-reloaded from $HOPE_HOME/promoted/) runs in this process
-behind POST /api/brain/infer; promoting and the sim reflex run as `hope-trainer` children.
+behind POST /api/brain/infer, on the inference port (the robot's door, webapp/inference_door.py)
+and on the editor's; promoting and the sim reflex run as `hope-trainer` children.
 Nothing in this process imports torch: only the worker's job child and those children do.
 """
 from __future__ import annotations
@@ -67,6 +68,9 @@ def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=None, help="address to listen on (default: settings, 127.0.0.1)")
     parser.add_argument("--port", type=port_number, default=None,
                         help="port (default: settings, 8765; 0 = any free one)")
+    parser.add_argument("--inference-port", type=port_number, default=None,
+                        help="the robot's inference port (default: settings, 8766; 0 = any free one; "
+                             "with --port 0 it is any free one too)")
 
 
 def listen_settings(args: argparse.Namespace):
@@ -78,6 +82,10 @@ def listen_settings(args: argparse.Namespace):
         settings.host = args.host
     if args.port is not None:
         settings.port = args.port
+    if getattr(args, "inference_port", None) is not None:
+        settings.inference_port = args.inference_port
+    elif args.port == 0:
+        settings.inference_port = 0  # a second instance (tests) must not collide on the fixed door
     return settings
 
 
@@ -188,6 +196,7 @@ class Serve:
         self.daemon_stop = threading.Event()
         self.registry = None
         self.server = None
+        self.door = None  # the inference port (webapp/inference_door.py)
         self.daemon = None
         self.daemon_thread: threading.Thread | None = None
         self.worker: WorkerSupervisor | None = None
@@ -202,6 +211,7 @@ class Serve:
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
         from webapp import create_app
         from webapp.auth import load_or_create_token
+        from webapp.inference_door import open_inference_door
         from webapp.server import ConnectionLimits, HttpServer
 
         self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
@@ -211,6 +221,7 @@ class Serve:
         self.app = app
         self.server = HttpServer(app, self.settings.host, self.settings.port,  # bind before anything runs
                                  ConnectionLimits.from_settings(self.settings))
+        self.door = open_inference_door(app, self.settings)
         # remote_reports=False: serve's own worker child trains every run, on this host.
         self.daemon = Daemon(self.settings, SocketIOSink(socketio), tick_s=self.args.tick, registry=self.registry,
                              local_queues=(self.args.queue,), remote_reports=False)
@@ -218,6 +229,7 @@ class Serve:
         self.daemon.start()  # reconcile what the last stop (or crash) left
         self.brain.start()  # loads what is promoted now, then watches the pointers
         self.server.start()
+        self.door.start()
         self.daemon_thread = threading.Thread(target=self._run_daemon, name="daemon", daemon=True)
         self.daemon_thread.start()
         if not self.args.no_worker:
@@ -296,6 +308,8 @@ class Serve:
                     log.info("run %s %s (%s)", action.run_id, action.action, action.why)
         if self.server is not None:
             self.server.stop()
+        if self.door is not None:
+            self.door.stop()
         if self.app is not None:
             self.app.extensions["hope"].close()  # a promotion gate or sim reflex child still running
         if self.brain is not None:
@@ -317,6 +331,10 @@ def brain_summary(brain: Any) -> str:
         else:
             parts.append(f"{component} nothing promoted yet (run_trainer.py promote RUN)")
     return "brain: " + ("; ".join(parts) or "no components")
+
+
+def door_line(door: Any) -> str:
+    return f"inference: {door.url}api/brain/infer (the robot's port: infer, GET /api/brain, ping, health)"
 
 
 def setup_logging(home: Path, console_level: int = logging.INFO) -> None:
@@ -373,6 +391,7 @@ def run(args: argparse.Namespace) -> int:
         broker = "redis" if settings.redis_url else f"embedded ({settings.home / 'broker'})"
         worker = "no worker (--no-worker)" if args.no_worker else f"worker queue {args.queue}"
         print(f"Robot Editor: {serve.server.url}  token: {token}", flush=True)
+        print(door_line(serve.door), flush=True)
         print(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop", flush=True)
         print(brain_summary(serve.brain), flush=True)
         while not serve.shutdown.is_set():

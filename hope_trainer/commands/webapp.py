@@ -1,6 +1,6 @@
 """`hope-trainer webapp`: the Robot Editor API and Socket.IO server on its own (hope-webapp.service).
 
-    hope-trainer webapp [--host 127.0.0.1] [--port 8765]
+    hope-trainer webapp [--host 127.0.0.1] [--port 8765] [--inference-port 8766]
 
 Production runs the daemon and the worker as their own services; this process serves HTTP and
 relays events. With HOPE_REDIS_URL set (production), Socket.IO uses Redis as its message queue,
@@ -8,10 +8,11 @@ so the events the daemon process emits reach this process's browsers. Without Re
 registry's run events itself (same host only; no system.stats, which only the daemon samples).
 
 It hosts BrainService (the promoted models behind POST /api/brain/infer, hot-reloaded from
-$HOPE_HOME/promoted/), so production's inference lives here, next to the Robot Editor.
+$HOPE_HOME/promoted/), so production's inference lives here, next to the Robot Editor, and answers
+the robot on the inference port, a listener of its own (webapp/inference_door.py).
 
-Under systemd (Type=notify) it sends READY=1 once the port is bound and WATCHDOG=1 only while its
-own GET /api/health answers, so a wedged server is restarted. SIGTERM stops it cleanly.
+Under systemd (Type=notify) it sends READY=1 once the ports are bound and WATCHDOG=1 only while its
+own GET /api/health answers on the inference port, so a wedged server is restarted. SIGTERM stops it cleanly.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import signal
 import sys
 import threading
 
-from hope_trainer.commands.serve import add_listen_arguments, brain_summary, listen_settings
+from hope_trainer.commands.serve import add_listen_arguments, brain_summary, door_line, listen_settings
 
 log = logging.getLogger("hope.webapp")
 
@@ -67,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.settings import SettingsError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
+    from webapp.inference_door import open_inference_door
     from webapp.server import ConnectionLimits, HttpServer, ServerError
 
     # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
@@ -92,6 +94,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         registry.close()
         return 2
+    try:
+        door = open_inference_door(app, settings)
+    except ServerError as exc:
+        print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
+        server.stop()
+        registry.close()
+        return 2
 
     def on_signal(signum, _frame):
         stop.set()
@@ -100,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         brain.start()  # loads what is promoted now, then watches the pointers
         server.start()
+        door.start()
         if settings.redis_url:
             log.info("events from the daemon through Redis (Socket.IO message queue)")
         else:
@@ -109,14 +119,18 @@ def run(args: argparse.Namespace) -> int:
             t.start()
             threads.append(t)
         print(f"Robot Editor: {server.url}  token in {token_path(settings)}", flush=True)
+        print(door_line(door), flush=True)
         print(brain_summary(brain), flush=True)
         notifier.ready(f"listening on {server.url}")
         ping_every = notifier.watchdog_s / 2 if notifier.watchdog_s else 5.0
         while not stop.wait(ping_every):
-            if notifier.watchdog_s and health_ok(settings.host, server.port):
+            # the robot's door: the editor's port may be full of a neighbour's requests, which a
+            # restart would not cure but would cut the robot's inference
+            if notifier.watchdog_s and health_ok(settings.host, door.port):
                 notifier.watchdog()
         notifier.stopping("stopping")
         server.stop()
+        door.stop()
         app.extensions["hope"].close()  # a promotion gate or sim reflex child still running
         for t in threads:
             t.join(2.0)

@@ -1,9 +1,10 @@
 """Step 4 of the demo: the loop closure. Auto-promotion gates each completed run; as soon as
-BrainService serves the new fast_loop, one inference goes through the HTTP API with the token
-(that first answer closes the loop, and its run's loop-closure time is recorded).
+BrainService serves the new fast_loop, one inference goes through the HTTP API with the token, on
+the inference port as a robot's would (that first answer closes the loop, and its run's
+loop-closure time is recorded).
 
 `ClosureSteps` is a part of `Demo` (hope_trainer/demo/session.py): it reads the session's `serve`,
-`settings`, `url`, `token`, `first_observation` and sets `inference`, and waits with its `sleep`.
+`settings`, `inference_url`, `token`, `first_observation` and sets `inference`, and waits with its `sleep`.
 """
 from __future__ import annotations
 
@@ -127,7 +128,7 @@ class ClosureSteps:
 
     def _post_infer(self, request: dict[str, Any]) -> dict[str, Any]:
         body = json.dumps(request).encode()
-        req = urllib.request.Request(self.url.rstrip("/") + "/api/brain/infer", data=body, method="POST",
+        req = urllib.request.Request(self.inference_url.rstrip("/") + "/api/brain/infer", data=body, method="POST",
                                      headers={"Content-Type": "application/json",
                                               "Authorization": f"Bearer {self.token}"})
         try:

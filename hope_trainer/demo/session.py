@@ -37,6 +37,7 @@ class Demo(ChainSteps, ClosureSteps):
         self.started = time.monotonic()
         self.token: str | None = None
         self.url: str | None = None
+        self.inference_url: str | None = None  # the robot's door (webapp/inference_door.py)
         self.inference: dict[str, Any] | None = None
         self.first_observation: tuple[list[float], list[float]] | None = None
 
@@ -120,9 +121,11 @@ class Demo(ChainSteps, ClosureSteps):
         self.serve = Serve(self.settings, serve_args)
         self.token = self.serve.start()
         self.url = self.serve.server.url
+        self.inference_url = self.serve.door.url
         say(f"2. services: webapp + daemon + BrainService in this process, a worker child on queue "
             f"{self.args.queue} (embedded broker); logs in {Path(self.settings.home) / 'logs'}")
         say(f"   Robot Editor: {self.url}  token: {self.token}")
+        say(f"   inference (the robot's port): {self.inference_url}api/brain/infer")
 
     # -- 3. the chain: demo/chain.py; 4. the loop closure: demo/closure.py ------------------------
 

@@ -121,7 +121,10 @@ function connectSocket() {
     ctx.flash("Live updates are off: socket.io-client is not installed (run make setup)", true);
     return;
   }
-  const socket = io({ auth: { token: ctx.token }, reconnectionDelayMax: 5000 });
+  // WebSocket first: one connection for the session's life. Long-polling only when a WebSocket
+  // cannot open (a proxy that strips Upgrade); the server allows it one waiting request per session.
+  const socket = io({ auth: { token: ctx.token }, reconnectionDelayMax: 5000,
+                      transports: ["websocket", "polling"], tryAllTransports: true });
   ctx.socket = socket;
   const conn = $("#conn");
   socket.on("connect", () => {

@@ -1,0 +1,78 @@
+"""The robot's door: its calls on a listener of their own, which the Robot Editor's side cannot fill.
+
+    door = open_inference_door(app, settings)   # an HttpServer on settings.inference_port (8766)
+    door.start() ... door.stop()
+
+The Robot Editor's listener (webapp/server.py) serves browsers, the phone app and Socket.IO, whose
+long-polls and WebSockets hold a thread each for as long as a client likes; a neighbour without a
+token can hold many of them. The robot's control loop must never wait behind that, so its calls
+are answered here, by the same Flask app (the same BrainService, token and Host rule), on another
+port with its own threads and its own connection cap:
+
+    POST /api/brain/infer   the token, as on the editor's port
+    GET  /api/brain         the token
+    GET  /api/ping, /api/health   open, so a robot can check it reaches this door
+
+Everything else is 404 here (no Socket.IO, no editor pages, no uploads) and a WebSocket upgrade is
+refused, so every request on this door is answered in milliseconds and nothing can park on it.
+The editor's port keeps /api/brain/* too: the Robot Editor's Inference page calls it there.
+"""
+from __future__ import annotations
+
+import json
+
+from webapp.server import ConnectionLimits, HttpServer
+
+DOOR_ROUTES = {
+    "/api/brain/infer": ("POST",),
+    "/api/brain": ("GET", "HEAD"),
+    "/api/ping": ("GET", "HEAD"),
+    "/api/health": ("GET", "HEAD"),
+}
+DOOR_KEY = "hope.door"
+
+
+def _answer(start_response, status: str, message: str, extra: tuple = ()):
+    body = json.dumps({"error": message}).encode()
+    start_response(status, [("Content-Type", "application/json"), ("Content-Length", str(len(body))),
+                            *extra])
+    return [body]
+
+
+def door_app(app):
+    """WSGI: only the robot's routes of `app` (the Flask app of create_app), everything else 404."""
+
+    def robots_routes_only(environ, start_response):
+        path = environ.get("PATH_INFO", "")
+        methods = DOOR_ROUTES.get(path)
+        if methods is None:
+            return _answer(start_response, "404 Not Found",
+                           f"{path[:200]} is not served on the inference port (only "
+                           f"{', '.join(sorted(DOOR_ROUTES))}); the Robot Editor is on the main port")
+        if environ.get("HTTP_UPGRADE"):
+            return _answer(start_response, "400 Bad Request", "no protocol upgrades on the inference port",
+                           (("Connection", "close"),))
+        if environ.get("REQUEST_METHOD") not in methods:
+            return _answer(start_response, "405 Method Not Allowed", f"{path} takes {', '.join(methods)}",
+                           (("Allow", ", ".join(methods)),))
+        environ[DOOR_KEY] = "inference"
+        return app(environ, start_response)
+
+    return robots_routes_only
+
+
+def door_limits(settings) -> ConnectionLimits:
+    """The editor's caps, on separate threads; no WebSocket phase (no upgrades here)."""
+    limits = ConnectionLimits.from_settings(settings)
+    return ConnectionLimits(max_connections=limits.max_connections, max_per_client=limits.max_per_client,
+                            websockets=False)
+
+
+def open_inference_door(app, settings, host: str | None = None) -> HttpServer:
+    """Bind the door (ServerError when its port is taken); the caller starts and stops it."""
+    return HttpServer(door_app(app), settings.host if host is None else host, settings.inference_port,
+                      door_limits(settings), name="inference",
+                      port_hint="--inference-port or HOPE_INFERENCE_PORT; 0 = any free port")
+
+
+__all__ = ["DOOR_ROUTES", "door_app", "open_inference_door"]
