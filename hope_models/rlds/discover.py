@@ -18,6 +18,7 @@ from typing import Callable, Iterable, Iterator
 from .episode import ERROR, WARNING, Problem, SourceReport
 from .json_text import (DEFAULT_MAX_FILE_BYTES, DEFAULT_MAX_LINE_BYTES, ReadLimits, TextReadError, decode_text,
                         read_bytes)
+from .inflate import Budget, BudgetError, InflateError
 from .read_episode_dir import LEGACY_STEPS_FILE, METADATA_FILE, read_episode_dir, step_files
 from .read_mcap import read_mcap
 from .read_npz import NPZ_SUFFIX, SIDECAR_SUFFIX, read_npz
@@ -100,14 +101,24 @@ def kind_from_content(file: Path, limits: ReadLimits) -> str | None:
 def _safely(reader: Reader, path: Path, limits: ReadLimits) -> SourceReport:
     # Readers record bad data as problems; this only stops an unforeseen reader bug from
     # aborting a whole batch, and it reports the failure as an error for that path.
+    if limits.budget is not None:
+        limits.budget.check(str(path))
     try:
         return reader(path, limits)
+    except BudgetError:
+        raise  # the whole upload is refused, not this one file
+    except InflateError as exc:
+        if limits.budget is not None:
+            raise BudgetError(exc.message, exc.status) from None
+        return SourceReport(source=str(path), problems=[Problem(ERROR, str(path), exc.message)])
     except Exception as exc:  # noqa: BLE001
         return SourceReport(source=str(path), problems=[Problem(
             ERROR, str(path), f"reader failed: {type(exc).__name__}: {exc}")])
 
 
 def _walk(directory: Path, limits: ReadLimits) -> Iterator[SourceReport]:
+    if limits.budget is not None:
+        limits.budget.check(str(directory))
     consumed: set[str] = set()
     if is_episode_dir(directory):
         yield _safely(read_episode_dir, directory, limits)
@@ -160,9 +171,10 @@ def _iter_one(p: Path, limits: ReadLimits) -> Iterator[SourceReport]:
 
 
 def iter_reports(paths: Iterable[str | os.PathLike], *, max_file_bytes: int = DEFAULT_MAX_FILE_BYTES,
-                 max_line_bytes: int = DEFAULT_MAX_LINE_BYTES) -> Iterator[SourceReport]:
-    """One SourceReport at a time, so a caller that drops each one keeps memory flat in dataset size."""
-    limits = ReadLimits(max_file_bytes=max_file_bytes, max_line_bytes=max_line_bytes)
+                 max_line_bytes: int = DEFAULT_MAX_LINE_BYTES, budget: Budget | None = None) -> Iterator[SourceReport]:
+    """One SourceReport at a time, so a caller that drops each one keeps memory flat in dataset size.
+    With an upload's `budget`, a decompression bomb or its deadline raises BudgetError."""
+    limits = ReadLimits(max_file_bytes=max_file_bytes, max_line_bytes=max_line_bytes, budget=budget)
     seen: set[str] = set()
     for path in paths:
         key = os.path.realpath(path)

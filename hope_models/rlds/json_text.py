@@ -35,6 +35,8 @@ class ReadLimits:
     max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
 
 
+    # an upload's inflate.Budget: what its nested decompressors may produce and its deadline
+    budget: Any = field(default=None, compare=False)
 _SURROGATE = re.compile("[\ud800-\udfff]")
 
 

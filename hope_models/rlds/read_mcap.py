@@ -3,6 +3,11 @@
 The file is read sequentially, so an MCAP cut short by a crash (no footer) still yields the
 steps before the damage, with a warning. An MCAP without our two topics is not an episode and
 is reported as such rather than guessed at.
+
+Chunks are inflated here, not by the mcap library: it trusts a chunk's declared uncompressed size
+(zstd) or none at all (lz4), so a few KB could become hundreds of MB of empty records walked one
+by one. Here all the file's chunks together may inflate to at most inflate_cap(file size) (and
+an upload's budget), streaming; past that the file is refused (InflateError, naming it).
 """
 from __future__ import annotations
 
@@ -12,10 +17,11 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.records import Channel, Message
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
+from .inflate import InflateError, inflate_cap, inflate_lz4, inflate_zstd
 from .json_text import ReadLimits, TextReadError, read_bytes
 from .normalize import id_from_name, step_from_obj
 from .timestamps import assign_timestamps
@@ -85,16 +91,51 @@ class _Messages:
         self.notes.append(Problem(ERROR, self.source, message))
 
 
+class _Chunks:
+    """The file's chunks inflated under one cap for them all (see the module doc)."""
+
+    INFLATERS = {"zstd": inflate_zstd, "lz4": inflate_lz4}
+
+    def __init__(self, source: str, compressed: int, limits: ReadLimits):
+        self.source, self.budget = source, limits.budget
+        self.left = inflate_cap(compressed, limits)
+
+    def records(self, chunk: Chunk) -> list:
+        inflate = self.INFLATERS.get(chunk.compression)
+        if chunk.compression and inflate is None:
+            raise ValueError(f"chunk compression {chunk.compression!r} is not supported (zstd, lz4 or none)")
+        data = inflate(chunk.data, self.left, self.source, f"an MCAP {chunk.compression} chunk",
+                       self.budget) if inflate else chunk.data
+        self.left -= len(data)
+        if len(data) != chunk.uncompressed_size:
+            raise ValueError(f"a chunk inflates to {len(data)} bytes, its header says {chunk.uncompressed_size}")
+        plain = Chunk(compression="", data=data, message_end_time=chunk.message_end_time,
+                      message_start_time=chunk.message_start_time, uncompressed_crc=chunk.uncompressed_crc,
+                      uncompressed_size=len(data))
+        return breakup_chunk(plain, validate_crc=True)
+
+
+def _records(reader: StreamReader, chunks: _Chunks):
+    for record in reader.records:
+        if isinstance(record, Chunk):
+            yield from chunks.records(record)
+        else:
+            yield record
+
+
 def _read_messages(data: bytes, source: str, limits: ReadLimits) -> _Messages:
     found = _Messages(source)
-    reader = StreamReader(io.BytesIO(data), validate_crcs=True, record_size_limit=limits.max_file_bytes)
+    reader = StreamReader(io.BytesIO(data), emit_chunks=True, validate_crcs=True,
+                          record_size_limit=limits.max_file_bytes)
     try:
-        for record in reader.records:
+        for record in _records(reader, _Chunks(source, len(data), limits)):
             if isinstance(record, Channel):
                 found.topics[record.id] = record.topic
                 found.encodings[record.id] = record.message_encoding
             elif isinstance(record, Message):
                 found.take(record)
+    except InflateError:
+        raise
     except Exception as exc:  # the mcap library raises several types for damaged input
         if not found.topics:
             found.unreadable = Problem(ERROR, source, f"not a readable MCAP file ({type(exc).__name__}: {exc})")

@@ -25,7 +25,9 @@ the field paths itself.
 Nothing is unpickled: every member's .npy header is read first and an object dtype is refused,
 the archive is opened with `allow_pickle=False`, only the four array names are allowed, and each
 array's shape must be the one its sidecar states. A missing sidecar, a sidecar from another
-export (sha256), or a shape that differs is an error naming the file and the array.
+export (sha256), or a shape that differs is an error naming the file and the array. A member that
+declares more than inflate_cap of its compressed size (rlds/inflate.py) is refused before it is
+inflated (InflateError): zipfile never inflates past the declared size.
 """
 from __future__ import annotations
 
@@ -40,6 +42,7 @@ import numpy as np
 
 from .episode import ERROR, Episode, Problem, SourceReport, Step
 from ..durable import file_sha256
+from .inflate import InflateError, inflate_cap
 from .json_text import ReadLimits, TextReadError, parse_json_document, read_text
 from .normalize import normalize_metadata
 
@@ -208,15 +211,28 @@ def _header(archive: zipfile.ZipFile, member: str) -> tuple[tuple[int, ...], np.
     return shape, dtype
 
 
+def _check_inflation(file: Path, archive: zipfile.ZipFile, limits: ReadLimits) -> None:
+    """A member may inflate to its declared size only (zipfile stops there, and its CRC then
+    fails): that size within inflate_cap of its compressed bytes, and within an upload's budget."""
+    for info in archive.infolist():
+        cap = inflate_cap(info.compress_size, limits)
+        if info.file_size > cap:
+            raise InflateError(f"{file}: member {info.filename!r}: declares {info.file_size} bytes from "
+                               f"{info.compress_size} compressed, more than {cap} (a decompression bomb?)")
+        if limits.budget is not None:
+            limits.budget.spend(info.file_size, f"{file}: member {info.filename!r}")
+
+
 def _check_members(file: Path, sidecar: Sidecar, limits: ReadLimits) -> None:
     """Every member's .npy header against the sidecar, before any array data is read."""
     try:
         with zipfile.ZipFile(file) as archive:
             members = archive.namelist()
             expected = {f"{name}.npy" for name in sidecar.shapes}
-            if set(members) != expected:
+            if sorted(members) != sorted(expected):
                 raise NpzFormatError(f"members {sorted(members)}; its sidecar {sidecar.path.name} lists "
                                      f"{sorted(expected)}")
+            _check_inflation(file, archive, limits)
             for member in members:
                 name = member[:-len(".npy")]
                 shape, dtype = _header(archive, member)
@@ -231,7 +247,7 @@ def _check_members(file: Path, sidecar: Sidecar, limits: ReadLimits) -> None:
                 if math.prod(shape) * dtype.itemsize > limits.max_file_bytes:
                     raise NpzFormatError(f"{name}: {math.prod(shape) * dtype.itemsize} bytes unpacked, above "
                                          f"max_file_bytes={limits.max_file_bytes}")
-    except NpzFormatError:
+    except (NpzFormatError, InflateError):
         raise
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         raise NpzFormatError(f"not a readable .npz archive: {exc}") from None

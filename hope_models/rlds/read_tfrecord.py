@@ -2,7 +2,8 @@
 
 Framing per record: u64 length, masked CRC32C of the length, payload, masked CRC32C of the
 payload. Both CRCs are checked. Compression is detected from the gzip magic `1f 8b`, never
-from the name; concatenated gzip members are read in turn.
+from the name; concatenated gzip members are read in turn, bounded by what they produce
+(rlds/tfrecord_framing.py, which finds the records at native speed).
 
 Damage seen in the wild (the Continuon `.tfrecord.gz` samples): an empty gzip member followed
 by uncompressed TFRecord bytes that overwrote the start of record 0. Bytes after the gzip data
@@ -17,132 +18,23 @@ from __future__ import annotations
 import json
 import os
 import struct
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import crc32c
-
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
 from .json_text import ReadLimits, TextReadError, read_bytes
 from .normalize import id_from_name, normalize_metadata, step_from_obj
+from .tfrecord_framing import GZIP_MAGIC, masked_crc, scan_records, unwrap_gzip, valid_record_at
 from .tf_example import BYTES, FLOAT, ExampleDecodeError, Feature, decode_example, float32_value
 from .timestamps import assign_timestamps
 
+__all__ = ["GZIP_MAGIC", "LAYOUT", "masked_crc", "read_tfrecord", "scan_records", "unwrap_gzip", "valid_record_at"]
+
 LAYOUT = "tfrecord"
-GZIP_MAGIC = b"\x1f\x8b"
-_HEADER = 12  # u64 length + u32 masked crc
-_FOOTER = 4
-_MASK_DELTA = 0xA282EAD8
 # Features with a fixed meaning; anything else is kept in the step's extras.
 _KNOWN = {"episode_id", "step_index", "reward", "is_terminal", "observation", "action", "step_metadata",
           "observation_command", "action_command"}
-
-
-def masked_crc(data: bytes) -> int:
-    crc = crc32c.crc32c(data)
-    return (((crc >> 15) | (crc << 17)) + _MASK_DELTA) & 0xFFFFFFFF
-
-
-@dataclass
-class RecordScan:
-    records: list[tuple[int, bytes]] = field(default_factory=list)  # (offset, payload)
-    corrupt: list[tuple[int, int]] = field(default_factory=list)  # (offset, length) of skipped bytes
-    truncated_tail: int = 0  # bytes of an incomplete last record
-
-
-def valid_record_at(data: bytes, pos: int) -> int | None:
-    """Length of a fully valid record starting at `pos`, else None."""
-    end = len(data)
-    if pos + _HEADER + _FOOTER > end:
-        return None
-    (length,) = struct.unpack_from("<Q", data, pos)
-    if pos + _HEADER + length + _FOOTER > end:
-        return None
-    (length_crc,) = struct.unpack_from("<I", data, pos + 8)
-    if masked_crc(data[pos:pos + 8]) != length_crc:
-        return None
-    payload_start = pos + _HEADER
-    (data_crc,) = struct.unpack_from("<I", data, payload_start + length)
-    if masked_crc(data[payload_start:payload_start + length]) != data_crc:
-        return None
-    return length
-
-
-def scan_records(data: bytes, base_offset: int = 0) -> RecordScan:
-    """All valid records in `data`, resynchronising after damage. Offsets include base_offset."""
-    scan = RecordScan()
-    pos = 0
-    end = len(data)
-    while pos < end:
-        length = valid_record_at(data, pos)
-        if length is not None:
-            scan.records.append((base_offset + pos, data[pos + _HEADER:pos + _HEADER + length]))
-            pos += _HEADER + length + _FOOTER
-            continue
-        # A header whose length CRC is valid but whose record runs past the end is a write cut short.
-        if pos + _HEADER <= end:
-            (length_crc,) = struct.unpack_from("<I", data, pos + 8)
-            (claimed,) = struct.unpack_from("<Q", data, pos)
-            if masked_crc(data[pos:pos + 8]) == length_crc and pos + _HEADER + claimed + _FOOTER > end:
-                scan.truncated_tail = end - pos
-                break
-        start = pos
-        pos += 1
-        while pos < end and valid_record_at(data, pos) is None:
-            pos += 1
-        scan.corrupt.append((base_offset + start, pos - start))
-    return scan
-
-
-@dataclass
-class Container:
-    """The TFRecord byte stream(s) of one file after undoing gzip."""
-
-    parts: list[tuple[int, bytes]]  # (offset in the file, or -1 for decompressed data, bytes)
-    notes: list[Problem] = field(default_factory=list)
-
-
-def unwrap_gzip(data: bytes, source: str, limits: ReadLimits) -> Container:
-    if data[:2] != GZIP_MAGIC:
-        return Container(parts=[(0, data)])
-    out: list[bytes] = []
-    produced = 0
-    pos = 0
-    members = 0
-    notes: list[Problem] = []
-    while pos < len(data) and data[pos:pos + 2] == GZIP_MAGIC:
-        d = zlib.decompressobj(wbits=31)
-        try:
-            chunk = d.decompress(data[pos:], limits.max_file_bytes - produced + 1)
-        except zlib.error as exc:
-            notes.append(Problem(WARNING, source, f"gzip member at byte {pos} is damaged ({exc}); "
-                                 f"data from there on is not read"))
-            pos = len(data)
-            break
-        produced += len(chunk)
-        if produced > limits.max_file_bytes:
-            notes.append(Problem(ERROR, source, f"gzip data decompresses to more than max_file_bytes="
-                                 f"{limits.max_file_bytes}; not read past that limit"))
-            out.append(chunk[: max(0, limits.max_file_bytes - (produced - len(chunk)))])
-            pos = len(data)
-            break
-        out.append(chunk)
-        members += 1
-        if not d.eof:
-            notes.append(Problem(WARNING, source, f"gzip member at byte {pos} is truncated; "
-                                 f"its {len(chunk)} decompressed bytes are read"))
-            pos = len(data)
-            break
-        pos = len(data) - len(d.unused_data)
-    parts: list[tuple[int, bytes]] = [(-1, b"".join(out))]
-    if pos < len(data):
-        notes.append(Problem(WARNING, source, (
-            f"gzip data ends at byte {pos} ({members} member(s), {produced} bytes decompressed); the "
-            f"remaining {len(data) - pos} bytes are not gzip and are read as uncompressed TFRecord")))
-        parts.append((pos, data[pos:]))
-    return Container(parts=parts, notes=notes)
 
 
 def _text(value: bytes) -> str | None:
@@ -342,7 +234,7 @@ def _framed_records(data: bytes, source: str, limits: ReadLimits,
     records: list[tuple[str, bytes]] = []
     corrupt: list[tuple[str, int]] = []
     for offset, part in container.parts:
-        scan = scan_records(part, max(offset, 0))
+        scan = scan_records(part, max(offset, 0), limits.budget, source)
         where = "decompressed data" if offset < 0 else "file"
         at = "decompressed byte" if offset < 0 else "byte"
         records.extend((f"{at} {o}", payload) for o, payload in scan.records)
