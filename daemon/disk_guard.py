@@ -15,10 +15,13 @@ the door's pre-flight resolves it), else 0 (the 200 MB margin alone).
 
 Retention (settings.keep_runs, 0 = keep all): after a run finishes (the daemon's tick sees the
 number of finished runs change) the run dirs of finished runs are deleted, except the newest
-keep_runs finished ones, those of models that were ever promoted (served now or a rollback
-target), the VQ-VAE runs those and the unfinished runs read codes from, and any run dir holding a
-file named PINNED (`touch <run_dir>/PINNED`). Only dirs under $HOPE_HOME/runs are ever deleted;
-the run rows stay (with a log event saying the dir was pruned).
+keep_runs finished ones that produced something (a checkpoint or metrics on disk: a run cancelled
+or failed before it started takes no place, so a burst of created-and-cancelled runs cannot push
+a trained run out), the newest completed run of each component, those of models that were ever
+promoted (served now or a rollback target), the VQ-VAE runs those and the unfinished runs read
+codes from, and any run dir holding a file named PINNED (`touch <run_dir>/PINNED`). Only dirs
+under $HOPE_HOME/runs are ever deleted; the run rows stay, each deletion a `log` event on its run
+(payload `retention`: the dir, keep_runs, why) and a log line.
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ from sqlalchemy import func, or_, select
 
 from hope_models import disk
 from hope_models.train.checkpoint import list_step_dirs
+from hope_models.train.metrics import JSONL_NAME
 from hope_models.train.config import TrainConfig
 from registry import runs
 from registry.models import Model, Run
@@ -138,7 +142,12 @@ class DiskGuard:
 
     def _kept(self, s: Any, finished: list[Run]) -> set[str]:
         keep_n = int(self.settings.keep_runs)
-        kept = {r.id for r in finished[:keep_n]}
+        kept = {r.id for r in [r for r in finished if produced(r.run_dir)][:keep_n]}
+        newest: dict[str, str] = {}
+        for r in finished:  # newest first: a component's last trained model is never the one pruned
+            if r.state == "completed":
+                newest.setdefault(r.component, r.id)
+        kept |= set(newest.values())
         kept |= set(s.scalars(select(Model.run_id).where(Model.run_id.is_not(None), or_(
             Model.promoted_at.is_not(None), Model.demoted_at.is_not(None)))))
         unfinished = s.scalars(select(Run).where(Run.state.not_in(runs.TERMINAL))).all()
@@ -155,22 +164,32 @@ class DiskGuard:
             finished = s.scalars(select(Run).where(Run.state.in_(runs.TERMINAL))
                                  .order_by(Run.finished_at.desc(), Run.created_at.desc())).all()
             kept = self._kept(s, finished)
-            doomed = [(r.id, Path(r.run_dir)) for r in finished if r.id not in kept]
+            doomed = [(r.id, r.component, r.state, Path(r.run_dir)) for r in finished if r.id not in kept]
         pruned = []
-        for run_id, run_dir in doomed:
+        for run_id, component, state, run_dir in doomed:
             target = run_dir.resolve()
             if not target.is_dir() or target.parent != root or (target / PIN_FILE).exists():
                 continue  # gone already, not ours to delete (outside $HOPE_HOME/runs), or pinned
             trash = root / f".pruned-{target.name}-{os.urandom(3).hex()}"
             os.rename(target, trash)  # out of sight at once; a crash mid-delete leaves only a dot dir
             shutil.rmtree(trash, ignore_errors=True)
+            why = (f"older than the newest keep_runs={self.settings.keep_runs} finished runs that produced a "
+                   "checkpoint or metrics, not the newest completed " + component + ", never promoted, not pinned")
+            message = (f"run dir {run_dir} of {state} {component} run {run_id} pruned by retention: {why} "
+                       f"(pin a run with `touch <run_dir>/{PIN_FILE}`)")
             with self.registry.session() as s:
-                runs.add_event(s, run_id, "log", {"level": "info", "message": f"run dir {run_dir} pruned by retention "
-                                                  f"(keep_runs={self.settings.keep_runs}; pin a run with "
-                                                  f"`touch <run_dir>/{PIN_FILE}`)"})
-            log.info("retention: pruned run dir %s of run %s", run_dir, run_id)
+                runs.add_event(s, run_id, "log", {"level": "info", "message": message, "retention": {
+                    "run_dir": str(run_dir), "keep_runs": int(self.settings.keep_runs), "why": why}})
+            log.info("retention: %s", message)
             pruned.append(run_id)
         return pruned
 
 
-__all__ = ["PIN_FILE", "DiskGuard", "newest_checkpoint_mb"]
+def produced(run_dir: str | os.PathLike) -> bool:
+    """Whether a run left anything worth keeping: a checkpoint or a metrics file."""
+    try:
+        return bool(list_step_dirs(run_dir)) or (Path(run_dir) / JSONL_NAME).is_file()
+    except OSError:
+        return False
+
+__all__ = ["PIN_FILE", "DiskGuard", "newest_checkpoint_mb", "produced"]

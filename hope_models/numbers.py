@@ -114,4 +114,51 @@ def as_float(name: str, value: Any, *, minimum: float | None = None, maximum: fl
     return v
 
 
-__all__ = ["NumberError", "as_float", "as_int", "float_from_text", "from_text", "int_from_text", "short"]
+class _Huge:
+    """Where an integer too long to convert stood, in a second parse of the text."""
+
+
+def _path_of(obj: Any, marker: Any) -> str | None:
+    stack: list[tuple[Any, str]] = [(obj, "")]
+    while stack:  # no recursion: the text may nest as deep as the parser allows
+        value, path = stack.pop()
+        if value is marker:
+            return path or "the value"
+        if isinstance(value, dict):
+            stack.extend((v, f"{path}.{k}" if path else str(k)) for k, v in reversed(list(value.items())))
+        elif isinstance(value, list):
+            stack.extend((v, f"{path}[{i}]") for i, v in reversed(list(enumerate(value))))
+    return None
+
+
+def huge_integer_error(text: str | bytes) -> str | None:
+    """Why a JSON text json.loads refused with a plain ValueError (not a JSONDecodeError): an
+    integer of more digits than Python converts (sys.get_int_max_str_digits(), 4300 by default;
+    no field takes one), as "<field path>: an integer of N digits ...", or None when that is not
+    it. Parses the text a second time, so call it only after json.loads failed."""
+    import json
+    import sys
+
+    limit = sys.get_int_max_str_digits()
+    found: list[int] = []
+    marker = _Huge()
+
+    def parse_int(digits: str) -> Any:
+        if limit and len(digits.lstrip("-")) > limit:
+            found.append(len(digits.lstrip("-")))
+            return marker
+        return 0
+
+    try:
+        obj = json.loads(text, parse_int=parse_int, parse_float=lambda _: 0.0, parse_constant=lambda _: 0.0)
+    except (ValueError, RecursionError):
+        return None
+    if not found:
+        return None
+    where = _path_of(obj, marker) or "a value"
+    where = short(where)[1:-1] if len(where) > 60 else where
+    return f"{where}: an integer of {found[0]} digits; no number here may have more than {limit}"
+
+
+__all__ = ["NumberError", "as_float", "as_int", "float_from_text", "from_text", "huge_integer_error",
+           "int_from_text", "short"]

@@ -57,6 +57,10 @@ class Settings:
     max_line_kb: int = 64 * 1024  # reader guard: a JSONL line longer than this is refused
     # promotion (hope_models/promote/gate.py, daemon/autopromote.py)
     auto_promote: bool = True  # gate (and promote when it passes) every run that completes
+    # POST /api/brain/promote with force: true (past a refusing gate) only when this is on AND the
+    # request carries X-Hope-Admin = $HOPE_HOME/admin_token (webapp/admin.py); the CLI on the robot
+    # (`promote --force`) can always force
+    allow_http_force: bool = False
     gate_val_tolerance: float = 0.05  # candidate val loss may be at most this fraction above the promoted one's
     gate_reflex_tolerance: float = 50.0  # sim reflex: mean return may be at most this many points below
     gate_reflex_episodes: int = 5  # held-out reacher seeds the reflex check runs
@@ -69,6 +73,9 @@ class Settings:
     # finished runs keep their run dirs (0 = keep all; promoted and pinned runs are always kept)
     disk_floor_mb: int = 0
     keep_runs: int = 20
+    # runs one queue may hold waiting to start (queued or starting); one more is refused with 429
+    # (registry/run_request.py check_queue_room; the daemon's auto chain is not counted against it)
+    max_queued_runs: int = 20
     # the Continuon app's episodes (webapp/api/handoff.py, webapp/api/episodes.py): the dataset they
     # are ingested into (relative: under datasets_dir) and the largest request body one may send
     inbox_dataset: str = "inbox"
@@ -121,6 +128,7 @@ _ENV = {
     "HOPE_THERMAL_HARD_C": "thermal_hard_c",
     "HOPE_THERMAL_RESUME_C": "thermal_resume_c",
     "HOPE_AUTO_PROMOTE": "auto_promote",
+    "HOPE_ALLOW_HTTP_FORCE": "allow_http_force",
     "HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance",
     "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
@@ -128,6 +136,7 @@ _ENV = {
     "HOPE_GATE_MID_LOOP_MIN_GAIN": "gate_mid_loop_min_gain",
     "HOPE_DISK_FLOOR_MB": "disk_floor_mb",
     "HOPE_KEEP_RUNS": "keep_runs",
+    "HOPE_MAX_QUEUED_RUNS": "max_queued_runs",
     "HOPE_INBOX": "inbox_dataset",
     "HOPE_UPLOAD_MAX_MB": "upload_max_mb",
     "HOPE_AUTO_TRAIN": "auto_train",
@@ -145,7 +154,7 @@ _FALSE = {"0", "false", "no", "off"}
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
             "max_connections": 8, "max_connections_per_client": 2, "inference_port": 0,
-            "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0,
+            "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0, "max_queued_runs": 1,
             "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
 # fields that must be above zero (an interval of 0 s would spin)
 _POSITIVE = {"system_sample_s", "worker_heartbeat_s"}
@@ -196,6 +205,17 @@ def _at_least(name: str, value, where: str):
     if low is not None and value < low:
         raise SettingsError(f"{where}: setting {name!r} = {value!r} must be >= {low}")
     return value
+
+
+def _huge_integer(config_file: Path) -> str:
+    """What a config.toml tomllib refused with a plain ValueError says: the setting whose value is an
+    integer of more digits than Python converts."""
+    for line in config_file.read_text(encoding="utf-8").splitlines():
+        m = re.match(r"\s*([A-Za-z0-9_-]+)\s*=\s*[+-]?([0-9_]+)", line)
+        if m and len(m.group(2).replace("_", "")) > 400:
+            return f"setting {m.group(1)!r} is an integer of {len(m.group(2).replace('_', ''))} digits; no setting " \
+                   "takes one that long"
+    return "an integer too long to read (more digits than Python converts)"
 
 
 PRIVATE_UMASK = 0o077  # files 0600, directories 0700
@@ -256,6 +276,8 @@ def load_settings(home: str | os.PathLike | None = None, env: dict[str, str] | N
             raw = tomllib.loads(config_file.read_text(encoding="utf-8"))
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise SettingsError(f"{config_file}: not valid TOML: {exc}") from None
+        except ValueError:  # tomllib's int() of a digit string longer than Python converts
+            raise SettingsError(f"{config_file}: {_huge_integer(config_file)}") from None
         known = {f.name for f in fields(Settings)} - {"home"}
         for key, value in raw.items():
             if key not in known:

@@ -34,6 +34,15 @@ RUN_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # registry.models.ne
 class RunRequestError(ValueError):
     """A request that cannot become a run; the message names the field."""
 
+    status = 400  # what the API answers with
+
+
+class QueueFullError(RunRequestError):
+    """The queue already holds settings.max_queued_runs runs waiting to start: try again later."""
+
+    status = 429
+    exit_code = 75  # sysexits' EX_TEMPFAIL: nothing wrong with the request, retry later
+
 
 def listed(names: list[str], at_most: int = 5) -> str:
     """Names for a message: a few, each bounded, and how many more (never the whole of a big body)."""
@@ -262,6 +271,7 @@ def queue_run(registry, settings, req: RunRequest, show=None):
         vqvae_run_dir = check_vqvae_run(s, req.vqvae_run)
     preflight(settings, req, vqvae_run_dir=vqvae_run_dir)
     with registry.session() as s:
+        check_queue_room(s, settings, req.queue)
         run = submit(s, settings, req)
         return show(s, run) if show is not None else run.to_json_obj()
 
@@ -276,9 +286,29 @@ def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=N
     preflight(settings, req, list(names), vqvae_run_dir=vqvae_run_dir)
     with registry.session() as s:
         check_vqvae_run(s, req.vqvae_run)
+        check_queue_room(s, settings, req.queue, len(names))
         members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
                                   queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
         return members[0].sequence_id, [show(s, r) if show is not None else r.to_json_obj() for r in members]
+
+
+def check_queue_room(session, settings, queue: str, adding: int = 1) -> None:
+    """QueueFullError unless `queue` has room for `adding` more runs waiting to start (queued or
+    starting) under settings.max_queued_runs. Called in the write transaction that creates them
+    (BEGIN IMMEDIATE), so two requests at once cannot both take the last place. The daemon's own
+    auto chain does not come through here: it queues only on a queue with nothing waiting."""
+    from sqlalchemy import func, select
+
+    from registry.models import Run
+
+    cap = int(settings.max_queued_runs)
+    waiting = session.scalar(select(func.count()).select_from(Run).where(
+        Run.queue == queue, Run.state.in_(("queued", "starting"))))
+    if waiting + adding > cap:
+        chain = f"; this chain adds {adding}" if adding > 1 else ""
+        raise QueueFullError(f"queue {queue!r} is full: {waiting} runs are waiting to start (queued or starting), "
+                             f"at most max_queued_runs={cap}{chain}; try again when some have started, cancel "
+                             "some (`hope-trainer status`), or raise max_queued_runs")
 
 
 def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None,
@@ -298,6 +328,6 @@ def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None
                            sequence_index=sequence_index, run_id=run_id)
 
 
-__all__ = ["CONFIG_FIELDS", "DEFAULT_STEPS", "REQUEST_KEYS", "RunRequest", "RunRequestError", "build_request",
-           "check_component", "check_int", "check_vqvae_run", "listed", "check_queue", "preflight", "queue_run",
-           "queue_sequence", "request_from_json", "resolve_path", "submit"]
+__all__ = ["CONFIG_FIELDS", "DEFAULT_STEPS", "REQUEST_KEYS", "QueueFullError", "RunRequest", "RunRequestError",
+           "build_request", "check_component", "check_int", "check_queue", "check_queue_room", "check_vqvae_run",
+           "listed", "preflight", "queue_run", "queue_sequence", "request_from_json", "resolve_path", "submit"]

@@ -1,8 +1,8 @@
 """What a hostile neighbour on the same machine does to the webapp, as plain socket code.
 
 Used by tests/test_server_hardening.py (against a real `serve`) and bench/soak.py. Every pattern
-needs no token; each returns once its own bounded work is done, leaving whatever sockets it opened
-in `held` so the caller decides when they end.
+needs no token (but run_flood, a token holder's); each returns once its own bounded work is done,
+leaving whatever sockets it opened in `held` so the caller decides when they end.
 """
 from __future__ import annotations
 
@@ -157,6 +157,26 @@ class HostileRound:
             except OSError:
                 pass
         self.held.clear()
+
+
+def run_flood(port: int, token: str, data: str, *, runs: int = 21, queue: str = "nobody",
+              component: str = "fast_loop", steps: int = 10) -> dict:
+    """A token holder's create-and-cancel burst: `runs` runs POSTed to a queue no worker serves, each
+    cancelled at once (they never start). Once made retention delete a trained run's files.
+    Returns the statuses of the creations and of the cancels ({status: count}) and the run ids made."""
+    auth = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+    body = json.dumps({"component": component, "data": data, "steps": steps, "queue": queue}).encode()
+    out: dict = {"created": {}, "cancelled": {}, "ids": []}
+    for _ in range(runs):
+        status, raw = http_request(port, "POST", "/api/runs", body=body, headers=auth, timeout=30.0)
+        out["created"][status] = out["created"].get(status, 0) + 1
+        if status != 201:
+            continue
+        run_id = json.loads(raw)["run"]["id"]
+        out["ids"].append(run_id)
+        status, _ = http_request(port, "POST", f"/api/runs/{run_id}/cancel", headers=auth, timeout=30.0)
+        out["cancelled"][status] = out["cancelled"].get(status, 0) + 1
+    return out
 
 
 def process_counts(pid: int) -> tuple[int, int]:

@@ -488,9 +488,14 @@ def test_promote_infer_rollback_over_http_and_the_loop_closure(api, settings, tm
     assert any("finite" in reason or "NaN" in reason for reason in refused["reasons"]), refused
     assert api.brain.version("fast_loop") == first["version"]
 
-    # 3. an older checkpoint of the run, forced past the gate (by a path relative to $HOPE_HOME)
+    # 3. an older checkpoint of the run, forced past the gate (by a path relative to $HOPE_HOME), with
+    # the admin credential forcing over HTTP needs (webapp/admin.py)
     older = last.parent / "00000015"
-    r = api.post("/api/brain/promote", {"checkpoint": str(older.relative_to(settings.home)), "force": True})
+    settings.allow_http_force = True
+    (Path(settings.home) / "admin_token").write_text("the-robot-owners-admin-token\n")
+    os.chmod(Path(settings.home) / "admin_token", 0o600)
+    r = api.client.post("/api/brain/promote", json={"checkpoint": str(older.relative_to(settings.home)), "force": True},
+                        headers={**api.headers, "X-Hope-Admin": "the-robot-owners-admin-token"})
     assert r.status_code == 200, r.get_data(as_text=True)
     second = r.get_json()
     assert second["promoted"] is True and second["version"] != first["version"]

@@ -91,8 +91,10 @@ def serve(tmp_path, tmp_path_factory):
     # a thermal zone file the test can heat (millidegrees, like /sys/class/thermal/.../temp)
     zone = tmp_path / "thermal_zone_temp"
     zone.write_text("45000\n")
-    home = Home(tmp_path / "home", extra_env={"HOPE_THERMAL_ZONE": str(zone)})
+    home = Home(tmp_path / "home", extra_env={"HOPE_THERMAL_ZONE": str(zone), "HOPE_ALLOW_HTTP_FORCE": "1"})
     home.zone = zone
+    (home.path / "admin_token").write_text("the-robot-owners-admin-token\n")
+    (home.path / "admin_token").chmod(0o600)
     shutil.copytree(tiny_dataset_path(tmp_path_factory), home.settings.datasets_dir / "ds")
     yield from serving(home)
 
@@ -289,6 +291,9 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
         page.click('#nav a[data-page="models"]')
         page.select_option("#promote-run-select", run2)
         page.check("#promote-force")
+        page.click("#promote-button")  # no admin token: the 403's message, nothing gated
+        expect(page.locator("#promote-form-result")).to_contain_text("Not promoted: force: needs the admin token")
+        page.fill("#promote-admin", "the-robot-owners-admin-token")
         page.click("#promote-button")
         expect(page.locator("#promote-form-result")).to_contain_text(f"Promoted {run2}", timeout=60_000)
         expect(card.locator('dd[data-key="serving"]')).to_contain_text(run2)

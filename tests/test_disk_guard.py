@@ -132,11 +132,12 @@ def test_retention_keeps_the_last_n_promoted_pinned_and_their_vqvae(home, tiny_d
 
     with home.registry.session() as s:
         runs.request_control(s, reader, "cancel")
-    assert home.run(reader)["state"] == "cancelled"  # one of the last 3: it keeps old_vq still
-    assert guard.maybe_prune() == []
-    _finished(home, tiny_dataset, dispatcher, 3)  # now nothing kept reads old_vq any more
+    # it never started: it neither counts toward keep_runs nor keeps old_vq, which nothing reads now
+    assert home.run(reader)["state"] == "cancelled"
+    assert guard.maybe_prune() == [old_vq]
+    _finished(home, tiny_dataset, dispatcher, 3)
     # plain's dir is outside runs/, pinned is pinned, promoted is promoted
-    assert sorted(guard.maybe_prune()) == sorted([old_vq, new1, new2])
+    assert sorted(guard.maybe_prune()) == sorted([new1, new2])
     assert Path(home.run(pinned)["run_dir"]).is_dir() and Path(home.run(promoted)["run_dir"]).is_dir()
     assert not Path(home.run(old_vq)["run_dir"]).exists() and home.run(old_vq)["state"] == "completed"
     assert any("pruned by retention" in e["payload"]["message"] for e in home.events(old_vq, ["log"]))

@@ -49,7 +49,11 @@ def read_token(path: Path) -> str:
 
 def load_or_create_token(settings) -> str:
     """The deployment's token, created (0600, exclusively: two starts at once agree) if missing."""
-    path = token_path(settings)
+    return load_or_create_secret(token_path(settings))
+
+
+def load_or_create_secret(path: Path) -> str:
+    """The token in `path` (read_token's checks), a new random one written 0600 first if missing."""
     path.parent.mkdir(parents=True, exist_ok=True)
     token = secrets.token_urlsafe(TOKEN_BYTES)
     try:

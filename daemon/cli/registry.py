@@ -44,7 +44,7 @@ def run_command(body) -> int:
         return int(body() or 0)
     except (CommandError, RunError, RunRequestError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return USAGE_EXIT
+        return getattr(exc, "exit_code", USAGE_EXIT)  # a full queue: 75, try again later
 
 
 def print_json(obj: Any) -> None:

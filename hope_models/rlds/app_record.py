@@ -16,7 +16,8 @@ has. Keys go through normalize.py like every producer's (camelCase or snake_case
   metadata.assets with that `uri`; a step `uri` equal to its `local_uri` is rewritten to it. The
   phone paths of files that did not come stay as opaque text (the episode is confined: nothing
   outside its own dir is ever opened). `status` and `remote_uri` of an asset describe the phone's
-  transfer, not the episode, and are left out so a retried handoff is the same content.
+  transfer, not the episode, and are left out so a retried handoff is the same content. A `uri`
+  an asset arrives with is dropped: only a file that came gets one, naming where it is stored.
 """
 from __future__ import annotations
 
@@ -35,6 +36,9 @@ from .write_episode_dir import BLOBS_DIR, confine_blobs, rewrite_uris
 LAYOUT = "app_handoff"
 ASSETS_DIR = f"{BLOBS_DIR}/assets"
 TRANSFER_KEYS = ("status", "remote_uri")  # the phone's upload state, not the episode
+# Where an asset's file is stored is ours to say: a `uri` the client sends would be taken as a path
+# on this host (and answered in remote_uris when a file is there: an oracle for host paths).
+OURS = ("uri",)
 MAX_NAME_BYTES = 200
 _CLOCK_KEY = "timestamp_ms"
 _FIRST_SENSORS = ("egocentric_video", "audio.device_mic", "audio.robot_mic")
@@ -177,7 +181,7 @@ def episode_from_record(record: Any, assets: Any, files: dict[str, Path], stage:
     for key in ("task_classification", "source_context"):
         if key in record:
             raw_md.setdefault(key, record[key])
-    raw_md["assets"] = [dict({k: v for k, v in a.items() if k not in TRANSFER_KEYS},
+    raw_md["assets"] = [dict({k: v for k, v in a.items() if k not in TRANSFER_KEYS + OURS},
                              **({"uri": stored[a["local_uri"]]} if a["local_uri"] in stored else {}))
                         for a in assets]
     raw_md.pop("episode_id", None)  # the content names it

@@ -92,7 +92,7 @@ def kind_from_content(file: Path, limits: ReadLimits) -> str | None:
         first, _, rest = text.partition("\n")
         try:
             json.loads(first)
-        except json.JSONDecodeError:
+        except ValueError:  # not JSON, or an integer too long for int(): the reader says which
             return "json"
         return "jsonl" if rest.strip() else "json"
     return None

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hope_models.numbers import huge_integer_error
+
 from .episode import ERROR, WARNING, Problem
 
 DEFAULT_MAX_FILE_BYTES = 512 << 20
@@ -33,10 +35,10 @@ class ReadLimits:
 
     max_file_bytes: int = DEFAULT_MAX_FILE_BYTES
     max_line_bytes: int = DEFAULT_MAX_LINE_BYTES
-
-
     # an upload's inflate.Budget: what its nested decompressors may produce and its deadline
     budget: Any = field(default=None, compare=False)
+
+
 _SURROGATE = re.compile("[\ud800-\udfff]")
 
 
@@ -112,6 +114,8 @@ def parse_json_document(text: str) -> Any:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise TextReadError(_json_error_text(exc)) from None
+    except ValueError as exc:  # an integer too long for int(): the field is named
+        raise TextReadError(f"not usable JSON: {huge_integer_error(text) or exc}") from None
     except RecursionError:
         raise TextReadError("not usable JSON: nested too deeply") from None
 
@@ -156,8 +160,9 @@ def parse_jsonl(text: str, source: str, limits: ReadLimits) -> JsonlResult:
             continue
         try:
             obj = loads(line)
-        except (json.JSONDecodeError, RecursionError) as exc:
-            why = _json_error_text(exc) if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+        except (ValueError, RecursionError) as exc:
+            why = (_json_error_text(exc) if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+                   if isinstance(exc, RecursionError) else f"not usable JSON: {huge_integer_error(line) or exc}")
             if is_last:
                 result.problems.append(Problem(
                     WARNING, source, f"last line {line_no} is truncated or unparseable ({why}); "

@@ -10,8 +10,9 @@ Gates a candidate and promotes it when it passes (hope_models/promote/gate.py):
    dataset as the registry holds it, a bare checkpoint on what its config.json names, followed
    only inside the data roots (config.json is untrusted: hope_models/promote/gate.py);
 3. the candidate is recorded in the models table with its gate result and metrics (refused ones
-   too: the history says why), and promoted when it passed, or with --force (recorded as forced;
-   non-finite weights are never promoted, forced or not: a robot must not get NaN actions);
+   too: the history says why), and promoted when it passed, or with --force (recorded as forced,
+   with who asked: `--by` cli or http; a WARNING line and a log event on its run; non-finite
+   weights are never promoted, forced or not: a robot must not get NaN actions);
 4. promotion rewrites $HOPE_HOME/promoted/<component>.json, which BrainService follows.
 
 Output (--json, one line): {"promoted": bool, "model_id", "version", "component", "checkpoint",
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import json
+import logging
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,6 +37,7 @@ from typing import Any, Iterator
 from hope_models.train.contract import COMPONENTS
 
 PROMOTED_EXIT, REFUSED_EXIT, USAGE_EXIT = 0, 1, 2
+log = logging.getLogger(__name__)
 LOCK_FILE = "promote.lock"
 
 
@@ -48,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--component", choices=COMPONENTS, help="refuse unless the candidate is this component")
     parser.add_argument("--force", action="store_true",
                         help="promote even if the gate refuses (recorded as forced; never non-finite weights)")
+    parser.add_argument("--by", choices=("cli", "http"), default="cli",
+                        help="who asks (the webapp passes http): named in a forced promotion's record and log line")
     parser.add_argument("--auto", action="store_true",
                         help="called by the daemon's auto-promotion: skip a run that already has a candidate record")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the gate (default 1)")
@@ -145,6 +150,20 @@ def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
     return component, version
 
 
+def _record_forced(s: Any, by: str, model: Any, reasons: list[str]) -> None:
+    """A forced promotion is said out loud: a WARNING line, and a log event on the candidate's run
+    (the models row holds forced and forced_by in its gate_result either way)."""
+    from registry import runs
+    from registry.models import Run
+
+    message = (f"forced promotion by {by}: {model.component} {model.version} (model {model.id}) served past the "
+               f"gate's refusal: {'; '.join(map(str, reasons)) or 'no reason given'}")
+    log.warning("%s", message)
+    if model.run_id is not None and s.get(Run, model.run_id) is not None:
+        runs.add_event(s, model.run_id, "log", {"level": "warning", "message": message, "promotion": {
+            "forced": True, "by": by, "model_id": model.id, "version": model.version, "component": model.component}})
+
+
 def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
     """The whole command minus printing: (exit code, output object). UsageError for exit 2."""
     from sqlalchemy import select
@@ -204,11 +223,13 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
         promote_it = passed or forced
         record = {"passed": result.passed, "promoted": promote_it, "forced": forced, "reasons": reasons,
                   "checks": gate["checks"], "mode": "auto" if args.auto else "manual",
-                  "compared_with_model_id": current_id}
+                  "compared_with_model_id": current_id, **({"forced_by": args.by} if forced else {})}
         model = promotion.record_candidate(s, component=component, checkpoint_path=ckpt, version=version,
                                            run_id=run_id, metrics=gate["metrics"], gate_result=record)
         if promote_it:
             promotion.promote(s, settings, model.id)
+        if forced:
+            _record_forced(s, args.by, model, reasons)
         model_id = model.id
     out = {"promoted": promote_it, "model_id": model_id, **base, "forced": forced, "reasons": reasons,
            "metrics": gate["metrics"], "checks": gate["checks"]}

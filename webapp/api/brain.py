@@ -26,6 +26,8 @@
                                "component"?: str, "force"?: bool}
          -> 200 {"promoted": true, "model_id", "version", "reasons", "metrics", "serving"}
             409 {"error": "refused by the gate: ...", "promoted": false, ...}
+            403 force without the admin credential (webapp/admin.py: the setting allow_http_force,
+                off by default, and the X-Hope-Admin header); nothing is gated or served
     POST /api/brain/rollback  {"component": "fast_loop"}
          -> 200 {"model": Model, "version", "serving"}; 409 when there is nothing to roll back to
 
@@ -41,8 +43,9 @@ import threading
 import time
 from pathlib import Path
 
-from flask import Blueprint, current_app, jsonify
+from flask import Blueprint, current_app, jsonify, request
 
+from webapp.admin import force_refusal
 from webapp.api.validation import get_bool, get_numbers, get_str, json_body, query_int
 from webapp.errors import ApiError
 
@@ -168,6 +171,11 @@ def promote():
     if (run_id is None) == (checkpoint is None):
         raise ApiError("give run_id (a completed run) or checkpoint (a checkpoint dir), not both and not neither", 400)
     state = _state()
+    if force:
+        refusal = force_refusal(state.settings)
+        if refusal is not None:
+            log.warning("forced promotion over HTTP refused (from %s): %s", request.remote_addr, refusal)
+            raise ApiError(refusal, 403)
     if run_id is not None:
         with state.registry.session(readonly=True) as s:
             if s.get(Run, run_id) is None:
@@ -178,7 +186,7 @@ def promote():
     if component is not None:
         args += ["--component", component]
     if force:
-        args.append("--force")
+        args += ["--force", "--by", "http"]
     args.append("--json")
     if not _promote_lock.acquire(blocking=False):
         raise ApiError("a promotion is already running; try again when it has finished", 409)
@@ -192,6 +200,10 @@ def promote():
         raise ApiError(f"the promotion was stopped before it finished: {res.error()}", 503)
     out = dict(res.output or {})
     if res.code == 0:  # promoted now, or it already was the promoted one ("already": true)
+        if out.get("forced"):
+            log.warning("forced promotion over HTTP (from %s, admin token): %s %s (model %s) served past the "
+                        "gate's refusal: %s", request.remote_addr, out.get("component"), out.get("version"),
+                        out.get("model_id"), "; ".join(map(str, out.get("reasons") or [])))
         comp = component or out.get("component") or _component_of(out)
         out["serving"] = wait_serving(state.brain, comp, out.get("version")) if comp else None
         return jsonify(out)

@@ -15,7 +15,8 @@ data_roots. Before the run exists, `data` must hold usable episodes and the mode
 batch_size) must fit the component, the data and the memory budget (memory_budget_mb may lower
 the deployment's HOPE_MEMORY_BUDGET_MB, never raise it): daemon/run_request.preflight. Errors:
 400 bad input (the message names the field), 404 unknown run, 409 a control request the run's
-state refuses.
+state refuses, 429 the queue already holds max_queued_runs runs waiting to start (queued or
+starting; registry/run_request.check_queue_room).
 
 A run's `state` is one of registry.runs.STATES; `starting` is a run sent to its queue that no worker
 has taken yet, and its `waiting` says since when it waits for a worker on which queue (a queued
@@ -91,8 +92,8 @@ def create_run():
     try:
         req = request_from_json(json_body(), allowed_roots=data_roots(settings), base=Path(settings.datasets_dir))
         obj = queue_run(state.registry, settings, req)
-    except RunRequestError as exc:
-        raise ApiError(str(exc), 400) from None
+    except RunRequestError as exc:  # 429 when the queue is full (QueueFullError)
+        raise ApiError(str(exc), exc.status) from None
     state.wake_daemon()
     response = jsonify({"run": obj})
     response.status_code = 201

@@ -9,7 +9,8 @@ completed (daemon.dispatch.create_sequence). The fields are checked by the same 
 and POST /api/runs (registry.run_request), with `data` / `vqvae_dir` confined to $HOPE_HOME and the
 configured data_roots (relative paths are taken from $HOPE_HOME/datasets); then, before any run
 exists, each member's model_config and memory estimate against the dataset (run_request.preflight:
-a chain shares one model_config, so it must suit every member).
+a chain shares one model_config, so it must suit every member). 429 when the queue has no room for
+the chain's members under max_queued_runs (queued or starting runs of that queue).
 """
 from __future__ import annotations
 
@@ -60,8 +61,8 @@ def sequential():
                             allowed_roots=data_roots(settings))
         sequence_id, members = queue_sequence(state.registry, settings, names, req)
         out = {"sequence_id": sequence_id, "runs": members}
-    except (RunRequestError, runs.RunError) as exc:
-        raise ApiError(str(exc), 400) from None
+    except (RunRequestError, runs.RunError) as exc:  # 429 when the queue is full (QueueFullError)
+        raise ApiError(str(exc), getattr(exc, "status", 400)) from None
     state.wake_daemon()
     response = jsonify(out)
     response.status_code = 201

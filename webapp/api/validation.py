@@ -5,7 +5,8 @@ A JSON body must say `Content-Type: application/json` (else 415), fit MAX_CONTEN
 these endpoints, an object nested at most MAX_DEPTH levels (no endpoint needs more; deeper input
 would reach code that recurses). The JSON constants NaN / Infinity are refused while parsing; a
 number that overflows (1e999 parses to inf) is refused by the field checks, which want finite
-numbers. An endpoint that takes no input accepts an empty body or {} and refuses anything else
+numbers; an integer of more digits than Python converts (4300) is refused naming its field. An
+endpoint that takes no input accepts an empty body or {} and refuses anything else
 (no_body), and a GET refuses query parameters it does not know (query_args). Every error is an
 ApiError whose message names the field.
 """
@@ -18,7 +19,7 @@ from typing import Any, Iterable
 
 from flask import current_app, request
 
-from hope_models.numbers import NumberError, int_from_text
+from hope_models.numbers import NumberError, huge_integer_error, int_from_text
 from registry.run_request import RunRequestError, check_int, listed
 from webapp.errors import ApiError
 
@@ -55,8 +56,10 @@ def json_body(*, allowed: Iterable[str] | None = None, required: Iterable[str] =
     except json.JSONDecodeError as exc:
         raise ApiError(f"the request body is not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})",
                        400) from None
-    except ValueError as exc:  # NaN / Infinity
-        raise ApiError(f"the request body is not valid JSON: {exc}", 400) from None
+    except ValueError as exc:  # NaN / Infinity, or an integer too long for int()
+        huge = huge_integer_error(raw)
+        raise ApiError(f"the request body is not usable JSON: {huge}" if huge else
+                       f"the request body is not valid JSON: {exc}", 400) from None
     except RecursionError:  # cannot happen below MAX_DEPTH; kept as the parser's own guard
         raise ApiError("the request body is not valid JSON: nested too deeply", 400) from None
     if not isinstance(body, dict):

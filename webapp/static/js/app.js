@@ -29,8 +29,8 @@ const ctx = {
   token: null,
   socket: null,
   // fetch with the bearer token; resolves to the JSON body, throws Error(message) on a 4xx/5xx
-  async api(path, { method = "GET", body } = {}) {
-    const headers = { Authorization: `Bearer ${ctx.token}` };
+  async api(path, { method = "GET", body, headers: extra } = {}) {
+    const headers = { Authorization: `Bearer ${ctx.token}`, ...(extra || {}) };
     if (body !== undefined) headers["Content-Type"] = "application/json";
     const response = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
     let data = null;

@@ -63,7 +63,10 @@ async function onPromote(event) {
   $("#promote-button").disabled = true;
   setText("#promote-form-result", "Running the promotion gate…");
   try {
-    const out = await ctx.api("/api/brain/promote", { method: "POST", body: { run_id: runId, force: $("#promote-force").checked } });
+    const force = $("#promote-force").checked;
+    const admin = $("#promote-admin").value.trim();  // forcing over HTTP needs the second credential
+    const headers = force && admin ? { "X-Hope-Admin": admin } : undefined;
+    const out = await ctx.api("/api/brain/promote", { method: "POST", body: { run_id: runId, force }, headers });
     setText("#promote-form-result", `Promoted ${out.version}; serving ${out.serving ?? "–"}`);
     await show();
   } catch (err) {
