@@ -80,6 +80,11 @@ class Settings:
     # are ingested into (relative: under datasets_dir) and the largest request body one may send
     inbox_dataset: str = "inbox"
     upload_max_mb: int = 512
+    # all uploads in progress together hold at most upload_tmp_max_mb in $HOPE_HOME/tmp (bodies and
+    # what they unpack to) and leave disk_floor_mb (else 200 MB) free; one upload's unpacking and
+    # reading may take upload_extract_s (webapp/uploads.py, hope_models/rlds/inflate.py)
+    upload_tmp_max_mb: int = 3072
+    upload_extract_s: float = 30.0
     # continuous learning (daemon/continuous.py): when at least auto_train_min_new_episodes new
     # trainable episodes reached the inbox and the robot is idle, cool and has memory and disk to
     # spare, queue a chain of auto_train_components on it (auto_train_steps each; 0 = TrainConfig's default)
@@ -139,6 +144,8 @@ _ENV = {
     "HOPE_MAX_QUEUED_RUNS": "max_queued_runs",
     "HOPE_INBOX": "inbox_dataset",
     "HOPE_UPLOAD_MAX_MB": "upload_max_mb",
+    "HOPE_UPLOAD_TMP_MAX_MB": "upload_tmp_max_mb",
+    "HOPE_UPLOAD_EXTRACT_S": "upload_extract_s",
     "HOPE_AUTO_TRAIN": "auto_train",
     "HOPE_AUTO_TRAIN_MIN_NEW_EPISODES": "auto_train_min_new_episodes",
     "HOPE_AUTO_TRAIN_COMPONENTS": "auto_train_components",
@@ -155,9 +162,9 @@ _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_refle
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
             "max_connections": 8, "max_connections_per_client": 2, "inference_port": 0,
             "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0, "max_queued_runs": 1,
-            "upload_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
+            "upload_max_mb": 1, "upload_tmp_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
 # fields that must be above zero (an interval of 0 s would spin)
-_POSITIVE = {"system_sample_s", "worker_heartbeat_s"}
+_POSITIVE = {"system_sample_s", "worker_heartbeat_s", "upload_extract_s"}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
 _WORD_LISTS = {"allowed_hosts", "auto_train_components"}

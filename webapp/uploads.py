@@ -17,11 +17,17 @@ names of our own), any other body whole as `.body`. The size limit is counted wh
 body with more than MAX_PARTS parts or a field larger than MAX_FIELD_BYTES is refused, and the
 directory is removed when the block ends, whatever happens in it. The filename a client sends is
 only reported, never used as a path.
+
+`TmpRoom` is what every upload in progress holds in `$HOPE_HOME/tmp` together (bodies as they are
+read, and what a package unpacks to): at most `upload_tmp_max_mb`, and never so much that the free
+space under $HOPE_HOME drops below `disk_floor_mb` (else FLOOR_MARGIN_MB); past either, 507 with
+a message, and the upload's files are removed. Six concurrent uploads once held 594 MiB there.
 """
 from __future__ import annotations
 
 import shutil
 import tempfile
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +37,7 @@ from flask import request
 from werkzeug.exceptions import RequestEntityTooLarge
 from werkzeug.sansio.multipart import Data, Epilogue, Field, File, MultipartDecoder, NeedData
 
+from hope_models.disk import FLOOR_MARGIN_MB, MB, free_mb
 from webapp.errors import LARGE_BODY_ATTR, ApiError
 
 MAX_PARTS = 1000  # a handoff sends a few per step; far more is a client gone wrong (or hostile)
@@ -52,17 +59,66 @@ def upload_limit(settings: Any) -> int:
 @dataclass
 class Received:
     dir: Path
+    room: TmpRoom
     fields: dict[str, str] = field(default_factory=dict)
     files: list[tuple[str, str, Path, int]] = field(default_factory=list)  # (field, filename, path, size)
     body: Path | None = None
     size: int = 0  # bytes of body read
 
 
-class _Counter:
-    """Reads the request body in chunks, refusing it once past the limit."""
+class TmpRoom:
+    """The bytes all uploads in progress hold under one $HOPE_HOME/tmp (one per home, per process:
+    only the webapp receives uploads)."""
 
-    def __init__(self, stream: BinaryIO, limit: int):
-        self.stream, self.limit, self.read_bytes = stream, limit, 0
+    _lock = threading.Lock()
+    _held: dict[str, int] = {}
+
+    def __init__(self, settings: Any):
+        self.root = Path(settings.home) / TMP_DIR
+        self.key = str(self.root)
+        self.cap = int(settings.upload_tmp_max_mb) * MB
+        self.floor_mb = float(settings.disk_floor_mb) if settings.disk_floor_mb > 0 else FLOOR_MARGIN_MB
+        self.taken = 0  # by this upload
+
+    def available(self) -> int:
+        """What one more upload may still write: the cap's remainder and the free space above the floor."""
+        with self._lock:
+            room = self.cap - self._held.get(self.key, 0)
+        free = free_mb(self.root)
+        if free is not None:
+            room = min(room, int((free - self.floor_mb) * MB))
+        return max(room, 0)
+
+    def take(self, n: int, what: str) -> None:
+        with self._lock:
+            held = self._held.get(self.key, 0)
+            if held + n > self.cap:
+                raise ApiError(f"{what}: $HOPE_HOME/tmp would hold more than upload_tmp_max_mb="
+                               f"{self.cap // MB} MB of uploads in progress ({held // MB} MB now); try again "
+                               f"when they are done", 507)
+            self._held[self.key] = held + n
+            self.taken += n
+        free = free_mb(self.root)
+        if free is not None and free < self.floor_mb:
+            raise ApiError(f"{what}: {free:.0f} MB free under {self.root.parent}, below the floor of "
+                           f"{self.floor_mb:.0f} MB (disk_floor_mb) an upload must leave", 507)
+
+    def release(self) -> None:
+        with self._lock:
+            self._held[self.key] = max(self._held.get(self.key, 0) - self.taken, 0)
+            self.taken = 0
+
+    @classmethod
+    def held(cls, settings: Any) -> int:
+        with cls._lock:
+            return cls._held.get(str(Path(settings.home) / TMP_DIR), 0)
+
+
+class _Counter:
+    """Reads the request body in chunks, refusing it once past the limit or the room in tmp."""
+
+    def __init__(self, stream: BinaryIO, limit: int, room: TmpRoom):
+        self.stream, self.limit, self.room, self.read_bytes = stream, limit, room, 0
 
     def read(self) -> bytes:
         try:
@@ -74,6 +130,7 @@ class _Counter:
         if self.read_bytes > self.limit:
             raise ApiError(f"request body too large: more than {self.limit} bytes; the limit for this "
                            f"endpoint is {self.limit} bytes (upload_max_mb)", 413)
+        self.room.take(len(chunk), "request body")
         return chunk
 
 
@@ -174,9 +231,9 @@ def received(settings: Any, *, max_parts: int = MAX_PARTS) -> Iterator[Received]
     """The current request's body on disk (see the module doc); removed on exit."""
     root = Path(settings.home) / TMP_DIR
     root.mkdir(mode=0o700, parents=True, exist_ok=True)
-    got = Received(Path(tempfile.mkdtemp(prefix="upload-", dir=root)))
+    got = Received(Path(tempfile.mkdtemp(prefix="upload-", dir=root)), TmpRoom(settings))
     try:
-        body = _Counter(request.stream, upload_limit(settings))
+        body = _Counter(request.stream, upload_limit(settings), got.room)
         if request.mimetype == "multipart/form-data":
             _read_multipart(got, body, max_parts)
         else:
@@ -184,6 +241,7 @@ def received(settings: Any, *, max_parts: int = MAX_PARTS) -> Iterator[Received]
         yield got
     finally:
         shutil.rmtree(got.dir, ignore_errors=True)
+        got.room.release()
 
 
-__all__ = ["MAX_PARTS", "Received", "large_body", "received", "upload_limit"]
+__all__ = ["MAX_PARTS", "Received", "TmpRoom", "large_body", "received", "upload_limit"]

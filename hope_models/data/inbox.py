@@ -16,8 +16,11 @@ once, the manifest the record of every episode), with three differences:
   Tags live only in the manifest, never in the episode's content, so tagging changes neither its
   content hash nor what dedupes against it.
 
+Tags are capped: MAX_TAG_CHARS each, MAX_TAGS_PER_REQUEST given at once, MAX_TAGS_PER_EPISODE
+on one episode (an upload's tags past it are left out with a warning; `tag_episode` past it: 413).
+
 InboxError carries the HTTP status a view answers with: 400 bad input, 404 unknown episode, 409
-a dataset dir that is not ours, 507 a full disk (what was written is kept).
+a dataset dir that is not ours, 413 an episode's tags full, 507 a full disk (what was written is kept).
 """
 from __future__ import annotations
 
@@ -36,6 +39,10 @@ from hope_models.rlds.read_episode_dir import read_episode_dir
 
 STAGE_PREFIX = ".stage-"
 MAX_TAG_CHARS = 64
+# an episode's tags live in the inbox manifest, which every change rewrites whole: 30 uploads of
+# ~900 tags each once grew it from 22 kB to 1.9 MB
+MAX_TAGS_PER_EPISODE = 64
+MAX_TAGS_PER_REQUEST = 16
 WARNINGS_KEPT = 20
 APP_IDS = "app-"
 HANDOFF_ORIGIN = "app:episode_handoff"
@@ -71,9 +78,12 @@ def check_tag(tag: Any, field: str = "tag") -> str:
     return tag
 
 
-def _merge_tags(old: Any, new: Iterable[str]) -> list[str]:
+def _merge_tags(old: Any, new: Iterable[str]) -> tuple[list[str], list[str]]:
+    """(the tags, at most MAX_TAGS_PER_EPISODE of them, and the new ones left out for want of room)."""
     tags = [t for t in old if isinstance(t, str)] if isinstance(old, list) else []
-    return tags + [t for t in new if t not in tags]
+    fresh = [t for t in dict.fromkeys(new) if t not in tags]
+    room = max(MAX_TAGS_PER_EPISODE - len(tags), 0)
+    return tags + fresh[:room], fresh[room:]
 
 
 def _annotate(inbox: Path, manifest: Manifest, entry: dict[str, Any], tags: list[str],
@@ -94,10 +104,14 @@ def _annotate(inbox: Path, manifest: Manifest, entry: dict[str, Any], tags: list
         can, cannot = verdict["trainable"], verdict["not_trainable"]
     if record is not None:
         record["trainable"], record["not_trainable"] = can, cannot
-        record["tags"] = _merge_tags(record.get("tags"), tags)
+        record["tags"], left_out = _merge_tags(record.get("tags"), tags)
         record.setdefault("origin", origin)
         if entry["action"] != "rejected":
             record.setdefault("warnings", list(entry.get("warnings", []))[:WARNINGS_KEPT])
+        if left_out:
+            entry = dict(entry, warnings=list(entry.get("warnings", [])) + [
+                f"tags: {', '.join(map(repr, left_out))} not added: the episode holds {MAX_TAGS_PER_EPISODE} "
+                f"tags, the most it may"])
     return dict(entry, trainable=can, not_trainable=cannot,
                 tags=record.get("tags", tags) if record else tags,
                 origin=record.get("origin", origin) if record else origin)
@@ -126,6 +140,8 @@ def ingest_into_inbox(paths: Iterable[str | os.PathLike], inbox_dir: str | os.Pa
     """ingest_paths into the inbox, blobs confined, under the lock; each episode's entry (and
     manifest record) gains trainable, not_trainable, tags and origin."""
     tags = [check_tag(t, f"tags[{i}]") for i, t in enumerate(tags)]
+    if len(tags) > MAX_TAGS_PER_REQUEST:
+        raise InboxError(f"tags: {len(tags)} of them; at most {MAX_TAGS_PER_REQUEST} at once")
     with inbox_lock(inbox_dir) as inbox:
         result = _ingest_errors(ingest_paths, list(paths), inbox, confined=True, locked=True, **reader_options)
         return _finish(inbox, result, tags, origin)
@@ -224,6 +240,9 @@ def tag_episode(inbox_dir: str | os.PathLike, episode_id: Any, tag: Any) -> dict
         record = manifest.episodes.get(episode_id)
         if record is None:
             raise InboxError(f"episode {episode_id!r} is not in the inbox", 404)
-        record["tags"] = _merge_tags(record.get("tags"), [tag])
+        record["tags"], left_out = _merge_tags(record.get("tags"), [tag])
+        if left_out:
+            raise InboxError(f"episode {episode_id!r} already holds {MAX_TAGS_PER_EPISODE} tags, the most it "
+                             f"may; tag {tag!r} not added", 413)
         write_manifest(inbox, manifest)
         return _entry(record)

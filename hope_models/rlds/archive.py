@@ -16,12 +16,17 @@ import shutil
 import tarfile
 import uuid
 from pathlib import Path, PurePosixPath
+from typing import Any
 
 from ..durable import file_sha256
 from .export_cloud import EPISODE_FILE, UPLOAD_MANIFEST
 
-MAX_MEMBERS = 100_000
+# The Pi runtime writes per step an rgb and a depth .npy (and a .wav with audio) beside one
+# episode.json: its recorder's default of 500 steps is ~1,500 files, 3,000 steps ~9,000
+MAX_MEMBERS = 10_000
 MAX_TOTAL_BYTES = 8 << 30
+NAME_MAX = 255  # bytes of one path component (the filesystem's limit)
+MAX_PATH_BYTES = 1024  # bytes of a member's whole path: ours sit well under $HOPE_HOME's PATH_MAX
 _SAFE_TOP = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 
 
@@ -45,7 +50,28 @@ def member_name_path(tar_path: Path | str, name: str) -> PurePosixPath:
     parts = tuple(p for p in parts if p != ".")
     if not parts:
         raise ArchiveError(f"{tar_path}: member {name!r}: names no path")
+    _check_lengths(tar_path, name, parts)
     return PurePosixPath(*parts)
+
+
+def _check_lengths(tar_path: Path | str, name: str, parts: tuple[str, ...]) -> None:
+    shown = name if len(name) <= 80 else name[:60] + f"...({len(name)} characters)"
+    try:
+        sizes = [len(os.fsencode(p)) for p in parts]
+    except UnicodeEncodeError:
+        raise ArchiveError(f"{tar_path}: member {shown!r}: the name is not valid text") from None
+    if max(sizes) > NAME_MAX:
+        raise ArchiveError(f"{tar_path}: member {shown!r}: a name of {max(sizes)} bytes; at most {NAME_MAX}")
+    if sum(sizes) + len(sizes) - 1 > MAX_PATH_BYTES:
+        raise ArchiveError(f"{tar_path}: member {shown!r}: a path of {sum(sizes) + len(sizes) - 1} bytes; "
+                           f"at most {MAX_PATH_BYTES}")
+
+
+def file_dir_clash(paths: list[tuple[PurePosixPath, bool]]) -> PurePosixPath | None:
+    """A path that is a file and also the parent of another member; `paths` (path, is_file)."""
+    parents = {parent for path, _ in paths for parent in path.parents}
+    clash = sorted(path for path, is_file in paths if is_file and path in parents)
+    return clash[0] if clash else None
 
 
 def _check_member_type(tar_path: Path, member: tarfile.TarInfo, path: PurePosixPath) -> None:
@@ -65,17 +91,21 @@ def _plan(tar_path: Path, members: list[tarfile.TarInfo], max_total_bytes: int) 
     """Checks every member before anything is written; returns the package's top dir."""
     if len(members) > MAX_MEMBERS:
         raise ArchiveError(f"{tar_path}: {len(members)} members, more than {MAX_MEMBERS}")
-    tops, seen, total = set(), set(), 0
+    tops, seen, total, kinds = set(), set(), 0, []
     for member in members:
         path = _member_path(tar_path, member)
         _check_member_type(tar_path, member, path)
         if path in seen:
             raise ArchiveError(f"{tar_path}: member {member.name!r} appears twice")
         seen.add(path)
+        kinds.append((path, member.isfile()))
         tops.add(path.parts[0])
         total += member.size if member.isfile() else 0
         if member.isfile() and len(path.parts) < 2:
             raise ArchiveError(f"{tar_path}: member {member.name!r}: file outside the episode dir")
+    clash = file_dir_clash(kinds)
+    if clash is not None:
+        raise ArchiveError(f"{tar_path}: member {str(clash)!r} is both a file and a directory")
     if total > max_total_bytes:
         raise ArchiveError(f"{tar_path}: {total} bytes uncompressed, more than {max_total_bytes}")
     if len(tops) != 1:
@@ -101,7 +131,9 @@ def _extract_file(tar: tarfile.TarFile, member: tarfile.TarInfo, dest: Path) -> 
             out.write(chunk)
 
 
-
+def _os_words(exc: BaseException) -> str:
+    """An extraction error without the path of our own temporary dir in it."""
+    return getattr(exc, "strerror", None) or str(exc)
 
 
 def verify_package_dir(episode_dir: Path, label: str | None = None) -> dict:
@@ -143,11 +175,12 @@ def verify_package_dir(episode_dir: Path, label: str | None = None) -> dict:
 
 
 def extract_package(tar_path: str | os.PathLike, dest: str | os.PathLike,
-                    max_total_bytes: int = MAX_TOTAL_BYTES) -> Path:
+                    max_total_bytes: int = MAX_TOTAL_BYTES, budget: Any = None) -> Path:
     """Extracts <episode_id>.tar.gz into <dest>/<episode_id>/ and returns that dir.
 
     Raises ArchiveError when the package is unsafe or its checksums do not match, and
-    FileExistsError when <dest>/<episode_id> already exists."""
+    FileExistsError when <dest>/<episode_id> already exists. `budget` (rlds/inflate.Budget) is
+    checked between members: its deadline raises BudgetError."""
     tar_path = Path(tar_path)
     dest = Path(dest)
     try:
@@ -168,16 +201,18 @@ def extract_package(tar_path: str | os.PathLike, dest: str | os.PathLike,
         staging.mkdir()
         try:
             for member in members:
+                if budget is not None:
+                    budget.check(f"{tar_path}: member {member.name!r}")
                 target = staging / _member_path(tar_path, member)
-                if member.isdir():
-                    target.mkdir(parents=True, exist_ok=True)
-                else:
-                    try:
+                try:
+                    if member.isdir():
+                        target.mkdir(parents=True, exist_ok=True)
+                    else:
                         _extract_file(tar, member, target)
-                    except ArchiveError as exc:
-                        raise ArchiveError(f"{tar_path}: {exc}") from None
-                    except (tarfile.TarError, EOFError, OSError) as exc:
-                        raise ArchiveError(f"{tar_path}: member {member.name!r}: {exc}") from None
+                except ArchiveError as exc:
+                    raise ArchiveError(f"{tar_path}: {exc}") from None
+                except (tarfile.TarError, EOFError, OSError) as exc:
+                    raise ArchiveError(f"{tar_path}: member {member.name!r}: {_os_words(exc)}") from None
             verify_package_dir(staging / top, label=str(tar_path))
             os.rename(staging / top, final)
         finally:

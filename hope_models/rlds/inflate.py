@@ -7,7 +7,8 @@ decompressor here streams, counts what actually comes out, and stops past its ca
 
     inflate_cap(compressed, limits)   what one container may inflate to: MAX_RATIO times its own
                                       size (at least RATIO_FLOOR), never past limits.max_file_bytes
-    inflate_zlib / _zstd / _lz4       the bytes, or InflateError naming the file and what it is
+    inflate_zlib                      a zlib/gzip stream's bytes, or InflateError naming the file
+    open_inflated + Counted           an MCAP chunk read as it inflates, never past its stated size
 
 An upload also carries a `Budget` (ReadLimits.budget): the bytes all its nested decompressors may
 produce together (a ratio of what the client actually sent, so a zip of a file of compressed
@@ -106,27 +107,46 @@ def inflate_zlib(data: bytes | memoryview, wbits: int, cap: int, where: str, wha
     return sink.bytes(), d
 
 
-def _read_all(stream: Any, sink: _Sink) -> bytes:
-    while chunk := stream.read(CHUNK):
-        sink.add(chunk)
-    return sink.bytes()
+def open_inflated(compression: str, data: bytes) -> Any:
+    """A file-like reader of `data` inflated as it is read: MCAP's compressions ("" = stored)."""
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.open(io.BytesIO(data), "rb")
+    if compression == "":
+        return io.BytesIO(data)
+    raise ValueError(f"compression {compression!r} is not supported (zstd, lz4 or none)")
 
 
-def inflate_zstd(data: bytes, cap: int, where: str, what: str, budget: Budget | None = None) -> bytes:
-    import zstandard
+class Counted:
+    """Reads exactly what is asked of an inflating stream, never past `size` (what its container
+    states: asking for more is damage, ValueError), counting into the budget, with a running CRC32."""
 
-    sink = _Sink(cap, where, what, budget)
-    with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True) as stream:
-        return _read_all(stream, sink)
+    def __init__(self, stream: Any, size: int, where: str, budget: Budget | None = None):
+        self.stream, self.limit, self.where, self.budget = stream, size, where, budget
+        self.size = self.crc = 0
+
+    def read(self, n: int) -> bytes:
+        if self.size + n > self.limit:
+            raise ValueError(f"a record runs past the end of its chunk ({self.limit} bytes)")
+        parts, want = [], n
+        while want:
+            data = self.stream.read(min(want, CHUNK))
+            if not data:
+                raise ValueError(f"a chunk inflates to {self.size + n - want} bytes, less than it states")
+            parts.append(data)
+            want -= len(data)
+            if self.budget is not None:
+                self.budget.spend(len(data), self.where)
+        out = b"".join(parts)
+        self.size += n
+        self.crc = zlib.crc32(out, self.crc)
+        return out
 
 
-def inflate_lz4(data: bytes, cap: int, where: str, what: str, budget: Budget | None = None) -> bytes:
-    import lz4.frame
-
-    sink = _Sink(cap, where, what, budget)
-    with lz4.frame.open(io.BytesIO(data), "rb") as stream:
-        return _read_all(stream, sink)
-
-
-__all__ = ["Budget", "BudgetError", "CHUNK", "InflateError", "MAX_RATIO", "RATIO_FLOOR", "inflate_cap",
-           "inflate_lz4", "inflate_zlib", "inflate_zstd", "ratio_limit"]
+__all__ = ["Budget", "BudgetError", "CHUNK", "Counted", "InflateError", "MAX_RATIO", "RATIO_FLOOR", "inflate_cap",
+           "inflate_zlib", "open_inflated", "ratio_limit"]

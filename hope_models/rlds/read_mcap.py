@@ -5,23 +5,29 @@ steps before the damage, with a warning. An MCAP without our two topics is not a
 is reported as such rather than guessed at.
 
 Chunks are inflated here, not by the mcap library: it trusts a chunk's declared uncompressed size
-(zstd) or none at all (lz4), so a few KB could become hundreds of MB of empty records walked one
-by one. Here all the file's chunks together may inflate to at most inflate_cap(file size) (and
-an upload's budget), streaming; past that the file is refused (InflateError, naming it).
+(zstd) or none at all (lz4), inflates the chunk whole, and walks it (a few KB became 256 MB of
+empty records walked one by one). Here a chunk is read record by record as it inflates, never
+past the size it states, and all the file's chunks together may state at most
+inflate_cap(file size) (and an upload's budget): past that the file is refused (InflateError,
+naming it). A record inside a chunk that is not a schema, channel or message is damage.
 """
 from __future__ import annotations
 
 import io
 import json
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader
 
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
-from .inflate import InflateError, inflate_cap, inflate_lz4, inflate_zstd
+from .inflate import MAX_RATIO, Counted, InflateError, inflate_cap, open_inflated
 from .json_text import ReadLimits, TextReadError, read_bytes
 from .normalize import id_from_name, step_from_obj
 from .timestamps import assign_timestamps
@@ -92,27 +98,35 @@ class _Messages:
 
 
 class _Chunks:
-    """The file's chunks inflated under one cap for them all (see the module doc)."""
-
-    INFLATERS = {"zstd": inflate_zstd, "lz4": inflate_lz4}
+    """The file's chunks, each inflated as it is read, record by record (see the module doc)."""
 
     def __init__(self, source: str, compressed: int, limits: ReadLimits):
         self.source, self.budget = source, limits.budget
         self.left = inflate_cap(compressed, limits)
 
-    def records(self, chunk: Chunk) -> list:
-        inflate = self.INFLATERS.get(chunk.compression)
-        if chunk.compression and inflate is None:
-            raise ValueError(f"chunk compression {chunk.compression!r} is not supported (zstd, lz4 or none)")
-        data = inflate(chunk.data, self.left, self.source, f"an MCAP {chunk.compression} chunk",
-                       self.budget) if inflate else chunk.data
-        self.left -= len(data)
-        if len(data) != chunk.uncompressed_size:
-            raise ValueError(f"a chunk inflates to {len(data)} bytes, its header says {chunk.uncompressed_size}")
-        plain = Chunk(compression="", data=data, message_end_time=chunk.message_end_time,
-                      message_start_time=chunk.message_start_time, uncompressed_crc=chunk.uncompressed_crc,
-                      uncompressed_size=len(data))
-        return breakup_chunk(plain, validate_crc=True)
+    def records(self, chunk: Chunk) -> Iterator[Channel | Message]:
+        """The chunk's Channel and Message records (schemas are not read); ValueError for damage,
+        InflateError when its stated size is past what the file's chunks may still inflate to."""
+        if chunk.uncompressed_size > self.left:
+            raise InflateError(f"{self.source}: an MCAP chunk states {chunk.uncompressed_size} bytes "
+                               f"uncompressed, more than the {self.left} its file's chunks may still inflate to "
+                               f"({MAX_RATIO} times the file's size, or max_file_bytes): refused")
+        with open_inflated(chunk.compression, chunk.data) as raw:
+            stream = Counted(raw, chunk.uncompressed_size, self.source, self.budget)
+            while stream.size < chunk.uncompressed_size:
+                opcode, length = struct.unpack("<BQ", stream.read(9))
+                if opcode not in (Opcode.CHANNEL, Opcode.MESSAGE, Opcode.SCHEMA):
+                    raise ValueError(f"a record of opcode {opcode} inside a chunk")
+                body = stream.read(length)
+                if opcode == Opcode.CHANNEL:
+                    yield Channel.read(ReadDataStream(io.BytesIO(body)))
+                elif opcode == Opcode.MESSAGE:
+                    yield Message.read(ReadDataStream(io.BytesIO(body)), length)
+            if raw.read(1):
+                raise ValueError(f"a chunk inflates to more than the {chunk.uncompressed_size} bytes it states")
+        if chunk.uncompressed_crc and stream.crc != chunk.uncompressed_crc:
+            raise ValueError(f"a chunk's CRC is {stream.crc:#010x}, it states {chunk.uncompressed_crc:#010x}")
+        self.left -= stream.size
 
 
 def _records(reader: StreamReader, chunks: _Chunks):

@@ -9,8 +9,10 @@ The kind comes from the magic bytes (gzip, a ustar header, a zip local header), 
 file name or the Content-Type a client chose. A tar is first read once as a stream, counting,
 before archive.py's extraction reads it: tarfile skips over member data by inflating it, so a
 small gzip of zeros would otherwise cost minutes of CPU before any size check; the stream must
-stay within MAX_RATIO of its compressed size, and the members' declared sizes within the limit. PackageError carries the HTTP status (400 unsafe
-or corrupt, naming the member; 413 too large).
+stay within MAX_RATIO of its compressed size, the members' declared sizes within the limit, and
+their count within archive.MAX_MEMBERS (sized for the Pi runtime's long episodes; a tar of
+~100,000 empty directories once held the upload lock for minutes). PackageError carries the HTTP
+status (400 unsafe or corrupt, naming the member; 413 too large).
 """
 from __future__ import annotations
 
@@ -23,7 +25,8 @@ from typing import BinaryIO
 
 from ..durable import file_sha256
 from .archive import MAX_MEMBERS, ArchiveError, extract_package
-from .zip_package import MAX_RATIO, ZipPackageError, extract_zip, ratio_limit
+from .inflate import MAX_RATIO, Budget, ratio_limit
+from .zip_package import ZipPackageError, extract_zip
 
 GZIP_MAGIC = b"\x1f\x8b"
 ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header; an empty archive's end record
@@ -69,7 +72,7 @@ class _Inflation:
         return data
 
 
-def scan_tar(path: Path, label: str, max_total_bytes: int) -> None:
+def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None = None) -> None:
     """One streaming pass over the tar (inflated as it is read, nothing kept): the members' declared
     sizes against max_total_bytes (413), the inflated stream against MAX_RATIO and the size (a bomb
     is refused after at most ratio_limit bytes of work, before tarfile's own random-access pass)."""
@@ -85,7 +88,10 @@ def scan_tar(path: Path, label: str, max_total_bytes: int) -> None:
                 for member in tar:
                     count += 1
                     if count > MAX_MEMBERS:
-                        raise PackageError(f"{label}: more than {MAX_MEMBERS} members")
+                        raise PackageError(f"{label}: more than {MAX_MEMBERS} members (files and directories); "
+                                           f"an episode package holds far fewer", 413)
+                    if budget is not None and count % 256 == 0:
+                        budget.check(label)
                     total += member.size if member.isfile() else 0
                     if total > max_total_bytes:
                         raise PackageError(f"{label}: member {member.name!r}: the members hold more than "
@@ -106,18 +112,20 @@ def _relabel(message: str, path: Path, label: str) -> str:
 
 
 def extract_upload(path: str | os.PathLike, dest: str | os.PathLike, *, label: str,
-                   max_total_bytes: int) -> tuple[str, Path]:
+                   max_total_bytes: int, budget: Budget | None = None) -> tuple[str, Path]:
     """Extracts one package under `dest` (an empty dir of the caller's, one per package); returns
-    (kind, the dir to ingest). Raises PackageError, having left nothing of this package behind."""
+    (kind, the dir to ingest). Raises PackageError (or the budget's BudgetError), having left
+    nothing of this package behind."""
     path, dest = Path(path), Path(dest)
     kind = package_kind(path, label)
     if kind == "xr":
         try:
-            return kind, extract_zip(path, dest / xr_dir_name(path), label=label, max_total_bytes=max_total_bytes)
+            return kind, extract_zip(path, dest / xr_dir_name(path), label=label, max_total_bytes=max_total_bytes,
+                                     budget=budget)
         except ZipPackageError as exc:
             raise PackageError(str(exc), exc.status) from None
-    scan_tar(path, label, max_total_bytes)
+    scan_tar(path, label, max_total_bytes, budget)
     try:
-        return kind, extract_package(path, dest, max_total_bytes=max_total_bytes)
+        return kind, extract_package(path, dest, max_total_bytes=max_total_bytes, budget=budget)
     except ArchiveError as exc:
         raise PackageError(_relabel(str(exc), path, label)) from None

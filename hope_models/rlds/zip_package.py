@@ -21,14 +21,13 @@ import struct
 import zipfile
 import zlib
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from .archive import ArchiveError, member_name_path
+from .inflate import MAX_RATIO, ratio_limit
 
 MAX_MEMBERS = 10_000  # an XR episode dir holds a metadata file, a steps file and its media
-MAX_RATIO = 200  # JSONL of floats inflates ~5-10x; zeros far more: a member this compressible is refused
 MAX_CENTRAL_DIR_BYTES = 16 << 20  # MAX_MEMBERS entries with long names and extras fit many times over
-RATIO_FLOOR = 1 << 20  # below this many bytes a high ratio is harmless (a short JSON of repeats)
 CHUNK = 1 << 20
 METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 
@@ -39,10 +38,6 @@ class ZipPackageError(ValueError):
     def __init__(self, message: str, status: int = 400):
         super().__init__(message)
         self.status = status
-
-
-def ratio_limit(compressed: int) -> int:
-    return max(RATIO_FLOOR, compressed * MAX_RATIO)
 
 
 def _count_members(fp: BinaryIO, label: str, max_members: int) -> None:
@@ -140,10 +135,11 @@ def _write_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, labe
 
 
 def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, label: str | None = None,
-                max_members: int = MAX_MEMBERS, max_total_bytes: int = 8 << 30) -> Path:
+                max_members: int = MAX_MEMBERS, max_total_bytes: int = 8 << 30, budget: Any = None) -> Path:
     """Extracts the zip into `dest_dir` (created here; it must not exist) and returns it.
 
-    Raises ZipPackageError (nothing left behind) when the zip is unsafe, corrupt or too large."""
+    Raises ZipPackageError (nothing left behind) when the zip is unsafe, corrupt or too large;
+    `budget` (rlds/inflate.Budget) is checked between members (its deadline: BudgetError)."""
     zip_path, dest = Path(zip_path), Path(dest_dir)
     label = label or str(zip_path)
     archive_bytes = zip_path.stat().st_size
@@ -161,13 +157,18 @@ def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, lab
             try:
                 total = 0
                 for info, path, kind in plan:
+                    if budget is not None:
+                        budget.check(f"{label}: member {info.filename!r}")
                     target = dest.joinpath(*path.parts)
-                    if kind == "dir":
-                        target.mkdir(parents=True, exist_ok=True)
-                        continue
                     try:
-                        total += _write_member(zf, info, target, label, max_total_bytes - total)
-                    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError) as exc:
+                        if kind == "dir":
+                            target.mkdir(parents=True, exist_ok=True)
+                        else:
+                            total += _write_member(zf, info, target, label, max_total_bytes - total)
+                    except OSError as exc:
+                        raise ZipPackageError(f"{label}: member {info.filename!r}: cannot be written: "
+                                              f"{exc.strerror or exc}") from None
+                    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
                         raise ZipPackageError(f"{label}: member {info.filename!r}: corrupt: {exc}") from None
             except BaseException:
                 shutil.rmtree(dest, ignore_errors=True)

@@ -39,12 +39,14 @@ from typing import Any, Iterator
 
 from flask import Blueprint, current_app, jsonify, request
 
-from hope_models.data.inbox import InboxError, check_tag, ingest_into_inbox, list_inbox, tag_episode
+from hope_models.data.inbox import (MAX_TAGS_PER_REQUEST, InboxError, check_tag, ingest_into_inbox, list_inbox,
+                                    tag_episode)
 from hope_models.durable import file_sha256
+from hope_models.rlds.inflate import Budget, InflateError, ratio_limit
 from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
 from webapp.api.validation import get_str, json_body, query_args
 from webapp.errors import ApiError
-from webapp.uploads import TMP_DIR, Received, large_body, received, upload_limit
+from webapp.uploads import TMP_DIR, Received, TmpRoom, large_body, received, upload_limit
 
 log = logging.getLogger(__name__)
 bp = Blueprint("episodes", __name__)
@@ -59,13 +61,15 @@ UNPACK_FACTOR = 4  # what a package may hold uncompressed, in upload limits: bou
 
 
 def _split_tags(text: str, where: str) -> list[str]:
-    tags = []
+    tags: list[str] = []
     for i, tag in enumerate(t.strip() for t in text.split(",")):
         if tag:
             try:
                 tags.append(check_tag(tag, f"{where}[{i}]"))
             except InboxError as exc:
                 raise ApiError(exc.message, exc.status) from None
+            if len(tags) > MAX_TAGS_PER_REQUEST:
+                raise ApiError(f"{where}: more than {MAX_TAGS_PER_REQUEST} tags in one request", 400)
     return tags
 
 
@@ -131,10 +135,11 @@ def _extraction_area(settings: Any) -> Iterator[Path]:
         os.close(fd)
 
 
-def _extract(area: Path, packages: list[tuple[str, Path]], limit: int,
+def _extract(area: Path, packages: list[tuple[str, Path]], limit: int, budget: Budget, room: TmpRoom,
              into: list[tuple[str, str, Path, Path]]) -> None:
     """Every package extracted before any is ingested: (label, kind, what to ingest, its dir)
-    appended to `into` as each dir is made, so the caller removes them whatever happens."""
+    appended to `into` as each dir is made, so the caller removes them whatever happens. What
+    they unpack to is counted in $HOPE_HOME/tmp's room (TmpRoom) while they are there."""
     seen = set()
     for label, path in packages:
         sha = file_sha256(path)[:16]
@@ -145,24 +150,33 @@ def _extract(area: Path, packages: list[tuple[str, Path]], limit: int,
         shutil.rmtree(dest, ignore_errors=True)  # left by an upload that died (we hold the lock)
         dest.mkdir()
         into.append((label, "", dest, dest))
+        room_left = room.available()
         try:
-            kind, where = extract_upload(path, dest, label=label, max_total_bytes=limit)
+            kind, where = extract_upload(path, dest, label=label, max_total_bytes=min(limit, room_left),
+                                         budget=budget)
         except PackageError as exc:
+            if exc.status == 413 and room_left < limit:
+                raise ApiError(f"{exc.message} ($HOPE_HOME/tmp has room for {room_left} bytes now: "
+                               "upload_tmp_max_mb, disk_floor_mb)", 507) from None
             raise ApiError(exc.message, exc.status) from None
         into[-1] = (label, kind, where, dest)
+        room.take(sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()), label)
 
 
-def _ingest(settings: Any, packages: list[tuple[str, Path]], tags: list[str]) -> list[dict]:
+def _ingest(settings: Any, packages: list[tuple[str, Path]], tags: list[str], room: TmpRoom) -> list[dict]:
     with _extraction_area(settings) as area:
         extracted: list[tuple[str, str, Path, Path]] = []
+        # started once the lock is ours: what the request sent, times the ratio, may be inflated
+        budget = Budget(ratio_limit(sum(p.stat().st_size for _, p in packages)), settings.upload_extract_s)
+        label = packages[0][0] if packages else "upload"
         try:
-            _extract(area, packages, UNPACK_FACTOR * upload_limit(settings), extracted)
+            _extract(area, packages, UNPACK_FACTOR * upload_limit(settings), budget, room, extracted)
             out = []
             for label, kind, where, _ in extracted:
                 try:
                     # the extraction dir is gone after this request: sources are named by the package
                     result = ingest_into_inbox([where], settings.inbox_dir, tags=tags, origin=f"upload:{kind}",
-                                               sources_as=(str(where), f"upload:{where.name}"))
+                                               sources_as=(str(where), f"upload:{where.name}"), budget=budget)
                 except InboxError as exc:
                     raise ApiError(exc.message, exc.status) from None
                 episodes = [_episode_answer(e, _extracted_at(settings), label) for e in result["episodes"]]
@@ -170,6 +184,8 @@ def _ingest(settings: Any, packages: list[tuple[str, Path]], tags: list[str]) ->
                     raise ApiError(f"{label}: no episode in this {KINDS[kind]}", 400)
                 out.append({"name": label, "kind": kind, "episodes": episodes})
             return out
+        except InflateError as exc:  # a bomb inside a member, or the budget's deadline
+            raise ApiError(_readable(exc.message, _extracted_at(settings), label + ":"), exc.status) from None
         finally:
             for *_, dest in extracted:
                 shutil.rmtree(dest, ignore_errors=True)
@@ -183,7 +199,9 @@ def upload():
     tags = _split_tags(request.headers.get(TAG_LIST_HEADER, ""), TAG_LIST_HEADER)  # before the body
     with received(settings, max_parts=MAX_PACKAGES + 1) as got:
         tags += [t for t in _split_tags(got.fields.get("tags", ""), "tags") if t not in tags]
-        packages = _ingest(settings, _packages(got), tags)
+        if len(tags) > MAX_TAGS_PER_REQUEST:
+            raise ApiError(f"{TAG_LIST_HEADER} and tags: more than {MAX_TAGS_PER_REQUEST} tags in one request", 400)
+        packages = _ingest(settings, _packages(got), tags, got.room)
     episodes = [e for p in packages for e in p["episodes"]]
     summary = {action: sum(1 for e in episodes if e["action"] == action)
                for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}

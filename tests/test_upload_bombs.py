@@ -1,0 +1,210 @@
+"""POST /api/episodes/upload on the real server (sockets) against packages built to cost far more than
+their size (tests/hostile_packages.py), each sent by a client holding the token:
+
+- decompression bombs inside members: a 241-byte zip holding an .mcap whose zstd chunk inflates to
+  256 MiB (35 s of CPU and +256 MB RSS before), an lz4 chunk that states 100 bytes and holds 256 MiB,
+  a gzipped .tfrecord of 58 MiB of zeros (54 s), an .npz member of 64 MiB of zeros (+904 MB RSS),
+  and the same TFRecord inside a Pi runtime package with valid checksums: each answered within
+  seconds, with RSS growth under 64 MB, a 4xx naming the file (or the episode rejected for it),
+  and nothing left in $HOPE_HOME/tmp;
+- a tar.gz of 99,991 directories (it held the upload lock 22-212 s): refused by count at once;
+- the budget of time one upload's unpacking may take (upload_extract_s);
+- concurrent uploads past upload_tmp_max_mb: refused with 507, nothing left in tmp.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+import hostile_packages as hp
+from hostile_clients import http_request
+
+MB = 1 << 20
+
+
+class Server:
+    """create_app on the real (guarded) HTTP server in this process, on a fresh HOPE_HOME."""
+
+    def __init__(self, home: Path, **env: str):
+        from hope_models.settings import load_settings
+        from webapp import create_app
+        from webapp.auth import load_or_create_token
+        from webapp.server import HttpServer
+
+        self.settings = load_settings(env={"HOPE_HOME": str(home), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": "",
+                                           "HOPE_UPLOAD_MAX_MB": "4", **env})
+        self.token = load_or_create_token(self.settings)
+        self.app, _ = create_app(self.settings, token=self.token)
+        self.server = HttpServer(self.app, "127.0.0.1", 0)
+        self.server.start()
+        self.port = self.server.port
+
+    def upload(self, body: bytes, *, headers: dict | None = None, timeout: float = 120.0) -> tuple[int, dict]:
+        status, raw = http_request(self.port, "POST", "/api/episodes/upload", body,
+                                   {"Authorization": f"Bearer {self.token}", "Content-Type": "application/zip",
+                                    **(headers or {})}, timeout=timeout)
+        return status, json.loads(raw) if raw else {}
+
+    def tmp_entries(self) -> list[str]:
+        tmp = Path(self.settings.home) / "tmp"
+        return sorted(p.name for p in tmp.iterdir()) if tmp.exists() else []
+
+    def close(self) -> None:
+        self.server.stop()
+        self.app.extensions["hope"].close()
+        self.app.extensions["hope"].registry.close()
+
+
+@pytest.fixture
+def server(tmp_path):
+    made: list[Server] = []
+
+    def make(**env: str) -> Server:
+        s = Server(tmp_path / f"home{len(made)}", **env)
+        made.append(s)
+        return s
+
+    yield make
+    for s in made:
+        s.close()
+
+
+class PeakRss:
+    """The process's peak RSS above where it was when the block began, sampled every 5 ms."""
+
+    def __enter__(self):
+        self.proc = psutil.Process()
+        self.base = self.peak = self.proc.memory_info().rss
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._watch, daemon=True)
+        self.thread.start()
+        self.t0 = time.monotonic()
+        return self
+
+    def _watch(self) -> None:
+        while not self.done.wait(0.005):
+            self.peak = max(self.peak, self.proc.memory_info().rss)
+
+    def __exit__(self, *exc):
+        self.seconds = time.monotonic() - self.t0
+        self.done.set()
+        self.thread.join()
+        self.growth_mb = (self.peak - self.base) / MB
+
+
+def _pi_package_holding(name: str, data: bytes, episode_id: str = "ep_bomb") -> bytes:
+    """A Pi runtime package (tar.gz) whose upload_manifest.json lists `name` with its true sha256."""
+    episode = json.dumps({"metadata": {"episode_id": episode_id}, "steps": []}).encode()
+    sums = {"episode.json": hashlib.sha256(episode).hexdigest(), name: hashlib.sha256(data).hexdigest()}
+    manifest = {"episode_id": episode_id, "file_checksums": sums, "metadata_checksum": sums["episode.json"],
+                "total_size_bytes": len(episode) + len(data)}
+    return hp.tar_gz_of([(episode_id, None), (f"{episode_id}/episode.json", episode), (f"{episode_id}/{name}", data),
+                         (f"{episode_id}/upload_manifest.json", json.dumps(manifest).encode())])
+
+
+BOMBS = {
+    "mcap-zstd-chunk-of-256-mib": (lambda: hp.xr_mcap_bomb(), "episode.mcap"),
+    "mcap-lz4-chunk-stating-100-bytes": (lambda: hp.xr_mcap_bomb(compression="lz4", declared=100), "episode.mcap"),
+    "tfrecord-gzip-of-58-mib": (lambda: hp.xr_tfrecord_bomb(), "episode.tfrecord.gz"),
+    "npz-member-of-64-mib": (lambda: hp.xr_npz_bomb(), "bomb.npz"),
+    "tfrecord-bomb-in-a-pi-package": (lambda: _pi_package_holding("blobs/x.tfrecord.gz", hp.tfrecord_gzip_bomb()),
+                                      "x.tfrecord.gz"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BOMBS))
+def test_a_decompression_bomb_inside_a_member_costs_seconds_not_minutes(server, name):
+    make, member = BOMBS[name]
+    body = make()
+    s = server()
+    s.upload(hp.xr_zip_of({"warm.json": b"{}"}))  # the first request's imports and caches are not the bomb's
+    with PeakRss() as cost:
+        status, answer = s.upload(body)
+    assert cost.seconds < 5.0, (cost.seconds, answer)
+    assert cost.growth_mb < 64, (cost.growth_mb, answer)
+    if status == 200:  # damage, not a bomb: the episode is rejected and says why
+        (episode,) = answer["packages"][0]["episodes"]
+        assert episode["action"] == "rejected" and member in " ".join(episode["errors"]), answer
+    else:
+        assert status == 413, answer
+        assert member in answer["error"] and "tmp/package-" not in answer["error"], answer
+    assert s.tmp_entries() == []
+
+
+@pytest.fixture(scope="module")
+def many_dirs() -> bytes:
+    return hp.many_dirs_tar_gz()
+
+
+def test_a_tar_of_99991_directories_is_refused_by_count_at_once(server, many_dirs):
+    s = server()
+    with PeakRss() as cost:
+        status, answer = s.upload(many_dirs)
+    assert status == 413 and "more than 10000 members" in answer["error"], answer
+    assert cost.seconds < 5.0
+    assert s.tmp_entries() == []
+
+
+def test_unpacking_past_upload_extract_s_is_refused(server):
+    s = server(HOPE_UPLOAD_EXTRACT_S="0.000001")
+    status, answer = s.upload(hp.xr_zip_of({"metadata.json": b"{}", "steps/000000.jsonl": b"{}\n"}))
+    assert status == 413 and "upload_extract_s" in answer["error"], answer
+    assert s.tmp_entries() == []
+
+
+def _start_upload(port: int, token: str, size: int, first: bytes) -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=30)
+    head = (f"POST /api/episodes/upload HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {token}\r\n"
+            f"Content-Type: application/zip\r\nContent-Length: {size}\r\nConnection: close\r\n\r\n")
+    sock.sendall(head.encode() + first)
+    return sock
+
+
+def _finish_upload(sock: socket.socket, rest: bytes) -> tuple[int, bytes]:
+    try:
+        sock.sendall(rest)
+    except OSError:
+        pass  # refused while sending: its answer is already there
+    raw = b""
+    while True:
+        try:
+            data = sock.recv(65536)
+        except OSError:
+            break
+        if not data:
+            break
+        raw += data
+    sock.close()
+    if not raw.startswith(b"HTTP/"):
+        return 0, raw
+    return int(raw.split(b" ", 2)[1]), raw.partition(b"\r\n\r\n")[2]
+
+
+def test_concurrent_uploads_past_upload_tmp_max_mb_are_refused_with_507(server):
+    from webapp.uploads import TmpRoom
+
+    s = server(HOPE_UPLOAD_TMP_MAX_MB="4")
+    size, half = 3 * MB, 3 * MB // 2
+    body = hp.xr_zip_of({"metadata.json": b"{}"}) + bytes(size)  # not a package once read whole: a 400
+    body = body[:size]
+    socks = [_start_upload(s.port, s.token, size, body[:half]) for _ in range(6)]
+    deadline = time.monotonic() + 20
+    while TmpRoom.held(s.settings) < 4 * MB - 256 * 1024 and time.monotonic() < deadline:
+        time.sleep(0.05)  # six halves (9 MiB) arriving: the room fills
+    answers = [_finish_upload(sock, body[half:]) for sock in socks]
+    statuses = sorted(status for status, _ in answers)
+    assert 507 in statuses, answers
+    refused = [json.loads(raw)["error"] for status, raw in answers if status == 507]
+    assert all("upload_tmp_max_mb=4" in e for e in refused), refused
+    assert set(statuses) <= {400, 507}, answers
+    deadline = time.monotonic() + 10
+    while (s.tmp_entries() or TmpRoom.held(s.settings)) and time.monotonic() < deadline:
+        time.sleep(0.05)  # a handler cleans up just after its answer is sent
+    assert s.tmp_entries() == [] and TmpRoom.held(s.settings) == 0
