@@ -9,10 +9,12 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import random
+import stat
 import struct
 import tarfile
+import warnings
 import zipfile
-import zlib
 
 import numpy as np
 
@@ -147,5 +149,63 @@ def odd_entries() -> dict[str, bytes]:
     }
 
 
-def raw_zlib(data: bytes) -> bytes:
-    return zlib.compress(data, 9)
+# -- generated archives: names, kinds and contents drawn from what has broken extractors -------------
+
+PARTS = ["a", "b", "ep", ".", "..", "", "n" * 256, "é" * 130, "\\", "C:", " ", "a" * 255, "x.json", "metadata.json",
+         "steps", "000000.jsonl", "x.mcap", "x.npz", "x.npz.json", "x.tfrecord", "episode.json",
+         "upload_manifest.json", "\udcff", "blobs", "a\nb"]
+DATA = [b"{}", b"", b"{", b"[]", bytes(100), b'{"metadata": {}, "steps": [{}]}\n', b"\x1f\x8b\x08\x00", b"PK\x03\x04",
+        MCAP_MAGIC]
+
+
+def random_name(r: random.Random, bad: float = 0.3) -> str:
+    """A member name of 1-4 parts; with probability `bad` per part, an odd one."""
+    safe = ["ep", "a", "b", "x.json", "metadata.json", "steps", "000000.jsonl", "blobs", "x.mcap", "x.tfrecord"]
+    name = "/".join(r.choice(PARTS if r.random() < bad else safe) for _ in range(r.randint(1, 4)))
+    for p, change in ((0.05, lambda n: "/" + n), (0.05, lambda n: "./" + n), (0.1, lambda n: n + "/"),
+                      (0.03, lambda n: n.replace("/", "\\"))):
+        if r.random() < p:
+            name = change(name)
+    return name
+
+
+def random_tar_gz(r: random.Random) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz", format=r.choice([tarfile.PAX_FORMAT, tarfile.GNU_FORMAT]),
+                      encoding="utf-8", errors="surrogateescape") as tar:
+        for _ in range(r.randint(1, 6)):
+            info = tarfile.TarInfo(random_name(r))
+            info.mode, info.mtime, kind = r.choice([0o644, 0, 0o7777]), r.choice([0, 1, 2 ** 33]), r.random()
+            if kind < 0.3:
+                info.type = (tarfile.DIRTYPE if kind < 0.2 else tarfile.SYMTYPE if kind < 0.25 else
+                             tarfile.LNKTYPE if kind < 0.28 else tarfile.FIFOTYPE)
+                info.linkname = random_name(r) if info.type in (tarfile.SYMTYPE, tarfile.LNKTYPE) else ""
+                tar.addfile(info)
+            else:
+                data = r.choice(DATA)
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def random_zip(r: random.Random) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zipfile warns of the duplicate names we mean to write
+        for _ in range(r.randint(1, 6)):
+            info = zipfile.ZipInfo(random_name(r))
+            if r.random() < 0.1:
+                info.create_system = 3
+                info.external_attr = (r.choice([stat.S_IFLNK, stat.S_IFIFO, stat.S_IFDIR]) | 0o777) << 16
+            try:
+                z.writestr(info, r.choice(DATA))
+            except (ValueError, UnicodeEncodeError):
+                pass  # a name zipfile itself cannot write
+    return buf.getvalue()
+
+
+def random_archives(seed: int, count: int):
+    """(index, body) of `count` generated tar.gz and zip packages, reproducible from `seed`."""
+    r = random.Random(seed)
+    for i in range(count):
+        yield i, random_tar_gz(r) if r.random() < 0.5 else random_zip(r)
