@@ -293,6 +293,8 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
         page.check("#promote-force")
         page.click("#promote-button")  # no admin token: the 403's message, nothing gated
         expect(page.locator("#promote-form-result")).to_contain_text("Not promoted: force: needs the admin token")
+        assert [e for e in errors if "403" not in e] == [], errors  # the browser logs the refused request itself
+        errors.clear()
         page.fill("#promote-admin", "the-robot-owners-admin-token")
         page.click("#promote-button")
         expect(page.locator("#promote-form-result")).to_contain_text(f"Promoted {run2}", timeout=60_000)

@@ -160,6 +160,16 @@ def test_no_second_start_for_the_same_episodes_and_a_restart_keeps_the_watermark
     assert p.tick(COOL).phase == "waiting for data"
 
 
+def test_the_auto_chain_is_not_counted_against_max_queued_runs(home, episode_dirs):
+    """The cap is for the doors clients use; the daemon queues its chain only on a queue with nothing
+    waiting, so a cap below the chain's length must not keep continuous learning from ever starting."""
+    home.settings.max_queued_runs = 1
+    hand_off(home, episode_dirs[:MIN_NEW])
+    d = policy(home).tick(COOL)
+    assert d.sequence_id is not None, d
+    assert [m["component"] for m in chains(home)[d.sequence_id]] == ["vqvae", "fast_loop", "mid_loop"]
+
+
 def test_only_components_with_enough_new_episodes_are_queued(home, episode_dirs):
     """A component whose episodes the app cannot train (no usable action, say) waits; the others go.
     A mid_loop without a vqvae in its chain reads the codes of the served VQ-VAE."""

@@ -175,3 +175,25 @@ def test_force_with_the_admin_credential_is_promoted_and_recorded(api, tmp_path_
     assert len(events) == 1 and events[0]["promotion"]["by"] == "http" and events[0]["level"] == "warning"
     assert any("forced promotion over HTTP" in r.getMessage() and out["version"] in r.getMessage()
                for r in caplog.records if r.levelname == "WARNING")
+
+
+def test_the_cli_on_the_robot_can_always_force_and_it_is_recorded(api, tmp_path_factory, monkeypatch, capsys):
+    import run_trainer
+    from brain_fixtures import brain_runs
+    from registry import runs
+    from registry.models import Model
+    from test_api import add_completed_run
+
+    run_id, last = add_completed_run(api.registry, api.settings, brain_runs(tmp_path_factory)["alpha30"].parent.parent)
+    (Path(api.settings.home) / "config.toml").write_text("gate_val_tolerance = 0.0\n")
+    monkeypatch.setenv("HOPE_HOME", str(api.settings.home))
+    assert not getattr(api.settings, "allow_http_force", False)  # the default: off
+    assert run_trainer.main(["promote", run_id, "--json"]) == 0
+    capsys.readouterr()
+    assert run_trainer.main(["promote", "--checkpoint", str(last.parent / "00000015"), "--force", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["promoted"] is True and out["forced"] is True, out
+    with api.registry.session(readonly=True) as s:
+        assert s.get(Model, out["model_id"]).gate_result["forced_by"] == "cli"
+        events = [e.payload for e in runs.run_events(s, run_id, kinds=["log"]) if "promotion" in e.payload]
+    assert [e["promotion"]["by"] for e in events] == ["cli"] and out["version"] in events[0]["message"]
