@@ -74,3 +74,12 @@ def test_private_umask_applies_to_what_the_process_writes(tmp_path):
         assert stat.S_IMODE((tmp_path / "d" / "f").stat().st_mode) == 0o600
     finally:
         os.umask(previous)
+
+
+def test_the_queue_cap_and_forcing_over_http(tmp_path):
+    s = load_settings(env={"HOPE_HOME": str(tmp_path)})
+    assert (s.max_queued_runs, s.allow_http_force) == (20, False)  # capped, and no forcing over HTTP
+    s = load_settings(env={"HOPE_HOME": str(tmp_path), "HOPE_MAX_QUEUED_RUNS": "5", "HOPE_ALLOW_HTTP_FORCE": "1"})
+    assert (s.max_queued_runs, s.allow_http_force) == (5, True)
+    with pytest.raises(SettingsError, match="max_queued_runs"):
+        load_settings(env={"HOPE_HOME": str(tmp_path), "HOPE_MAX_QUEUED_RUNS": "0"})
