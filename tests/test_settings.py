@@ -83,3 +83,14 @@ def test_the_queue_cap_and_forcing_over_http(tmp_path):
     assert (s.max_queued_runs, s.allow_http_force) == (5, True)
     with pytest.raises(SettingsError, match="max_queued_runs"):
         load_settings(env={"HOPE_HOME": str(tmp_path), "HOPE_MAX_QUEUED_RUNS": "0"})
+
+
+def test_the_upload_room_and_time(tmp_path):
+    s = load_settings(env={"HOPE_HOME": str(tmp_path)})
+    assert (s.upload_tmp_max_mb, s.upload_extract_s) == (3072, 30.0)
+    s = load_settings(env={"HOPE_HOME": str(tmp_path), "HOPE_UPLOAD_TMP_MAX_MB": "64", "HOPE_UPLOAD_EXTRACT_S": "2.5"})
+    assert (s.upload_tmp_max_mb, s.upload_extract_s) == (64, 2.5)
+    for var, value, field in (("HOPE_UPLOAD_TMP_MAX_MB", "0", "upload_tmp_max_mb"),
+                              ("HOPE_UPLOAD_EXTRACT_S", "0", "upload_extract_s")):
+        with pytest.raises(SettingsError, match=field):
+            load_settings(env={"HOPE_HOME": str(tmp_path), var: value})
