@@ -197,3 +197,21 @@ def test_the_cli_on_the_robot_can_always_force_and_it_is_recorded(api, tmp_path_
         assert s.get(Model, out["model_id"]).gate_result["forced_by"] == "cli"
         events = [e.payload for e in runs.run_events(s, run_id, kinds=["log"]) if "promotion" in e.payload]
     assert [e["promotion"]["by"] for e in events] == ["cli"] and out["version"] in events[0]["message"]
+
+
+def test_a_huge_integer_in_an_mcap_episode_is_a_reported_problem_naming_the_field(tmp_path, monkeypatch):
+    from hope_models.data.synthetic import generate_dataset
+    from hope_models.rlds import write_mcap
+    from hope_models.rlds.discover import read_path
+
+    generate_dataset(tmp_path / "ds", 40, obs_dim=2, act_dim=1, episode_seconds=(2, 2), seed=1)
+    episode = read_path(tmp_path / "ds")[0].episodes[0]
+    episode.steps[1].step_metadata = {"counter": 424242424242}
+    dumps = write_mcap._dumps
+    monkeypatch.setattr(write_mcap, "_dumps", lambda obj: dumps(obj).replace(b"424242424242", HUGE.encode()))
+    path = write_mcap.write_episode_mcap(episode, tmp_path / "ep.mcap")
+    monkeypatch.undo()
+    reports = read_path(path)
+    problems = [p.message for r in reports for p in [*r.problems, *(q for e in r.episodes for q in e.problems)]]
+    assert any("step_metadata.counter" in m and "5000 digits" in m for m in problems), problems
+    assert not any("reader failed" in m for m in problems), problems

@@ -26,6 +26,8 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message
 from mcap.stream_reader import StreamReader
 
+from hope_models.numbers import huge_integer_error
+
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
 from .inflate import MAX_RATIO, Counted, InflateError, inflate_cap, open_inflated
 from .json_text import ReadLimits, TextReadError, read_bytes
@@ -83,6 +85,10 @@ class _Messages:
             obj = json.loads(record.data)
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             self.bad(f"{topic} message {record.sequence} is not valid JSON ({exc})")
+            return
+        except ValueError as exc:  # an integer too long for int()
+            self.bad(f"{topic} message {record.sequence} is not usable JSON "
+                     f"({huge_integer_error(bytes(record.data)) or exc})")
             return
         if not isinstance(obj, dict):
             self.bad(f"{topic} message {record.sequence} is not a JSON object")

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hope_models.numbers import huge_integer_error
+
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
 from .json_text import ReadLimits, TextReadError, read_bytes
 from .normalize import id_from_name, normalize_metadata, step_from_obj
@@ -69,6 +71,9 @@ def _json_feature(features: dict[str, Feature], name: str, problems: list[tuple[
     except json.JSONDecodeError as exc:
         problems.append((name, f"feature {name} is not valid JSON: {exc.msg} (column {exc.colno})"))
         return None
+    except ValueError as exc:  # an integer too long for int()
+        problems.append((name, f"feature {name} is not usable JSON: {huge_integer_error(text) or exc}"))
+        return None
 
 
 def _step_metadata(features: dict[str, Feature]) -> Any:
@@ -84,7 +89,7 @@ def _step_metadata(features: dict[str, Feature]) -> Any:
     if text.lstrip().startswith("{"):
         try:
             return json.loads(text)
-        except json.JSONDecodeError:
+        except ValueError:  # not JSON (or an integer too long for int()): kept as the text it is
             pass
     return text  # plain text (the wiki TFRecord): normalize turns it into {"text": ...}
 
