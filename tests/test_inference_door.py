@@ -280,3 +280,19 @@ def test_infer_asks_the_inference_port_by_default(tmp_path, tmp_path_factory):
         held_threads.set()
         editor.stop()
         s.close()
+
+
+def test_the_door_and_the_per_address_cap_are_settings(tmp_path):
+    from hope_models.settings import SettingsError, load_settings
+    from webapp.server import ConnectionLimits
+
+    home = str(tmp_path / "home")
+    defaults = load_settings(env={"HOPE_HOME": home})
+    assert defaults.inference_port == 8766 and defaults.inference_port != defaults.port
+    assert ConnectionLimits.from_settings(defaults).max_per_client == 32
+    s = load_settings(env={"HOPE_HOME": home, "HOPE_INFERENCE_PORT": "0", "HOPE_MAX_CONNECTIONS_PER_CLIENT": "5"})
+    assert s.inference_port == 0 and ConnectionLimits.from_settings(s).max_per_client == 5
+    for var, value in (("HOPE_INFERENCE_PORT", "-1"), ("HOPE_MAX_CONNECTIONS_PER_CLIENT", "1"),
+                       ("HOPE_INFERENCE_PORT", "eighty")):
+        with pytest.raises(SettingsError, match=var):
+            load_settings(env={"HOPE_HOME": home, var: value})
