@@ -36,6 +36,7 @@ from registry import runs
 from registry.models import Model, Run, utcnow
 from hope_models.child_command import trainer_argv
 from hope_models.child_result import last_json_object
+from hope_models.log_limits import rotate_if_over
 from hope_models.settings import GATE_ENV
 
 log = logging.getLogger(__name__)
@@ -127,6 +128,7 @@ class AutoPromoter:
         # passed explicitly so it gates with exactly what this daemon was configured with.
         env = {**os.environ, "HOPE_HOME": str(self.settings.home),
                **{var: str(getattr(self.settings, name)) for var, name in GATE_ENV.items()}}
+        rotate_if_over(self.logs_dir / LOG_FILE, self.settings)  # a gate per completed run: it would only grow
         self._log_line(f"run {run_id}: gating ({' '.join(cmd[1:])})")
         with open(out_path, "wb") as out, open(self.logs_dir / LOG_FILE, "ab") as err:
             # A session of its own: Ctrl-C on `serve` reaches the daemon, which stops the child in close().

@@ -23,6 +23,8 @@ import sys
 from collections.abc import Mapping
 from typing import IO
 
+from hope_models.log_limits import rate_limit
+
 PLAIN_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 JOURNAL_FORMAT = "%(name)s: %(message)s"
 
@@ -77,13 +79,15 @@ def journal_prefix(levelno: int = logging.ERROR, stream: IO | None = None) -> st
 def configure_logging(level: int | str = logging.INFO, stream: IO | None = None) -> logging.Handler | None:
     """Like logging.basicConfig(level=..., stream=stderr): a handler on the root logger with the
     console format, unless the root logger has handlers already (then nothing changes, as with
-    basicConfig, so a test's capture or an embedding program keeps its own). Returns the handler."""
+    basicConfig, so a test's capture or an embedding program keeps its own), rate-limited like every
+    handler (hope_models/log_limits.py). Returns the handler."""
     root = logging.getLogger()
     if root.handlers:
         return None
     stream = sys.stderr if stream is None else stream
     handler = logging.StreamHandler(stream)
     handler.setFormatter(console_formatter(stream=stream))
+    handler.addFilter(rate_limit())  # a flood of one line is folded into a count (log_limits.py)
     root.addHandler(handler)
     root.setLevel(level)
     return handler

@@ -97,6 +97,11 @@ class Settings:
     # worker_heartbeat_s (workers/heartbeat.py) and is offline after 3 missed beats
     system_sample_s: float = 5.0
     worker_heartbeat_s: float = 5.0
+    # the log files under $HOPE_HOME/logs (daemon.log, worker.log, promote.log) are rotated at
+    # log_max_mb, keeping log_backups older ones: at most (log_backups + 1) * log_max_mb each
+    # (hope_models/log_limits.py); an SD card must not fill with log
+    log_max_mb: int = 10
+    log_backups: int = 3
 
     @property
     def datasets_dir(self) -> Path:
@@ -152,6 +157,8 @@ _ENV = {
     "HOPE_AUTO_TRAIN_STEPS": "auto_train_steps",
     "HOPE_SYSTEM_SAMPLE_S": "system_sample_s",
     "HOPE_WORKER_HEARTBEAT_S": "worker_heartbeat_s",
+    "HOPE_LOG_MAX_MB": "log_max_mb",
+    "HOPE_LOG_BACKUPS": "log_backups",
 }
 # the promotion gate's part of _ENV: the daemon passes these to the gate it spawns
 GATE_ENV = {var: name for var, name in _ENV.items() if name.startswith("gate_")}
@@ -162,7 +169,8 @@ _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_refle
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
             "max_connections": 8, "max_connections_per_client": 2, "inference_port": 0,
             "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0, "max_queued_runs": 1,
-            "upload_max_mb": 1, "upload_tmp_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0}
+            "upload_max_mb": 1, "upload_tmp_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0,
+            "log_max_mb": 1, "log_backups": 0}
 # fields that must be above zero (an interval of 0 s would spin)
 _POSITIVE = {"system_sample_s", "worker_heartbeat_s", "upload_extract_s"}
 # list settings whose items never contain a path separator are split on commas and blanks instead

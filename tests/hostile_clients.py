@@ -364,3 +364,64 @@ class LongPollFlood:
         deadline = time.monotonic() + timeout
         for t in self._threads:
             t.join(max(0.1, deadline - time.monotonic()))
+
+
+# Bodies a polling client POSTs that python-engineio / python-socketio cannot decode: each once wrote
+# a traceback (twice) into the log. `x`, `\xff`, `bZZZ` fail Engine.IO's decoding (the session stays
+# open); `42[`, `4x` fail Socket.IO's (the session is closed).
+LOG_FLOOD_BODIES = (b"x", b"42[", b"\xff", b"4x", b"bZZZ")
+
+
+def log_flood(port: int, packets: int = 500, bodies: tuple = LOG_FLOOD_BODIES, timeout: float = 2.0) -> dict:
+    """No token: `packets` malformed polling POSTs, on one Engine.IO session while it stays open (a
+    new handshake when it is closed). Returns {POST status: count}, -1 for a refused handshake."""
+    statuses: dict = {}
+    sid = None
+    for i in range(packets):
+        if sid is None:
+            sid = polling_handshake(port, timeout=timeout)
+        if sid is None:
+            statuses[-1] = statuses.get(-1, 0) + 1
+            time.sleep(0.05)  # refused by the session rate limit: a moment before the next try
+            continue
+        try:
+            status, _ = http_request(port, "POST", f"/socket.io/?EIO=4&transport=polling&sid={sid}",
+                                     body=bodies[i % len(bodies)], timeout=timeout,
+                                     headers={"Content-Type": "text/plain;charset=UTF-8"})
+        except OSError:
+            status = 0
+        statuses[status] = statuses.get(status, 0) + 1
+        if status != 200:
+            sid = None
+    return statuses
+
+
+# A Socket.IO BINARY_EVENT declaring 999,999,999 attachments: python-socketio appends every later
+# message of the session to it until that many have come.
+ATTACHMENT_BOMB = '45999999999-["x",{"_placeholder":true,"num":0}]'
+
+
+def binary_attachment_bomb(port: int, token: str, megabytes: float = 16.0, chunk: int = 32 * 1024,
+                           timeout: float = 10.0) -> dict:
+    """A token holder's Socket.IO client sends ATTACHMENT_BOMB, then `megabytes` of binary messages
+    of `chunk` bytes. Returns {"logged_in", "sent" (bytes the socket took), "closed" (the server
+    closed the connection), "client"} (the SocketIOClient, still open if the server kept it)."""
+    from simple_websocket import ConnectionClosed
+
+    client = SocketIOClient(port, token, timeout=timeout)
+    out = {"logged_in": client.connected, "sent": 0, "closed": False, "client": client}
+    if not client.connected:
+        return out
+    payload = os.urandom(chunk)
+    client.ws.sock.settimeout(timeout)  # a server that stops reading without closing: no send waits for ever
+    try:
+        client.ws.send(ATTACHMENT_BOMB)
+        while out["sent"] < megabytes * 1024 * 1024:
+            if not client.ws.connected:
+                break
+            client.ws.send(payload)
+            out["sent"] += len(payload)
+    except (ConnectionClosed, OSError):
+        pass
+    out["closed"] = not client.ws.connected
+    return out

@@ -65,7 +65,7 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     from flask import Flask
     from flask_socketio import SocketIO
 
-    from webapp import auth, errors
+    from webapp import auth, errors, socket_packets
     from webapp.api import register
     from webapp.api.sim import ReflexJobs
     from webapp.commands import ChildProcesses
@@ -89,10 +89,15 @@ def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None
     hosts = HostPolicy.from_settings(settings)
     # threading mode: no eventlet/gevent monkey-patching; WebSocket through simple-websocket.
     # Browser origins follow the Host rule (webapp/hosts.py), never X-Forwarded-* headers.
-    socketio = SocketIO(app, async_mode="threading", message_queue=message_queue, logger=False,
-                        engineio_logger=False, cors_allowed_origins=hosts.origin_allowed,
+    loggers = socket_packets.quiet_loggers()
+    socketio = SocketIO(app, async_mode="threading", message_queue=message_queue,
+                        logger=loggers["socketio.server"], engineio_logger=loggers["engineio.server"],
+                        max_http_buffer_size=socket_packets.MAX_MESSAGE_BYTES,
+                        cors_allowed_origins=hosts.origin_allowed,
                         ping_interval=settings.socketio_ping_interval_s)
     app.extensions["hope"].socket_guard = SocketGuard(socketio, auth_timeout_s=socket_auth_timeout_s)
+    # no binary data, bounded messages, a client's bad packet one WARNING line (socket_packets.py)
+    socket_packets.install(socketio, app.extensions["hope"].socket_guard)
     app.extensions["hope"].reflex_jobs.socketio = socketio  # sim.frame events of the reflex jobs
     errors.install(app)  # first: the body size is checked before the token
     auth.install(app, socketio)

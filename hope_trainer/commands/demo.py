@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     if not settings.auto_promote:
         say("note: auto_promote is off in the settings; the demo turns it on for this process (it gates each run)")
         settings.auto_promote = True
-    setup_logging(settings.home, console_level=logging.WARNING)
+    setup_logging(settings.home, console_level=logging.WARNING, settings=settings)
     settings.auto_train = False  # the daemon reads it each tick: nothing starts by itself before the summary
     demo = Demo(settings, args)
 

@@ -105,6 +105,7 @@ class WorkerSupervisor:
 
         self.cmd = worker_command(settings, queue)
         self.env = worker_env(settings)
+        self.settings = settings
         self.log_path = log_path
         self.proc: subprocess.Popen | None = None
         self.restarts = 0
@@ -116,12 +117,17 @@ class WorkerSupervisor:
         self._thread.start()
 
     def _spawn(self) -> subprocess.Popen:
+        from hope_models.log_limits import PipeToLog
+
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        with open(self.log_path, "ab") as out:
-            argv = [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *self.cmd]
-            # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order
-            return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                                    env=self.env, start_new_session=True)
+        argv = [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *self.cmd]
+        # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order.
+        # Its output (and its job child's, tracebacks and prints included) through a pipe we rotate:
+        # an appended file would grow without bound.
+        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                env=self.env, start_new_session=True)
+        PipeToLog(self.log_path, self.settings).start(proc.stdout)
+        return proc
 
     def _loop(self) -> None:
         failures = 0
@@ -337,22 +343,22 @@ def door_line(door: Any) -> str:
     return f"inference: {door.url}api/brain/infer (the robot's port: infer, GET /api/brain, ping, health)"
 
 
-def setup_logging(home: Path, console_level: int = logging.INFO) -> None:
-    """Services log to $HOPE_HOME/logs/daemon.log; the terminal gets `console_level` and up (the
-    demo keeps it to warnings so its own lines stay readable). Under a systemd unit the terminal
-    lines carry journald priorities instead of a timestamp (hope_models/log_format.py)."""
+def setup_logging(home: Path, console_level: int = logging.INFO, settings: Any = None) -> None:
+    """Services log to $HOPE_HOME/logs/daemon.log, rotated at `settings`' log_max_mb; the terminal
+    gets `console_level` and up (the demo keeps it to warnings so its own lines stay readable).
+    Under a systemd unit the terminal lines carry journald priorities instead of a timestamp
+    (hope_models/log_format.py). Both are rate-limited (hope_models/log_limits.py)."""
     from hope_models.log_format import console_formatter
+    from hope_models.log_limits import rate_limit, rotating_file_handler
 
     root = logging.getLogger()
     root.setLevel(logging.INFO)
     console = logging.StreamHandler(sys.stderr)
     console.setLevel(console_level)
     console.setFormatter(console_formatter("%H:%M:%S"))
+    console.addFilter(rate_limit())
     root.addHandler(console)
-    (home / "logs").mkdir(parents=True, exist_ok=True)
-    file_handler = logging.FileHandler(home / "logs" / "daemon.log", encoding="utf-8")
-    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root.addHandler(file_handler)
+    root.addHandler(rotating_file_handler(home / "logs" / "daemon.log", settings))
     for noisy in ("werkzeug", "engineio", "socketio", "kombu", "celery", "amqp", "alembic"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
@@ -368,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
     except SettingsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    setup_logging(settings.home)
+    setup_logging(settings.home, settings=settings)
     serve = Serve(settings, args)
 
     def on_signal(signum, _frame):

@@ -18,6 +18,7 @@ from typing import Any
 
 from hope_models.child_command import trainer_argv
 from hope_models.child_result import last_json_object
+from hope_models.log_limits import rotate_if_over
 from hope_models.durable import fsync_path
 from hope_trainer.demo.chain import ChainSteps
 from hope_trainer.demo.closure import ClosureSteps
@@ -58,6 +59,7 @@ class Demo(ChainSteps, ClosureSteps):
         logs = Path(self.settings.home) / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         err_path = logs / "demo-child.log"
+        rotate_if_over(err_path, self.settings)
         with open(err_path, "ab") as err, subprocess.Popen(
                 trainer_argv(*argv), stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL,
                 env=env, start_new_session=True) as proc:
