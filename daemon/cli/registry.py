@@ -2,7 +2,8 @@
 
 Every daemon-side command (enqueue, status, watch, cancel, ...) reads the same settings and opens
 the same `$HOPE_HOME/hope.db`, migrating it when needed (cheap when it is at head), so the command
-works whether the daemon is up or not. Problems become `CommandError` (exit 2, one line on stderr).
+works whether the daemon is up or not. Problems become `CommandError` (exit 2, one line on stderr;
+a full queue exits 75).
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
 
 
 def run_command(body) -> int:
-    """Call `body()` and turn the errors users cause into a message and exit code 2."""
+    """Call `body()` and turn the errors users cause into a message and exit code 2 (75 for a full
+    queue: nothing wrong with the request, try again later)."""
     from registry.run_request import RunRequestError
     from registry.runs import RunError
 
