@@ -9,11 +9,13 @@
 from __future__ import annotations
 
 import logging
+import os
 import re
 import subprocess
 import sys
 import time
 import types
+from pathlib import Path
 
 import pytest
 
@@ -180,3 +182,32 @@ def test_the_rate_limit_counts_per_template_and_reports_the_count_once():
     later = record("client %s refused", 1001)
     assert limit.filter(later)
     assert later.getMessage() == "client 1001 refused (and 98 more like it in the last 60 s)"
+
+
+JOURNAL_CHILD = """
+import logging, sys, time
+sys.path.insert(0, sys.argv[1])
+from hope_models.log_format import configure_logging
+from hope_models.log_limits import rate_limit
+configure_logging(logging.INFO)
+log = logging.getLogger("hope.test")
+for i in range(200):
+    log.warning("client %d refused", i)
+rate_limit().clock = lambda: time.monotonic() + 61.0  # a minute later
+log.warning("client %d refused", 200)
+"""
+
+
+def test_the_journal_gets_the_same_rate_limit_with_its_priorities(tmp_path):
+    """configure_logging (the daemon, the webapp, the Celery worker under systemd): stderr is the
+    journal when JOURNAL_STREAM names it, faked here with a file as tests/test_log_format.py does."""
+    err = tmp_path / "stderr.txt"
+    err.touch()
+    st = err.stat()
+    env = {**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"}
+    repo = str(Path(__file__).resolve().parents[1])
+    with open(err, "ab") as out:
+        subprocess.run([sys.executable, "-c", JOURNAL_CHILD, repo], stderr=out, env=env, timeout=60, check=True)
+    lines = err.read_text().splitlines()
+    assert lines[:10] == [f"<4>hope.test: client {i} refused" for i in range(10)], lines
+    assert lines[10:] == ["<4>hope.test: client 200 refused (and 190 more like it in the last 60 s)"], lines
