@@ -1,4 +1,4 @@
-"""`run_trainer.py promote (RUN | --checkpoint DIR) [--component C] [--force] [--auto] [--json]`.
+"""`run_trainer.py promote (RUN | --checkpoint DIR) [--component C] [--force [--by cli|http]] [--auto] [--json]`.
 
 Gates a candidate and promotes it when it passes (hope_models/promote/gate.py):
 
