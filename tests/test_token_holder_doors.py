@@ -19,7 +19,7 @@ import pytest
 
 from daemon_fixtures import home  # noqa: F401
 from hostile_clients import http_request
-from test_app_handoff import ASSETS, PHONE, multipart, record
+from test_app_handoff import ASSETS, multipart, record
 from test_retention_and_queue_cap import Server
 
 HUGE = "9" * 5000
