@@ -84,6 +84,33 @@ def test_a_flood_of_malformed_packets_is_a_few_warning_lines_with_a_count(tmp_pa
     assert len(text.encode()) < 20_000, f"{len(text.encode())} bytes of log for 500 bad packets"
 
 
+def test_a_real_serve_writes_a_few_lines_for_a_flood_of_bad_packets(tmp_path):
+    """The files are the point: `serve`'s daemon.log and its terminal (the journal under systemd)."""
+    from daemon_fixtures import REPO, Home, Proc
+
+    home = Home(tmp_path / "home")
+    out = home.path / "serve.out"
+    proc = Proc("serve", [sys.executable, str(REPO / "run_trainer.py"), "serve", "--port", "0", "--no-worker"],
+                home.env, out)
+    try:
+        found = wait_until(lambda: re.search(r"Robot Editor: http://127\.0\.0\.1:(\d+)/",
+                                             out.read_text(errors="replace")), 60)
+        assert found, out.read_text(errors="replace")
+        daemon_log = home.path / "logs" / "daemon.log"
+        start = (len(out.read_bytes()), daemon_log.stat().st_size)
+        statuses = log_flood(int(found.group(1)), packets=500)
+        assert sum(n for st, n in statuses.items() if st in (200, 400)) >= 250, statuses  # past the session limits
+        _settled(daemon_log)
+    finally:
+        proc.stop()
+        home.close()
+    written = {"terminal": out.read_bytes()[start[0]:], "daemon.log": daemon_log.read_bytes()[start[1]:]}
+    for name, text in written.items():
+        assert b"Traceback" not in text, (name, text[-3000:])
+        assert b" WARNING " in text, (name, text[-3000:])
+        assert len(text) < 20_000, f"{name}: {len(text)} bytes for 500 bad packets"
+
+
 def test_a_bug_in_our_own_code_still_logs_its_traceback(tmp_path, caplog):
     from hostile_clients import SocketIOClient
 
