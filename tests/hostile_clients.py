@@ -160,9 +160,10 @@ class HostileRound:
 
 
 def run_flood(port: int, token: str, data: str, *, runs: int = 21, queue: str = "nobody",
-              component: str = "fast_loop", steps: int = 10) -> dict:
+              component: str = "fast_loop", steps: int = 10, cancel: bool = True) -> dict:
     """A token holder's create-and-cancel burst: `runs` runs POSTed to a queue no worker serves, each
-    cancelled at once (they never start). Once made retention delete a trained run's files.
+    cancelled at once (they never start). Once made retention delete a trained run's files. With
+    cancel=False it fills the queue instead (429 past max_queued_runs).
     Returns the statuses of the creations and of the cancels ({status: count}) and the run ids made."""
     auth = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
     body = json.dumps({"component": component, "data": data, "steps": steps, "queue": queue}).encode()
@@ -174,6 +175,8 @@ def run_flood(port: int, token: str, data: str, *, runs: int = 21, queue: str = 
             continue
         run_id = json.loads(raw)["run"]["id"]
         out["ids"].append(run_id)
+        if not cancel:
+            continue
         status, _ = http_request(port, "POST", f"/api/runs/{run_id}/cancel", headers=auth, timeout=30.0)
         out["cancelled"][status] = out["cancelled"].get(status, 0) + 1
     return out

@@ -121,6 +121,13 @@ def test_runs_waiting_to_start_are_capped_per_queue_with_a_429(home, tiny_datase
     assert server.post("/api/runs", run)[0] == 201
 
 
+def test_a_queue_filling_flood_stops_at_the_cap(home, tiny_dataset, server):
+    home.settings.max_queued_runs = 4
+    flood = run_flood(server.port, server.token, str(tiny_dataset), runs=7, queue="full", cancel=False)
+    assert flood["created"] == {201: 4, 429: 3} and flood["cancelled"] == {}, flood
+    assert sorted(r["id"] for r in home.runs() if r["queue"] == "full") == sorted(flood["ids"])
+
+
 def test_the_cap_holds_under_concurrent_requests(home, tiny_dataset, server):
     home.settings.max_queued_runs = 2
     run = {"component": "fast_loop", "data": str(tiny_dataset), "steps": 10, "queue": "burst"}
