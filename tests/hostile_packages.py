@@ -146,6 +146,8 @@ def odd_entries() -> dict[str, bytes]:
         "zip-path-over-4kb": xr_zip_of({f"{deep}/x.json": b"{}"}),
         "zip-file-then-dir-below-it": xr_zip_of({"a": b"{}", "a/b/": b""}),
         "zip-dir-then-file-of-its-name": xr_zip_of({"a/": b"", "a": b"{}"}),
+        "zip-1001-implied-directories": xr_zip_of({f"d{i}/x.json": b"{}" for i in range(1001)}),
+        "tar-1001-implied-directories": tar_gz_of([("ep", None)] + [(f"ep/d{i}/x.json", b"{}") for i in range(1000)]),
     }
 
 

@@ -7,7 +7,8 @@ their size (tests/hostile_packages.py), each sent by a client holding the token:
   and the same TFRecord inside a Pi runtime package with valid checksums: each answered within
   seconds, with RSS growth under 64 MB, a 4xx naming the file (or the episode rejected for it),
   and nothing left in $HOPE_HOME/tmp;
-- a tar.gz of 99,991 directories (it held the upload lock 22-212 s): refused by count at once;
+- a tar.gz of 99,991 directories (it held the upload lock 22-212 s): refused by count at once, as is
+  one of more members than a long real episode has (10,000);
 - the budget of time one upload's unpacking may take (upload_extract_s);
 - concurrent uploads past upload_tmp_max_mb: refused with 507, nothing left in tmp.
 """
@@ -147,6 +148,16 @@ def test_a_tar_of_99991_directories_is_refused_by_count_at_once(server, many_dir
     s = server()
     with PeakRss() as cost:
         status, answer = s.upload(many_dirs)
+    assert status == 413 and "more than 1000 directories" in answer["error"], answer
+    assert cost.seconds < 5.0
+    assert s.tmp_entries() == []
+
+
+def test_a_tar_of_more_members_than_a_long_episode_has_is_refused(server):
+    files = hp.tar_gz_of([("ep", None)] + [(f"ep/step_{i:05d}_rgb.npy", b"") for i in range(10_000)])
+    s = server()
+    with PeakRss() as cost:
+        status, answer = s.upload(files)
     assert status == 413 and "more than 10000 members" in answer["error"], answer
     assert cost.seconds < 5.0
     assert s.tmp_entries() == []

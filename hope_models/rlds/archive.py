@@ -24,6 +24,7 @@ from .export_cloud import EPISODE_FILE, UPLOAD_MANIFEST
 # The Pi runtime writes per step an rgb and a depth .npy (and a .wav with audio) beside one
 # episode.json: its recorder's default of 500 steps is ~1,500 files, 3,000 steps ~9,000
 MAX_MEMBERS = 10_000
+MAX_DIRS = 1_000  # the recorder writes its files flat in the episode dir; the exporter adds blobs/...
 MAX_TOTAL_BYTES = 8 << 30
 NAME_MAX = 255  # bytes of one path component (the filesystem's limit)
 MAX_PATH_BYTES = 1024  # bytes of a member's whole path: ours sit well under $HOPE_HOME's PATH_MAX
@@ -67,11 +68,17 @@ def _check_lengths(tar_path: Path | str, name: str, parts: tuple[str, ...]) -> N
                            f"at most {MAX_PATH_BYTES}")
 
 
-def file_dir_clash(paths: list[tuple[PurePosixPath, bool]]) -> PurePosixPath | None:
-    """A path that is a file and also the parent of another member; `paths` (path, is_file)."""
-    parents = {parent for path, _ in paths for parent in path.parents}
+def check_tree(label: Path | str, paths: list[tuple[PurePosixPath, bool]]) -> None:
+    """The tree the members make, `paths` (path, is_file): no file that is also another member's
+    parent, and at most MAX_DIRS directories (named or implied: each one is a mkdir and an rmdir)."""
+    parents = {parent for path, _ in paths for parent in path.parents} - {PurePosixPath(".")}
     clash = sorted(path for path, is_file in paths if is_file and path in parents)
-    return clash[0] if clash else None
+    if clash:
+        raise ArchiveError(f"{label}: member {str(clash[0])!r} is both a file and a directory")
+    dirs = parents | {path for path, is_file in paths if not is_file}
+    if len(dirs) > MAX_DIRS:
+        raise ArchiveError(f"{label}: {len(dirs)} directories, more than {MAX_DIRS}; an episode package "
+                           f"keeps its files in a few")
 
 
 def _check_member_type(tar_path: Path, member: tarfile.TarInfo, path: PurePosixPath) -> None:
@@ -103,9 +110,7 @@ def _plan(tar_path: Path, members: list[tarfile.TarInfo], max_total_bytes: int) 
         total += member.size if member.isfile() else 0
         if member.isfile() and len(path.parts) < 2:
             raise ArchiveError(f"{tar_path}: member {member.name!r}: file outside the episode dir")
-    clash = file_dir_clash(kinds)
-    if clash is not None:
-        raise ArchiveError(f"{tar_path}: member {str(clash)!r} is both a file and a directory")
+    check_tree(tar_path, kinds)
     if total > max_total_bytes:
         raise ArchiveError(f"{tar_path}: {total} bytes uncompressed, more than {max_total_bytes}")
     if len(tops) != 1:

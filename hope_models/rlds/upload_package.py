@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ..durable import file_sha256
-from .archive import MAX_MEMBERS, ArchiveError, extract_package
+from .archive import MAX_DIRS, MAX_MEMBERS, ArchiveError, extract_package
 from .inflate import MAX_RATIO, Budget, ratio_limit
 from .zip_package import ZipPackageError, extract_zip
 
@@ -82,7 +82,7 @@ def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None
         source = gzip.GzipFile(fileobj=raw, mode="rb") if gzipped else raw
         stream = _Inflation(source, label, ratio_limit(path.stat().st_size) if gzipped else None,
                             max_total_bytes + TAR_OVERHEAD)
-        total = count = 0
+        total = count = dirs = 0
         try:
             with tarfile.open(fileobj=stream, mode="r|") as tar:
                 for member in tar:
@@ -90,6 +90,10 @@ def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None
                     if count > MAX_MEMBERS:
                         raise PackageError(f"{label}: more than {MAX_MEMBERS} members (files and directories); "
                                            f"an episode package holds far fewer", 413)
+                    dirs += member.isdir()
+                    if dirs > MAX_DIRS:
+                        raise PackageError(f"{label}: more than {MAX_DIRS} directories; an episode package keeps "
+                                           f"its files in a few", 413)
                     if budget is not None and count % 256 == 0:
                         budget.check(label)
                     total += member.size if member.isfile() else 0

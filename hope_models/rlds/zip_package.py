@@ -4,7 +4,8 @@ The XR app zips its episode dir with names relative to it (`metadata.json`,
 `steps/000000.jsonl`, ...). Nothing in a zip from another machine is trusted, so before anything is
 written every member is checked: the member-name rules of rlds/archive.py (no absolute name, no
 `..`), no symlink or device (the mode a Unix zipper keeps in `external_attr`), no encrypted
-member, only stored or deflated data, no name twice; at most `max_members` members (counted in
+member, only stored or deflated data, no name twice, no file that is also a directory, at most
+archive.MAX_DIRS directories, archive.py's name and path lengths; at most `max_members` members (counted in
 the central directory itself, at most MAX_CENTRAL_DIR_BYTES, before zipfile reads it whole and
 builds an object per entry: a small archive may declare millions), at most `max_total_bytes`
 uncompressed, and no member or archive that inflates more than MAX_RATIO times (a zip bomb).
@@ -23,7 +24,7 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
-from .archive import ArchiveError, member_name_path
+from .archive import ArchiveError, check_tree, member_name_path
 from .inflate import MAX_RATIO, ratio_limit
 
 MAX_MEMBERS = 10_000  # an XR episode dir holds a metadata file, a steps file and its media
@@ -91,7 +92,7 @@ def _member_kind(label: str, info: zipfile.ZipInfo) -> str:
 def _plan(label: str, zf: zipfile.ZipFile, archive_bytes: int,
           max_total_bytes: int) -> list[tuple[zipfile.ZipInfo, PurePosixPath, str]]:
     """Every member checked before anything is written; returns (info, relative path, kind)."""
-    plan, seen, parents, total = [], set(), set(), 0
+    plan, seen, total = [], set(), 0
     for info in zf.infolist():
         try:
             path = member_name_path(label, info.filename)
@@ -101,13 +102,13 @@ def _plan(label: str, zf: zipfile.ZipFile, archive_bytes: int,
         if path in seen:
             raise ZipPackageError(f"{label}: member {info.filename!r} appears twice")
         seen.add(path)
-        parents.update(path.parents)
         if kind == "file":
             total += info.file_size
         plan.append((info, path, kind))
-    clash = sorted(str(p) for _, p, k in plan if k == "file" and p in parents)
-    if clash:
-        raise ZipPackageError(f"{label}: member {clash[0]!r} is both a file and a directory")
+    try:
+        check_tree(label, [(p, k == "file") for _, p, k in plan])
+    except ArchiveError as exc:
+        raise ZipPackageError(str(exc)) from None
     if total > max_total_bytes:
         raise ZipPackageError(f"{label}: {total} bytes uncompressed, more than {max_total_bytes}", 413)
     if total > ratio_limit(archive_bytes):
