@@ -50,6 +50,8 @@ class Settings:
     # the robot's door: POST /api/brain/infer, GET /api/brain, /api/ping and /api/health on a
     # listener of their own, which nothing on the Robot Editor's side can fill (0 = any free port)
     inference_port: int = 8766
+    # the same door on a Unix socket too (0600; relative = under $HOPE_HOME; "" = none)
+    inference_socket: str = ""
     # Engine.IO's ping interval for Socket.IO sessions (python-engineio's default): how often the
     # server pings a browser, and how long a closed session's ping thread lingers (webapp/socket_guard.py)
     socketio_ping_interval_s: float = 25.0
@@ -131,6 +133,7 @@ _ENV = {
     "HOPE_MAX_CONNECTIONS": "max_connections",
     "HOPE_MAX_CONNECTIONS_PER_CLIENT": "max_connections_per_client",
     "HOPE_INFERENCE_PORT": "inference_port",
+    "HOPE_INFERENCE_SOCKET": "inference_socket",
     "HOPE_SOCKETIO_PING_INTERVAL_S": "socketio_ping_interval_s",
     "HOPE_THERMAL_ZONE": "thermal_zone_path",
     "HOPE_VCGENCMD": "vcgencmd_path",

@@ -19,6 +19,7 @@ import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -296,3 +297,47 @@ def test_the_door_and_the_per_address_cap_are_settings(tmp_path):
                        ("HOPE_INFERENCE_PORT", "eighty")):
         with pytest.raises(SettingsError, match=var):
             load_settings(env={"HOPE_HOME": home, var: value})
+
+
+def _unix_request(path: str, request: bytes) -> bytes:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(10)
+    s.connect(path)
+    s.sendall(request)
+    return _answer_within(s, 10.0)
+
+
+def test_the_door_on_a_unix_socket(tmp_path):
+    import stat
+    import tempfile
+
+    from webapp.inference_door import open_inference_door
+
+    short = Path(tempfile.mkdtemp(prefix="hope-door-"))  # a Unix socket path is at most 107 bytes
+    s = Served(tmp_path / "s", HOPE_INFERENCE_PORT="0", HOPE_INFERENCE_SOCKET=str(short / "inference.sock"))
+    try:
+        door = open_inference_door(s.app, s.settings)
+        door.start()
+        path = str(short / "inference.sock")
+        assert door.socket == path and stat.S_IMODE(os.stat(path).st_mode) == 0o600
+        answer = _unix_request(path, b"GET /api/ping HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+        assert answer.startswith(b"HTTP/1.1 200") and b"hope-trainer" in answer, answer
+        body = _infer_body()
+        answer = _unix_request(path, (f"POST /api/brain/infer HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n"
+                                      f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+                               + body)
+        assert answer.startswith(b"HTTP/1.1 401"), answer
+        answer = _unix_request(path, f"GET {POLL} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n".encode())
+        assert answer.startswith(b"HTTP/1.1 404"), answer
+        door.stop()
+        assert not os.path.exists(path)
+        stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        stale.bind(path)  # a socket file a killed process left behind: the next start replaces it
+        stale.close()
+        door = open_inference_door(s.app, s.settings)
+        door.start()
+        assert _unix_request(path, b"GET /api/health HTTP/1.1\r\nHost: localhost\r\n\r\n").startswith(b"HTTP/1.1 200")
+        door.stop()
+    finally:
+        s.close()
+        shutil.rmtree(short, ignore_errors=True)

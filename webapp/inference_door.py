@@ -1,6 +1,6 @@
 """The robot's door: its calls on a listener of their own, which the Robot Editor's side cannot fill.
 
-    door = open_inference_door(app, settings)   # an HttpServer on settings.inference_port (8766)
+    door = open_inference_door(app, settings)   # settings.inference_port (8766), + inference_socket
     door.start() ... door.stop()
 
 The Robot Editor's listener (webapp/server.py) serves browsers, the phone app and Socket.IO, whose
@@ -16,12 +16,15 @@ port with its own threads and its own connection cap:
 Everything else is 404 here (no Socket.IO, no editor pages, no uploads) and a WebSocket upgrade is
 refused, so every request on this door is answered in milliseconds and nothing can park on it.
 The editor's port keeps /api/brain/* too: the Robot Editor's Inference page calls it there.
+With `inference_socket` set, the same door also listens on that Unix socket (0600, under $HOPE_HOME
+when relative): a robot runtime on this machine then needs no TCP port at all.
 """
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from webapp.server import ConnectionLimits, HttpServer
+from webapp.server import ConnectionLimits, HttpServer, ServerError
 
 DOOR_ROUTES = {
     "/api/brain/infer": ("POST",),
@@ -68,11 +71,48 @@ def door_limits(settings) -> ConnectionLimits:
                             websockets=False)
 
 
-def open_inference_door(app, settings, host: str | None = None) -> HttpServer:
-    """Bind the door (ServerError when its port is taken); the caller starts and stops it."""
-    return HttpServer(door_app(app), settings.host if host is None else host, settings.inference_port,
-                      door_limits(settings), name="inference",
-                      port_hint="--inference-port or HOPE_INFERENCE_PORT; 0 = any free port")
+def socket_path(settings) -> Path | None:
+    """The Unix socket the door also listens on (inference_socket; relative = under $HOPE_HOME), or None."""
+    name = getattr(settings, "inference_socket", "") or ""
+    return Path(settings.home) / name if name else None
 
 
-__all__ = ["DOOR_ROUTES", "door_app", "open_inference_door"]
+class InferenceDoor:
+    """The door's listeners: the TCP port, and the Unix socket when one is set."""
+
+    def __init__(self, servers: list[HttpServer]):
+        self.servers = servers
+        self.port = servers[0].port
+        self.url = servers[0].url
+        self.socket = servers[1].unix_path if len(servers) > 1 else None
+
+    def start(self) -> None:
+        for server in self.servers:
+            server.start()
+
+    def stop(self) -> None:
+        for server in self.servers:
+            server.stop()
+
+
+def open_inference_door(app, settings, host: str | None = None) -> InferenceDoor:
+    """Bind the door (ServerError when its port or socket cannot be had); the caller starts and stops it."""
+    wsgi, limits = door_app(app), door_limits(settings)
+    servers = [HttpServer(wsgi, settings.host if host is None else host, settings.inference_port, limits,
+                          name="inference", port_hint="--inference-port or HOPE_INFERENCE_PORT; 0 = any free port")]
+    path = socket_path(settings)
+    if path is not None:
+        if len(str(path).encode()) > 107:  # sun_path: 108 bytes with the terminating NUL
+            servers[0].stop()
+            raise ServerError(f"inference_socket: {path} is longer than a Unix socket path may be (107 bytes); "
+                              "set a shorter one (HOPE_INFERENCE_SOCKET)")
+        try:
+            servers.append(HttpServer(wsgi, f"unix://{path}", 0, limits, name="inference-socket",
+                                      port_hint="inference_socket or HOPE_INFERENCE_SOCKET"))
+        except Exception:
+            servers[0].stop()
+            raise
+    return InferenceDoor(servers)
+
+
+__all__ = ["DOOR_ROUTES", "InferenceDoor", "door_app", "open_inference_door", "socket_path"]

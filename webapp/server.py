@@ -28,9 +28,13 @@ worker, and so port 0 (tests) reports the port it got.
 """
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import logging
+import os
 import socket
+import stat
 import threading
 import time
 from dataclasses import dataclass
@@ -350,6 +354,26 @@ def _bounded_drain(app, drain_s: float):
     return guarded
 
 
+def _bind_unix(sock, path: str) -> None:
+    """Bind a Unix socket at `path`, 0600: one a dead process left is replaced, a live one is not."""
+    if os.path.exists(path):
+        if not stat.S_ISSOCK(os.lstat(path).st_mode):
+            raise OSError(errno.EEXIST, f"{path} exists and is not a socket")
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(path)
+            raise OSError(errno.EADDRINUSE, "another process listens there")
+        except (ConnectionRefusedError, FileNotFoundError):
+            os.unlink(path)  # a stale socket file
+        finally:
+            probe.close()
+    old = os.umask(0o177)
+    try:
+        sock.bind(path)
+    finally:
+        os.umask(old)
+
+
 class HttpServer:
     def __init__(self, app, host: str, port: int, limits: ConnectionLimits | None = None, *,
                  name: str = "webapp", port_hint: str = "--port or HOPE_PORT"):
@@ -358,26 +382,35 @@ class HttpServer:
         self.limits = limits or ConnectionLimits()
         # Bind here (werkzeug would print its own message and sys.exit on a taken port).
         family = select_address_family(host, port)
+        unix_path = host[len("unix://"):] if host.startswith("unix://") else None
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind((host, port))
+            if unix_path is not None:
+                _bind_unix(sock, unix_path)
+                bound_port = 0
+            else:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind((host, port))
+                bound_port = sock.getsockname()[1]
             sock.listen(128)
-            bound_port = sock.getsockname()[1]
             self._server = GuardedServer(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
                                          fd=sock.fileno(), limits=self.limits)
         except OSError as exc:
-            raise ServerError(f"{name}: cannot listen on {host}:{port}: {exc.strerror or exc} "
-                              f"(set another port with {port_hint})") from None
+            where = host if unix_path is not None else f"{host}:{port}"
+            raise ServerError(f"{name}: cannot listen on {where}: {exc.strerror or exc} "
+                              f"(set another {'path' if unix_path is not None else 'port'} with {port_hint})") from None
         finally:
             sock.close()  # the server holds its own duplicate of the descriptor
         self.host = host
         self.port = bound_port
         self.name = name
+        self.unix_path = unix_path
         self._thread: threading.Thread | None = None
 
     @property
     def url(self) -> str:
+        if self.unix_path is not None:
+            return f"unix://{self.unix_path}"
         host = self.host
         if host in ("0.0.0.0", "::", ""):
             host = "127.0.0.1"
@@ -403,6 +436,9 @@ class HttpServer:
         if self._thread is not None:  # shutdown() waits for serve_forever, which never ran otherwise
             self._server.shutdown()
         self._server.server_close()
+        if self.unix_path is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.unix_path)
         if self._thread is not None:
             self._thread.join(timeout)
 

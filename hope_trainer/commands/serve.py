@@ -340,7 +340,8 @@ def brain_summary(brain: Any) -> str:
 
 
 def door_line(door: Any) -> str:
-    return f"inference: {door.url}api/brain/infer (the robot's port: infer, GET /api/brain, ping, health)"
+    also = f", and the Unix socket {door.socket}" if door.socket else ""
+    return f"inference: {door.url}api/brain/infer (the robot's port{also}: infer, GET /api/brain, ping, health)"
 
 
 def setup_logging(home: Path, console_level: int = logging.INFO, settings: Any = None) -> None:
