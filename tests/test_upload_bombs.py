@@ -10,7 +10,8 @@ their size (tests/hostile_packages.py), each sent by a client holding the token:
 - a tar.gz of 99,991 directories (it held the upload lock 22-212 s): refused by count at once, as is
   one of more members than a long real episode has (10,000);
 - the budget of time one upload's unpacking may take (upload_extract_s);
-- concurrent uploads past upload_tmp_max_mb: refused with 507, nothing left in tmp.
+- concurrent uploads past upload_tmp_max_mb, or an upload that would take the free space below
+  disk_floor_mb: refused with 507, nothing left in tmp.
 """
 from __future__ import annotations
 
@@ -170,6 +171,13 @@ def test_unpacking_past_upload_extract_s_is_refused(server):
     assert s.tmp_entries() == []
 
 
+def test_an_upload_that_would_take_the_disk_below_its_floor_is_a_507(server):
+    s = server(HOPE_DISK_FLOOR_MB=str(1 << 30))  # a floor above any disk's free space
+    status, answer = s.upload(hp.xr_zip_of({"metadata.json": b"{}"}))
+    assert status == 507 and "below the floor" in answer["error"] and "disk_floor_mb" in answer["error"], answer
+    assert s.tmp_entries() == []
+
+
 def _start_upload(port: int, token: str, size: int, first: bytes) -> socket.socket:
     sock = socket.create_connection(("127.0.0.1", port), timeout=30)
     head = (f"POST /api/episodes/upload HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {token}\r\n"
@@ -198,16 +206,18 @@ def _finish_upload(sock: socket.socket, rest: bytes) -> tuple[int, bytes]:
     return int(raw.split(b" ", 2)[1]), raw.partition(b"\r\n\r\n")[2]
 
 
-def test_concurrent_uploads_past_upload_tmp_max_mb_are_refused_with_507(server):
-    from webapp.uploads import TmpRoom
+def _tmp_bytes(s: Server) -> int:
+    tmp = Path(s.settings.home) / "tmp"
+    return sum(f.stat().st_size for f in tmp.rglob("*") if f.is_file()) if tmp.exists() else 0
 
+
+def test_concurrent_uploads_past_upload_tmp_max_mb_are_refused_with_507(server):
     s = server(HOPE_UPLOAD_TMP_MAX_MB="4")
     size, half = 3 * MB, 3 * MB // 2
-    body = hp.xr_zip_of({"metadata.json": b"{}"}) + bytes(size)  # not a package once read whole: a 400
-    body = body[:size]
+    body = (hp.xr_zip_of({"metadata.json": b"{}"}) + bytes(size))[:size]  # not a package once read whole: a 400
     socks = [_start_upload(s.port, s.token, size, body[:half]) for _ in range(6)]
     deadline = time.monotonic() + 20
-    while TmpRoom.held(s.settings) < 4 * MB - 256 * 1024 and time.monotonic() < deadline:
+    while _tmp_bytes(s) < 3 * MB and time.monotonic() < deadline:
         time.sleep(0.05)  # six halves (9 MiB) arriving: the room fills
     answers = [_finish_upload(sock, body[half:]) for sock in socks]
     statuses = sorted(status for status, _ in answers)
@@ -216,6 +226,9 @@ def test_concurrent_uploads_past_upload_tmp_max_mb_are_refused_with_507(server):
     assert all("upload_tmp_max_mb=4" in e for e in refused), refused
     assert set(statuses) <= {400, 507}, answers
     deadline = time.monotonic() + 10
-    while (s.tmp_entries() or TmpRoom.held(s.settings)) and time.monotonic() < deadline:
+    while s.tmp_entries() and time.monotonic() < deadline:
         time.sleep(0.05)  # a handler cleans up just after its answer is sent
-    assert s.tmp_entries() == [] and TmpRoom.held(s.settings) == 0
+    assert s.tmp_entries() == []
+    from webapp.uploads import TmpRoom
+
+    assert TmpRoom.held(s.settings) == 0
