@@ -84,7 +84,7 @@ class Settings:
     upload_max_mb: int = 512
     # all uploads in progress together hold at most upload_tmp_max_mb in $HOPE_HOME/tmp (bodies and
     # what they unpack to) and leave disk_floor_mb (else 200 MB) free; one upload's unpacking and
-    # reading may take upload_extract_s (webapp/uploads.py, hope_models/rlds/inflate.py)
+    # reading may take upload_extract_s, plus 0.5 s per MB it sent (webapp/uploads.py, webapp/api/episodes.py)
     upload_tmp_max_mb: int = 3072
     upload_extract_s: float = 30.0
     # continuous learning (daemon/continuous.py): when at least auto_train_min_new_episodes new

@@ -52,8 +52,8 @@ class Budget:
 
     def check(self, where: str) -> None:
         if time.monotonic() > self.deadline:
-            raise BudgetError(f"{where}: unpacking this upload took more than {self.seconds:g} s ({self.setting}); "
-                              f"send fewer or smaller packages per request")
+            raise BudgetError(f"{where}: unpacking this upload took more than {self.seconds:.3g} s ({self.setting} "
+                              f"and its size); send fewer or smaller packages per request")
 
     def spend(self, n: int, where: str) -> None:
         self.inflated += n

@@ -59,6 +59,9 @@ MAX_PACKAGES = 20  # one drop of a browser; more is a client gone wrong
 STATUS = {"accepted": "ok", "accepted_with_warnings": "warnings"}
 EXTRACTED = "package-"
 UNPACK_FACTOR = 4  # what a package may hold uncompressed, in upload limits: bounds $HOPE_HOME/tmp
+# time to unpack, read and ingest a MB sent, on top of upload_extract_s: a big real package is
+# written twice (tmp, then the inbox) to an SD card at ~10 MB/s; a small bomb gets the base only
+SECONDS_PER_MB = 0.5
 
 
 def _split_tags(text: str, where: str) -> list[str]:
@@ -189,7 +192,8 @@ def _ingest_locked(settings: Any, packages: list[tuple[str, Path]], tags: list[s
     with _extraction_area(settings) as area:
         extracted: list[tuple[str, str, Path, Path]] = []
         # started once the lock is ours: what the request sent, times the ratio, may be inflated
-        budget = Budget(ratio_limit(sum(p.stat().st_size for _, p in packages)), settings.upload_extract_s)
+        sent = sum(p.stat().st_size for _, p in packages)
+        budget = Budget(ratio_limit(sent), settings.upload_extract_s + SECONDS_PER_MB * sent / (1 << 20))
         label = packages[0][0] if packages else "upload"
         try:
             _extract(area, packages, UNPACK_FACTOR * upload_limit(settings), budget, room, extracted)
