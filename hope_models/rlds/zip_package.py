@@ -5,13 +5,14 @@ The XR app zips its episode dir with names relative to it (`metadata.json`,
 written every member is checked: the member-name rules of rlds/archive.py (no absolute name, no
 `..`), no symlink or device (the mode a Unix zipper keeps in `external_attr`), no encrypted
 member, only stored or deflated data, no name twice, no file that is also a directory, at most
-archive.MAX_DIRS directories, archive.py's name and path lengths; at most `max_members` members (counted in
-the central directory itself, at most MAX_CENTRAL_DIR_BYTES, before zipfile reads it whole and
-builds an object per entry: a small archive may declare millions), at most `max_total_bytes`
-uncompressed, and no member or archive that inflates more than MAX_RATIO times (a zip bomb).
-The headers can lie, so the sizes are checked twice: as declared, and as actually inflated while
-writing (zipfile also stops a member at its declared size, and its CRC then fails). Files are created with O_EXCL|O_NOFOLLOW in a
-dir of our own, removed again when any member is refused, so a refused zip leaves nothing.
+archive.MAX_DIRS directories, archive.py's name and path lengths; at most `max_members` members
+(counted in the central directory itself, at most MAX_CENTRAL_DIR_BYTES, before zipfile reads it
+whole and builds an object per entry: a small archive may declare millions), at most
+`max_total_bytes` uncompressed, and no member or archive that inflates more than MAX_RATIO times
+(a zip bomb). The headers can lie, so the sizes are checked twice: as declared, and as actually
+inflated while writing (zipfile also stops a member at its declared size, and its CRC then
+fails). Files are created with O_EXCL|O_NOFOLLOW in a dir of our own, removed again when any
+member is refused, so a refused zip leaves nothing.
 """
 from __future__ import annotations
 
