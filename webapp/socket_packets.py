@@ -40,8 +40,9 @@ log = logging.getLogger(__name__)
 # polling POST may carry several, and a future event with a small JSON body still fits.
 MAX_MESSAGE_BYTES = 64 * 1024
 # What python-engineio's decoding raises on bad input (binascii.Error, UnicodeDecodeError and
-# JSONDecodeError are ValueErrors; KeyError is a JSONP body without its `d` field).
-DECODE_ERRORS = (ValueError, KeyError, IndexError, TypeError)
+# JSONDecodeError are ValueErrors; KeyError is a JSONP body without its `d` field; RecursionError
+# is JSON nested a thousand deep).
+DECODE_ERRORS = (ValueError, KeyError, IndexError, TypeError, RecursionError)
 ENGINEIO_LOGGERS = ("engineio.server", "socketio.server")
 _ACCEPTED_TYPES = (sio_packet.CONNECT, sio_packet.DISCONNECT, sio_packet.EVENT, sio_packet.ACK)
 
@@ -208,6 +209,10 @@ def _wrap_message_handler(sio: Any, eio: Any, guard: Any) -> None:
     inner = eio.handlers["message"]
 
     def on_message(eio_sid, data):
+        # Engine.IO runs each message on a thread of its own, so a session's later messages may
+        # still arrive after one of them closed it: those are dropped without a word.
+        if eio_sid not in eio.sockets or eio_sid not in sio.environ:
+            return None
         try:
             if not isinstance(data, str):
                 raise ClientPacketError("a binary message (this server takes no binary data)")
@@ -216,11 +221,15 @@ def _wrap_message_handler(sio: Any, eio: Any, guard: Any) -> None:
             return inner(eio_sid, data)
         except ClientPacketError as exc:
             if eio_sid not in eio.sockets:
-                return None  # closed already: what it sent meanwhile is not worth a line each
+                return None
             log.warning("Socket.IO session %s from %s closed: it sent %s", eio_sid,
                         client_of(sio.environ.get(eio_sid)), exc)
             _close(sio, eio, eio_sid, guard)
             return None
+        except KeyError:
+            if eio_sid in sio.environ:
+                raise  # the session is there: a bug of ours, with its traceback
+            return None  # it was closed while python-socketio handled this message
 
     eio.on("message", on_message)
 
@@ -239,7 +248,7 @@ def _wrap_handle_request(sio: Any, eio: Any, current: _Current, guard: Any) -> N
             # a WebSocket message Engine.IO could not decode ends its read loop with this error
             sid = sid or next((s for s, env in list(sio.environ.items()) if env is environ), None)
             log.warning("Engine.IO WebSocket from %s (session %s) closed: it sent a malformed packet (%s)",
-                        client_of(environ), sid, _short(exc))
+                        client_of(environ), sid or "already closed", _short(exc))
             if sid is not None:
                 _close(sio, eio, sid, guard)
             _cut(environ)
