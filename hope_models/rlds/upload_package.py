@@ -58,8 +58,9 @@ def package_kind(path: str | os.PathLike, label: str) -> str:
 class _Inflation:
     """The tar stream as tarfile reads it, counted: past the ratio or the size, PackageError."""
 
-    def __init__(self, source: BinaryIO, label: str, by_ratio: int | None, limit: int):
+    def __init__(self, source: BinaryIO, label: str, by_ratio: int | None, limit: int, budget: Budget | None):
         self.source, self.label, self.by_ratio, self.limit, self.inflated = source, label, by_ratio, limit, 0
+        self.budget = budget
 
     def read(self, size: int = -1) -> bytes:
         data = self.source.read(size if size is not None and size > 0 else 1 << 20)
@@ -69,6 +70,8 @@ class _Inflation:
                                f"(a gzip bomb?)")
         if self.inflated > self.limit:
             raise PackageError(f"{self.label}: the tar stream is larger than {self.limit} bytes", 413)
+        if self.budget is not None:
+            self.budget.check(self.label)
         return data
 
 
@@ -81,7 +84,7 @@ def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None
         raw.seek(0)
         source = gzip.GzipFile(fileobj=raw, mode="rb") if gzipped else raw
         stream = _Inflation(source, label, ratio_limit(path.stat().st_size) if gzipped else None,
-                            max_total_bytes + TAR_OVERHEAD)
+                            max_total_bytes + TAR_OVERHEAD, budget)
         total = count = dirs = 0
         try:
             with tarfile.open(fileobj=stream, mode="r|") as tar:
