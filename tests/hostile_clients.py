@@ -375,7 +375,7 @@ class LongPollFlood:
 LOG_FLOOD_BODIES = (b"x", b"42[", b"\xff", b"4x", b"bZZZ")
 
 
-def log_flood(port: int, packets: int = 500, bodies: tuple = LOG_FLOOD_BODIES, timeout: float = 2.0) -> dict:
+def log_flood(port: int, packets: int = 500, bodies: tuple = LOG_FLOOD_BODIES, timeout: float = 5.0) -> dict:
     """No token: `packets` malformed polling POSTs, on one Engine.IO session while it stays open (a
     new handshake when it is closed). Returns {POST status: count}, -1 for a refused handshake."""
     statuses: dict = {}
