@@ -58,6 +58,8 @@ def _bounded_poll_socket_class(base: type, guard: "SocketGuard") -> type:
 
     class BoundedPollSocket(base):
         def poll(self):
+            if self.upgraded:  # the WebSocket's writer thread: no HTTP answer waits on it
+                return super().poll()
             empty = self.server.get_queue_empty_exception()
             try:
                 first = self.queue.get(timeout=guard.poll_deadline_s)
