@@ -230,9 +230,10 @@ def test_a_real_serve_answers_inference_through_the_long_poll_flood(tmp_path, tm
 
         def back():
             threads, fds = process_counts(proc.popen.pid)
-            return threads <= base_threads + 5 and fds <= base_fds + 5
+            return threads <= base_threads + 8 and fds <= base_fds + 8
 
-        assert wait_until(back, 15, step=0.5), (process_counts(proc.popen.pid), (base_threads, base_fds))
+        # the attacker's last sessions end at the 10 s login deadline, their ping sleepers 3 s later
+        assert wait_until(back, 25, step=0.5), (process_counts(proc.popen.pid), (base_threads, base_fds))
     finally:
         proc.popen.kill()  # nothing here checks a clean stop (test_cli_daemon does)
         proc.popen.wait(10)
