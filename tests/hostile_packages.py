@@ -146,6 +146,10 @@ def odd_entries() -> dict[str, bytes]:
         "zip-path-over-4kb": xr_zip_of({f"{deep}/x.json": b"{}"}),
         "zip-file-then-dir-below-it": xr_zip_of({"a": b"{}", "a/b/": b""}),
         "zip-dir-then-file-of-its-name": xr_zip_of({"a/": b"", "a": b"{}"}),
+        "tar-dir-name-over-255-bytes": tar_gz_of([("ep", None), (f"ep/{long_name}", None)]),
+        "tar-dir-path-over-4kb": tar_gz_of([("ep", None), (f"ep/{deep}", None)]),
+        "zip-dir-name-over-255-bytes": xr_zip_of({f"{long_name}/": b""}),
+        "zip-dir-path-over-4kb": xr_zip_of({f"{deep}/": b""}),
         "zip-1001-implied-directories": xr_zip_of({f"d{i}/x.json": b"{}" for i in range(1001)}),
         "tar-1001-implied-directories": tar_gz_of([("ep", None)] + [(f"ep/d{i}/x.json", b"{}") for i in range(1000)]),
     }
