@@ -72,11 +72,12 @@ def inflate_cap(compressed: int, limits: Any) -> int:
 
 
 class _Sink:
-    """Collects output chunks, counting them against the cap and the budget."""
+    """Collects output chunks in one buffer (no copy to join them), counting them against the cap
+    and the budget."""
 
     def __init__(self, cap: int, where: str, what: str, budget: Budget | None):
         self.cap, self.where, self.what, self.budget = cap, where, what, budget
-        self.parts: list[bytes] = []
+        self.buf = bytearray()
         self.size = 0
 
     def add(self, chunk: bytes) -> None:
@@ -86,14 +87,14 @@ class _Sink:
                                f"{MAX_RATIO} times its compressed size, or max_file_bytes): refused")
         if self.budget is not None:
             self.budget.spend(len(chunk), self.where)
-        self.parts.append(chunk)
+        self.buf += chunk
 
-    def bytes(self) -> bytes:
-        return b"".join(self.parts)
+    def bytes(self) -> bytearray:
+        return self.buf
 
 
 def inflate_zlib(data: bytes | memoryview, wbits: int, cap: int, where: str, what: str,
-                 budget: Budget | None = None) -> tuple[bytes, Any]:
+                 budget: Budget | None = None) -> tuple[bytearray, Any]:
     """One zlib/gzip stream of `data` (wbits as zlib's), inflated CHUNK by CHUNK; returns (the
     bytes, the decompressobj: eof, unused_data). zlib.error passes through for the caller's words."""
     sink = _Sink(cap, where, what, budget)

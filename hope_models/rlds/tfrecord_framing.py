@@ -202,7 +202,7 @@ def unwrap_gzip(data: bytes, source: str, limits: ReadLimits) -> Container:
             break
         pos = len(data) - len(d.unused_data)
     produced = sum(len(c) for c in out)
-    parts: list[tuple[int, bytes]] = [(-1, b"".join(out))]
+    parts: list[tuple[int, bytes]] = [(-1, out[0] if len(out) == 1 else b"".join(out))]
     if pos < len(data):
         notes.append(Problem(WARNING, source, (
             f"gzip data ends at byte {pos} ({members} member(s), {produced} bytes decompressed); the "
