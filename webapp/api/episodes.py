@@ -14,8 +14,12 @@ X-Continuon-Tag-xr_mode / -control_role / -environment_id (also in its metadata.
 repeated as tags) and X-Continuon-Tag-list (comma-separated: each one becomes an inbox tag, as
 does each of a multipart `tags` field). Every package of a request is extracted to
 $HOPE_HOME/tmp/package-<sha of its bytes> (one upload at a time extracts and ingests; removed
-after) before any is ingested, so one refused package (400 naming the member, 413 too large)
-means nothing is written at all. Accepted ones go into the
+after) before any is ingested, so one refused package (400 naming the member, 413 too large,
+507 no room in $HOPE_HOME/tmp) means nothing is written at all. Extracting and reading share one
+budget (rlds/inflate.Budget: 200 times the bytes sent may be inflated by the compressed data
+inside the packages, in upload_extract_s plus SECONDS_PER_MB per MB sent); a bomb found while
+reading is a 413 naming the file, and episodes of the request ingested before it stay (sent
+again, they are answered "unchanged"). Accepted ones go into the
 inbox (hope_models/data/inbox.py: validated with the train profile, blobs confined to the episode's
 own dir, idempotent); the answer lists each episode's verdict: 200 {"packages": [{"name", "kind",
 "episodes": [{"episode_id", "action", "status", "errors", "warnings", "steps", "trainable",
