@@ -140,6 +140,23 @@ def test_a_decompression_bomb_inside_a_member_costs_seconds_not_minutes(server, 
     assert s.tmp_entries() == []
 
 
+def test_a_bomb_found_after_an_episode_was_placed_leaves_it_recorded(server):
+    from test_inbox import steps
+
+    from hope_models.rlds.ingest import MANIFEST
+
+    episode = json.dumps({"metadata": {"episode_id": "ep_before", "xr_mode": "trainer"}, "steps": steps(30)})
+    s = server()
+    status, answer = s.upload(hp.xr_zip_of({"a.json": episode.encode(), "z.tfrecord.gz": hp.tfrecord_gzip_bomb()}))
+    assert status == 413 and "z.tfrecord.gz" in answer["error"], answer
+    inbox = Path(s.settings.inbox_dir)
+    manifest = json.loads((inbox / MANIFEST).read_text())
+    placed = {p.name for p in inbox.iterdir() if p.is_dir() and not p.name.startswith(".")}
+    assert placed == {e["episode_id"] for e in manifest["episodes"]} == {"ep_before"}, (placed, manifest)
+    assert "tmp/package-" not in json.dumps(manifest)  # named by the package, as a whole ingest names it
+    assert s.tmp_entries() == []
+
+
 @pytest.fixture(scope="module")
 def many_dirs() -> bytes:
     return hp.many_dirs_tar_gz()

@@ -35,6 +35,7 @@ from typing import Any, Iterable, Iterator
 from ..disk import full_message, is_disk_full
 from ..durable import atomic_write
 from .episode import Episode, SourceReport
+from .inflate import BudgetError
 from .json_text import json_dumps
 from .validation_report import exception_entry, read_reports, report_entries, unique_paths
 from .write_episode_dir import (PreparedEpisode, confine_blobs, prepare_episode, remove_stale_tmp_dirs,
@@ -238,6 +239,26 @@ def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLi
     remove_stale_tmp_dirs(dataset)
     manifest = load_manifest(dataset)
     results: list[dict[str, Any]] = []
+    try:
+        _ingest_each(reports, dataset, manifest, results, confined, content_ids)
+    except BudgetError:  # an upload refused mid-way: what it placed is recorded before it goes
+        if sources_as is not None:
+            _rename_sources(manifest, results, *sources_as)
+        _save_what_fits(dataset, manifest)
+        raise
+    if sources_as is not None:
+        results = _rename_sources(manifest, results, *sources_as)
+    manifest_written = write_manifest(dataset, manifest)
+    summary = {action: sum(1 for r in results if r["action"] == action)
+               for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
+    summary["ok"] = summary["rejected"] == 0
+    summary["manifest_written"] = manifest_written
+    return {"dataset": str(dataset), "episodes": results, "summary": summary}
+
+
+def _ingest_each(reports: Iterable[SourceReport], dataset: Path, manifest: Manifest, results: list[dict[str, Any]],
+                 confined: bool, content_ids: str | None) -> None:
+    """Each report's episodes validated and placed (or recorded as unwritten), results appended."""
     for report in reports:
         if confined:
             for ep in report.episodes:
@@ -259,14 +280,6 @@ def ingest_reports(reports: Iterable[SourceReport], dataset_dir: str | os.PathLi
                 results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
             except (ValueError, TypeError) as exc:  # unwritable content
                 results.append(_record_unwritten(exception_entry(ep.source, exc, ep.episode_id), manifest))
-    if sources_as is not None:
-        results = _rename_sources(manifest, results, *sources_as)
-    manifest_written = write_manifest(dataset, manifest)
-    summary = {action: sum(1 for r in results if r["action"] == action)
-               for action in ("written", "unchanged", "duplicate", "rejected", "skipped")}
-    summary["ok"] = summary["rejected"] == 0
-    summary["manifest_written"] = manifest_written
-    return {"dataset": str(dataset), "episodes": results, "summary": summary}
 
 
 def _rename_sources(manifest: Manifest, results: list[dict[str, Any]], root: str,
