@@ -1,21 +1,22 @@
-"""Soak: a real `serve` under legitimate load and a hostile neighbour at once, for minutes.
+"""Soak: a real `serve` under legitimate load and every attacker at once, for minutes.
 
-    python bench/soak.py                 # 10 minutes (the recorded figure)
-    python bench/soak.py --seconds 60    # a quick look
+    python bench/soak.py                      # 1 quiet minute, then 10 minutes under attack (the recorded figure)
+    python bench/soak.py --seconds 60 --quiet-seconds 20    # a quick look
 
 What runs, all on loopback against one `run_trainer.py serve` (webapp + daemon + worker child):
 - a promoted fast_loop (trained and force-promoted first, on a synthetic dataset);
 - a training chain vqvae -> fast_loop -> mid_loop queued through the API, re-queued when it ends;
-- 20 inference clients, each POSTing /api/brain/infer at 50 Hz (a new connection per request,
-  as the server closes each one), in their own process;
-- 10 Socket.IO clients logged in with the token, answering pings and receiving run events;
-- a hostile client repeating, without a token: Engine.IO handshakes each followed by a bad POST
-  (`6`, `0`, `2probe`, `9zzz`, an oversized payload), 50 half-sent request headers and 100 silent
-  WebSockets held a few seconds, then let go.
+- 20 inference clients, each POSTing /api/brain/infer at 50 Hz to the robot's door (the inference
+  port; a new connection per request, as the server closes each one), in their own process;
+- 10 Socket.IO clients logged in with the token on the editor's port, answering pings and
+  receiving run events;
+- first a quiet phase (`--quiet-seconds`, the legitimate load alone: the quiet inference figure),
+  then every attacker of bench/soak_attackers.py, each in its own process, for `--seconds`.
 
-It prints the failed legitimate requests (the target is 0), inference latency percentiles and the
-achieved rate, and the serve process's RSS, threads and descriptors sampled over the run (flat =
-no leak), then one JSON line. Exit 1 if a legitimate request failed or descriptors grew.
+It prints the failed legitimate requests (the target is 0), inference latency percentiles quiet and
+under attack (target: p99 within 2x), editors dropped (target 0), what each attacker met, the bytes
+the logs grew by (target under 1 MB), and the serve process's RSS, threads and descriptors sampled
+over the run (flat = no leak), then one JSON line. Exit 1 if a target is missed.
 """
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-from hostile_clients import HostileRound, SocketIOClient, http_request, process_counts  # noqa: E402
+from hostile_clients import SocketIOClient, http_request, process_counts  # noqa: E402
+from soak_attackers import ATTACKERS  # noqa: E402
 
 OBS_DIM, ACT_DIM = 6, 2
 
@@ -107,21 +109,6 @@ def role_sockets(port: int, token: str, seconds: float, clients: int) -> dict:
     return {"clients": clients, "failed": len(failures), "failures": failures, "events": sum(events)}
 
 
-def role_hostile(port: int, seconds: float) -> dict:
-    end = time.monotonic() + seconds
-    rounds, statuses, refused = 0, {}, 0
-    while time.monotonic() < end - 10:
-        r = HostileRound(port, pairs_per_body=60, half_headers=50, silent_websockets=100).run()
-        time.sleep(4.0)  # hold the sockets a while, as a patient attacker does
-        r.release()
-        rounds += 1
-        refused += r.refused
-        for k, v in r.statuses.items():
-            statuses[str(k)] = statuses.get(str(k), 0) + v
-        time.sleep(1.0)
-    return {"rounds": rounds, "bad_post_statuses": statuses, "held_refused": refused}
-
-
 def _percentiles(values: list[float]) -> dict:
     if not values:
         return {}
@@ -152,20 +139,92 @@ def _spawn_role(role: str, port: int, token: str, seconds: float, out: Path) -> 
                              "--seconds", str(seconds), "--out", str(out)], cwd=REPO)
 
 
+def _api(port: int, method: str, path: str, token: str, body: bytes = b"") -> tuple[int, bytes]:
+    """The driver's own calls as a real client makes them: after a 503 (Retry-After: 2) it tries again."""
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+    for _ in range(10):
+        status, answer = http_request(port, method, path, body=body, headers=headers, timeout=30)
+        if status != 503:
+            return status, answer
+        time.sleep(2.0)
+    return status, answer
+
+
 def _enqueue_chain(port: int, token: str, steps: int) -> int:
     body = json.dumps({"components": ["vqvae", "fast_loop", "mid_loop"], "data": "soak", "steps": steps,
                        "batch_size": 8, "checkpoint_every_steps": 200}).encode()
-    status, answer = http_request(port, "POST", "/api/training/sequential", body=body,
-                                  headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
+    status, answer = _api(port, "POST", "/api/training/sequential", token, body)
     if status != 201:
         sys.exit(f"soak: queueing the training chain failed: {status} {answer[:300]!r}")
     return status
 
 
 def _chain_active(port: int, token: str) -> bool:
-    status, answer = http_request(port, "GET", "/api/runs", headers={"Authorization": f"Bearer {token}"})
-    return status == 200 and any(r["state"] in ("queued", "starting", "running", "paused")
-                                 for r in json.loads(answer)["runs"])
+    status, answer = _api(port, "GET", "/api/runs?state=queued,starting,running,paused", token)
+    return status != 200 or any(r["state"] in ("queued", "starting", "running", "paused") and r["queue"] == "pi"
+                                for r in json.loads(answer)["runs"])
+
+
+def _start_serve(home: Path, env: dict) -> tuple[subprocess.Popen, int, int, str]:
+    """serve, and (process, editor port, inference port, token) once it printed them."""
+    py = [sys.executable, str(REPO / "run_trainer.py")]
+    log = open(home / "serve.log", "w")
+    serve = subprocess.Popen(py + ["serve", "--port", "0", "--inference-port", "0"], cwd=REPO, env=env,
+                             stdout=log, stderr=subprocess.STDOUT)
+    log.close()
+    deadline = time.monotonic() + 60
+    main = door = None
+    while (main is None or door is None) and time.monotonic() < deadline and serve.poll() is None:
+        time.sleep(0.2)
+        text = (home / "serve.log").read_text()
+        main = re.search(r"Robot Editor: http://[^:]+:(\d+)/\s+token: (\S+)", text)
+        door = re.search(r"inference: http://[^:]+:(\d+)/api/brain/infer", text)
+    if main is None or door is None:
+        serve.kill()
+        sys.exit(f"soak: serve did not start:\n{(home / 'serve.log').read_text()[-3000:]}")
+    return serve, int(main.group(1)), int(door.group(1)), main.group(2)
+
+
+def _log_bytes(home: Path) -> int:
+    files = list((home / "logs").glob("*")) + [home / "serve.log"]
+    return sum(f.stat().st_size for f in files if f.is_file())
+
+
+class Sampler:
+    """serve's RSS, threads and descriptors every `every_s`, and the training chain kept queued."""
+
+    def __init__(self, pid: int, port: int, token: str, chain_steps: int, every_s: float):
+        self.pid, self.port, self.token, self.chain_steps, self.every_s = pid, port, token, chain_steps, every_s
+        self.samples: list[dict] = []
+        self.chains = 0
+        self.started = time.monotonic()
+
+    def sample(self, phase: str) -> None:
+        threads, fds = process_counts(self.pid)
+        self.samples.append({"t_s": round(time.monotonic() - self.started), "phase": phase,
+                             "rss_mb": round(_rss_mb(self.pid), 1), "threads": threads, "fds": fds})
+
+    def follow(self, procs: dict, phase: str) -> None:
+        while any(p.poll() is None for p in procs.values()):
+            self.sample(phase)
+            if not _chain_active(self.port, self.token):
+                _enqueue_chain(self.port, self.token, self.chain_steps)
+                self.chains += 1
+            time.sleep(self.every_s)
+
+
+def _phase(home: Path, name: str, roles: dict, seconds: float, sampler: Sampler) -> dict:
+    """Run each role's process for `seconds` (role -> (port, delay before it starts)); their results."""
+    out = {role: home / f"{name}-{role}.json" for role in roles}
+    procs = {}
+    for role, (port, delay) in roles.items():
+        time.sleep(delay)
+        procs[role] = _spawn_role(role, port, sampler.token, seconds, out[role])
+    sampler.follow(procs, name)
+    failed = [role for role, proc in procs.items() if proc.returncode != 0]
+    if failed:
+        sys.exit(f"soak: the {', '.join(failed)} process(es) of the {name} phase failed")
+    return {role: json.loads(path.read_text()) for role, path in out.items()}
 
 
 def drive(args) -> int:
@@ -183,79 +242,74 @@ def drive(args) -> int:
                "--steps", "40", "--warmup", "4"], env, "training the served fast_loop")
     _run(py + ["promote", "--checkpoint", str(home / "runs" / "seed"), "--force"], env, "promoting it")
 
-    log = open(home / "serve.log", "w")
-    serve = subprocess.Popen(py + ["serve", "--port", "0"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    serve, port, door, token = _start_serve(home, env)
     try:
-        deadline = time.monotonic() + 60
-        match = None
-        while match is None and time.monotonic() < deadline and serve.poll() is None:
-            time.sleep(0.2)
-            match = re.search(r"Robot Editor: http://[^:]+:(\d+)/\s+token: (\S+)", (home / "serve.log").read_text())
-        if match is None:
-            sys.exit(f"soak: serve did not start:\n{(home / 'serve.log').read_text()[-3000:]}")
-        port, token = int(match.group(1)), match.group(2)
+        sampler = Sampler(serve.pid, port, token, args.chain_steps, args.sample_s)
         _enqueue_chain(port, token, args.chain_steps)
-        out = {role: home / f"{role}.json" for role in ("inference", "sockets", "hostile")}
-        procs = {"sockets": _spawn_role("sockets", port, token, args.seconds, out["sockets"])}
-        time.sleep(2.0)  # the editors log in before the neighbour starts
-        procs["inference"] = _spawn_role("inference", port, token, args.seconds, out["inference"])
-        procs["hostile"] = _spawn_role("hostile", port, token, args.seconds, out["hostile"])
-        samples, chains = [], 1
-        started = time.monotonic()
-        while any(p.poll() is None for p in procs.values()):
-            threads, fds = process_counts(serve.pid)
-            samples.append({"t_s": round(time.monotonic() - started), "rss_mb": round(_rss_mb(serve.pid), 1),
-                            "threads": threads, "fds": fds})
-            if not _chain_active(port, token):
-                _enqueue_chain(port, token, args.chain_steps)
-                chains += 1
-            time.sleep(args.sample_s)
-        time.sleep(30)  # the last hostile sockets' sessions and ping sleepers end
-        threads, fds = process_counts(serve.pid)
-        samples.append({"t_s": round(time.monotonic() - started), "rss_mb": round(_rss_mb(serve.pid), 1),
-                        "threads": threads, "fds": fds, "after_30s_quiet": True})
-        results = {role: json.loads(path.read_text()) for role, path in out.items()}
+        sampler.chains = 1
+        logs_before = _log_bytes(home)
+        quiet = _phase(home, "quiet", {"inference": (door, 0.0)}, args.quiet_seconds, sampler)
+        roles = {"sockets": (port, 0.0), "inference": (door, 2.0)}  # the editors log in before the attack
+        roles.update({name: (port, 0.0) for name in args.attackers})
+        attacked = _phase(home, "attack", roles, args.seconds, sampler)
+        time.sleep(30)  # the last attackers' sessions and ping sleepers end
+        sampler.sample("after 30 s quiet")
+        logs_grew = _log_bytes(home) - logs_before
     finally:
         serve.terminate()
         try:
             serve.wait(60)
         except subprocess.TimeoutExpired:
             serve.kill()
-        log.close()
+    return report(args, quiet["inference"], attacked, sampler, logs_grew)
 
-    inf, socks, hostile = results["inference"], results["sockets"], results["hostile"]
-    first_half = [s for s in samples if s["t_s"] <= args.seconds / 2]
-    second_half = [s for s in samples if args.seconds / 2 < s["t_s"] <= args.seconds]
+
+def report(args, quiet: dict, attacked: dict, sampler: Sampler, logs_grew: int) -> int:
+    inf, socks = attacked["inference"], attacked["sockets"]
+    samples = sampler.samples
+    under = [s for s in samples if s["phase"] == "attack"]
+    first, second = under[: len(under) // 2], under[len(under) // 2:]
+
     def med(rows, key):
         return statistics.median(r[key] for r in rows) if rows else float("nan")
-    print(f"\nsoak {args.seconds:.0f} s: {inf['requests']} inferences at {inf['rate_hz']:.0f}/s "
-          f"(20 clients x 50 Hz asked), failed {inf['failed']}; latency ms {inf['latency_ms']}")
-    print(f"socket.io: {socks['clients']} editors, failed {socks['failed']}, {socks['events']} events received")
-    print(f"hostile: {hostile['rounds']} rounds, bad POSTs {hostile['bad_post_statuses']}, "
-          f"held sockets refused {hostile['held_refused']}; training chains queued {chains}")
-    print("serve process over time (t s, RSS MB, threads, fds):")
+
+    q99, a99 = quiet["latency_ms"].get("p99", float("nan")), inf["latency_ms"].get("p99", float("nan"))
+    print(f"\nquiet {args.quiet_seconds:.0f} s: {quiet['requests']} inferences at {quiet['rate_hz']:.0f}/s, "
+          f"failed {quiet['failed']}; latency ms {quiet['latency_ms']}")
+    print(f"attack {args.seconds:.0f} s: {inf['requests']} inferences at {inf['rate_hz']:.0f}/s "
+          f"(20 clients x 50 Hz asked), failed {inf['failed']}; latency ms {inf['latency_ms']}; "
+          f"p99 {a99 / q99:.2f}x the quiet figure")
+    print(f"socket.io: {socks['clients']} editors, dropped {socks['failed']}, {socks['events']} events received")
+    for name in args.attackers:
+        print(f"attacker {name}: {json.dumps(attacked[name])}")
+    print(f"logs grew by {logs_grew / 1024:.0f} KB; training chains queued {sampler.chains}")
+    print("serve process over time (t s, phase, RSS MB, threads, fds):")
     for s in samples:
-        print(f"  {s['t_s']:5d}  {s['rss_mb']:7.1f}  {s['threads']:5d}  {s['fds']:5d}"
-              + ("  (30 s after the load)" if s.get("after_30s_quiet") else ""))
-    print(f"median RSS first/second half: {med(first_half, 'rss_mb'):.1f} / {med(second_half, 'rss_mb'):.1f} MB; "
-          f"median fds {med(first_half, 'fds'):.0f} / {med(second_half, 'fds'):.0f}; "
-          f"after: {samples[-1]['fds']} fds, {samples[-1]['threads']} threads")
-    failed = inf["failed"] + socks["failed"]
-    for f in inf["failures"] + socks["failures"]:
+        print(f"  {s['t_s']:5d}  {s['phase']:16s} {s['rss_mb']:7.1f}  {s['threads']:5d}  {s['fds']:5d}")
+    print(f"under attack, median RSS first/second half: {med(first, 'rss_mb'):.1f} / {med(second, 'rss_mb'):.1f} MB; "
+          f"median fds {med(first, 'fds'):.0f} / {med(second, 'fds'):.0f}; threads "
+          f"{med(first, 'threads'):.0f} / {med(second, 'threads'):.0f}; after: {samples[-1]['fds']} fds, "
+          f"{samples[-1]['threads']} threads")
+    for f in quiet["failures"] + inf["failures"] + socks["failures"]:
         print("  failure:", f)
-    summary = {"seconds": args.seconds, "inference": inf, "sockets": socks, "hostile": hostile,
-               "samples": samples, "chains": chains}
-    print(json.dumps({k: v for k, v in summary.items() if k != "samples"}))
-    fds_grew = samples[-1]["fds"] > samples[0]["fds"] + 10
-    return 1 if failed or fds_grew else 0
+    missed = {"failed inferences": quiet["failed"] + inf["failed"] > 0, "editors dropped": socks["failed"] > 0,
+              "p99 over 2x quiet": not a99 <= 2 * q99, "logs over 1 MB": logs_grew > 1 << 20,
+              "RSS grew": med(second, "rss_mb") > med(first, "rss_mb") * 1.1 + 20,
+              "fds grew": samples[-1]["fds"] > samples[0]["fds"] + 10}
+    summary = {"seconds": args.seconds, "quiet_seconds": args.quiet_seconds, "quiet": quiet, "attack": attacked,
+               "logs_grew_bytes": logs_grew, "chains": sampler.chains, "missed": [k for k, v in missed.items() if v]}
+    print(json.dumps(summary))
+    return 1 if any(missed.values()) else 0
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--seconds", type=float, default=600.0)
+    p.add_argument("--seconds", type=float, default=600.0, help="the attack phase")
+    p.add_argument("--quiet-seconds", type=float, default=60.0, help="the quiet phase before it")
+    p.add_argument("--attackers", nargs="*", default=list(ATTACKERS), choices=list(ATTACKERS))
     p.add_argument("--sample-s", type=float, default=10.0, help="how often serve's RSS/threads/fds are sampled")
     p.add_argument("--chain-steps", type=int, default=3000, help="steps of each component of the training chain")
-    p.add_argument("--role", choices=("inference", "sockets", "hostile"), help=argparse.SUPPRESS)
+    p.add_argument("--role", choices=("inference", "sockets", *ATTACKERS), help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, help=argparse.SUPPRESS)
     p.add_argument("--token", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
@@ -267,7 +321,7 @@ def main() -> int:
     elif args.role == "sockets":
         result = role_sockets(args.port, args.token, args.seconds, clients=10)
     else:
-        result = role_hostile(args.port, args.seconds)
+        result = ATTACKERS[args.role](args.port, args.token, args.seconds)
     Path(args.out).write_text(json.dumps(result))
     return 0
 

@@ -19,12 +19,14 @@ BAD_POLL_BODIES = (b"6", b"0", b"2probe", b"9zzz", b"4" + b"x" * 1_100_000)
 
 
 def http_request(port: int, method: str, path: str, body: bytes = b"", headers: dict | None = None,
-                 timeout: float = 5.0, host: str = "127.0.0.1") -> tuple[int, bytes]:
-    """One request on its own connection; (status, body). Status 0 when the server closed without answering."""
+                 timeout: float = 5.0, host: str = "127.0.0.1", source: str | None = None) -> tuple[int, bytes]:
+    """One request on its own connection (from the loopback address `source`, as another client, if
+    given); (status, body). Status 0 when the server closed without answering."""
     head = {"Host": f"127.0.0.1:{port}", "Connection": "close", "Content-Length": str(len(body))}
     head.update(headers or {})
     lines = [f"{method} {path} HTTP/1.1"] + [f"{k}: {v}" for k, v in head.items()]
-    with socket.create_connection((host, port), timeout=timeout) as s:
+    with socket.create_connection((host, port), timeout=timeout,
+                                  source_address=None if source is None else (source, 0)) as s:
         s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode() + body)
         raw = b""
         while not _complete(raw):
@@ -73,36 +75,41 @@ def _dechunk(data: bytes) -> bytes:
     return b"".join(out)
 
 
-def polling_handshake(port: int, timeout: float = 5.0) -> str | None:
-    status, body = http_request(port, "GET", "/socket.io/?EIO=4&transport=polling", timeout=timeout)
+def polling_handshake(port: int, timeout: float = 5.0, source: str | None = None) -> str | None:
+    status, body = http_request(port, "GET", "/socket.io/?EIO=4&transport=polling", timeout=timeout, source=source)
     if status != 200 or not body.startswith(b"0"):
         return None
     return json.loads(body[1:])["sid"]
 
 
-def bad_poll_pair(port: int, body: bytes, timeout: float = 2.0) -> int:
+def bad_poll_pair(port: int, body: bytes, timeout: float = 2.0, source: str | None = None) -> int:
     """An Engine.IO polling handshake, then one POST of a bad packet; the POST's status (0 = no answer)."""
-    sid = polling_handshake(port)
+    sid = polling_handshake(port, source=source)
     if sid is None:
         return -1
     try:
         status, _ = http_request(port, "POST", f"/socket.io/?EIO=4&transport=polling&sid={sid}", body=body,
-                                 headers={"Content-Type": "text/plain;charset=UTF-8"}, timeout=timeout)
+                                 headers={"Content-Type": "text/plain;charset=UTF-8"}, timeout=timeout, source=source)
     except (socket.timeout, OSError):
         return 0
     return status
 
 
-def half_header_socket(port: int) -> socket.socket:
+def _connect(port: int, source: str | None, timeout: float = 5.0) -> socket.socket:
+    return socket.create_connection(("127.0.0.1", port), timeout=timeout,
+                                    source_address=None if source is None else (source, 0))
+
+
+def half_header_socket(port: int, source: str | None = None) -> socket.socket:
     """A connection that sends half a request and then nothing."""
-    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    s = _connect(port, source)
     s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
     return s
 
 
-def silent_websocket(port: int) -> socket.socket | None:
+def silent_websocket(port: int, source: str | None = None) -> socket.socket | None:
     """A completed WebSocket handshake on the Socket.IO endpoint that never sends CONNECT. None if refused."""
-    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    s = _connect(port, source)
     key = base64.b64encode(os.urandom(16)).decode()
     s.sendall((f"GET /socket.io/?EIO=4&transport=websocket HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
                f"Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
@@ -125,6 +132,7 @@ class HostileRound:
     pairs_per_body: int = 60
     half_headers: int = 50
     silent_websockets: int = 100
+    source: str | None = None  # a loopback address of its own (127.0.0.3: another host), else the default
     held: list = field(default_factory=list)
     statuses: dict = field(default_factory=dict)
     refused: int = 0
@@ -132,16 +140,16 @@ class HostileRound:
     def run(self) -> "HostileRound":
         for body in BAD_POLL_BODIES:
             for _ in range(self.pairs_per_body):
-                status = bad_poll_pair(self.port, body)
+                status = bad_poll_pair(self.port, body, source=self.source)
                 self.statuses[status] = self.statuses.get(status, 0) + 1
         for _ in range(self.half_headers):
             try:
-                self.held.append(half_header_socket(self.port))
+                self.held.append(half_header_socket(self.port, self.source))
             except OSError:
                 self.refused += 1
         for _ in range(self.silent_websockets):
             try:
-                ws = silent_websocket(self.port)
+                ws = silent_websocket(self.port, self.source)
             except OSError:
                 ws = None
             if ws is None:
@@ -375,21 +383,22 @@ class LongPollFlood:
 LOG_FLOOD_BODIES = (b"x", b"42[", b"\xff", b"4x", b"bZZZ")
 
 
-def log_flood(port: int, packets: int = 500, bodies: tuple = LOG_FLOOD_BODIES, timeout: float = 5.0) -> dict:
+def log_flood(port: int, packets: int = 500, bodies: tuple = LOG_FLOOD_BODIES, timeout: float = 5.0,
+              source: str | None = None) -> dict:
     """No token: `packets` malformed polling POSTs, on one Engine.IO session while it stays open (a
     new handshake when it is closed). Returns {POST status: count}, -1 for a refused handshake."""
     statuses: dict = {}
     sid = None
     for i in range(packets):
         if sid is None:
-            sid = polling_handshake(port, timeout=timeout)
+            sid = polling_handshake(port, timeout=timeout, source=source)
         if sid is None:
             statuses[-1] = statuses.get(-1, 0) + 1
             time.sleep(0.05)  # refused by the session rate limit: a moment before the next try
             continue
         try:
             status, _ = http_request(port, "POST", f"/socket.io/?EIO=4&transport=polling&sid={sid}",
-                                     body=bodies[i % len(bodies)], timeout=timeout,
+                                     body=bodies[i % len(bodies)], timeout=timeout, source=source,
                                      headers={"Content-Type": "text/plain;charset=UTF-8"})
         except OSError:
             status = 0
