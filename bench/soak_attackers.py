@@ -51,16 +51,26 @@ def attack_longpoll(port: int, token: str, seconds: float) -> dict:
     return {"handshakes": flood.handshakes, "get_statuses": {str(k): v for k, v in flood.statuses.items()}}
 
 
-def attack_logflood(port: int, token: str, seconds: float) -> dict:
+def attack_logflood(port: int, token: str, seconds: float, clients: int = 4) -> dict:
     end = time.monotonic() + seconds
     statuses: dict = {}
-    packets = 0
-    while time.monotonic() < end:
-        got = log_flood(port, packets=100, source=NEIGHBOUR["logflood"])
-        packets += 100
-        for k, v in got.items():
-            statuses[str(k)] = statuses.get(str(k), 0) + v
-    return {"packets": packets, "statuses": statuses}
+    packets = [0]
+    lock = threading.Lock()
+
+    def one() -> None:
+        while time.monotonic() < end:
+            got = log_flood(port, packets=50, source=NEIGHBOUR["logflood"])
+            with lock:
+                packets[0] += 50
+                for k, v in got.items():
+                    statuses[str(k)] = statuses.get(str(k), 0) + v
+
+    threads = [threading.Thread(target=one) for _ in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return {"packets": packets[0], "statuses": statuses}
 
 
 def attack_binary(port: int, token: str, seconds: float) -> dict:
