@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import select
 import socket
 import threading
 import time
@@ -203,11 +204,7 @@ def _start_upload(port: int, token: str, size: int, first: bytes) -> socket.sock
     return sock
 
 
-def _finish_upload(sock: socket.socket, rest: bytes) -> tuple[int, bytes]:
-    try:
-        sock.sendall(rest)
-    except OSError:
-        pass  # refused while sending: its answer is already there
+def _read_answer(sock: socket.socket) -> tuple[int, bytes]:
     raw = b""
     while True:
         try:
@@ -223,20 +220,35 @@ def _finish_upload(sock: socket.socket, rest: bytes) -> tuple[int, bytes]:
     return int(raw.split(b" ", 2)[1]), raw.partition(b"\r\n\r\n")[2]
 
 
-def _tmp_bytes(s: Server) -> int:
-    tmp = Path(s.settings.home) / "tmp"
-    return sum(f.stat().st_size for f in tmp.rglob("*") if f.is_file()) if tmp.exists() else 0
+def _finish_upload(sock: socket.socket, rest: bytes) -> tuple[int, bytes]:
+    try:
+        sock.sendall(rest)
+    except OSError:
+        pass  # refused while sending: its answer is already there
+    return _read_answer(sock)
+
+
+def _answers_of_refused(socks: list[socket.socket], within: float) -> dict[socket.socket, tuple[int, bytes]]:
+    """The answers that arrive while the uploads wait for their second halves, read at once (the
+    server drains a refused body for a moment only, then closes)."""
+    answers: dict[socket.socket, tuple[int, bytes]] = {}
+    deadline = time.monotonic() + within
+    while len(answers) < len(socks) and time.monotonic() < deadline:
+        readable, _, _ = select.select([s for s in socks if s not in answers], [], [], 0.5)
+        if not readable and answers:
+            break  # the refusals are in; the others wait for the rest of their bodies
+        for sock in readable:
+            answers[sock] = _read_answer(sock)
+    return answers
 
 
 def test_concurrent_uploads_past_upload_tmp_max_mb_are_refused_with_507(server):
     s = server(HOPE_UPLOAD_TMP_MAX_MB="4")
     size, half = 3 * MB, 3 * MB // 2
     body = (hp.xr_zip_of({"metadata.json": b"{}"}) + bytes(size))[:size]  # not a package once read whole: a 400
-    socks = [_start_upload(s.port, s.token, size, body[:half]) for _ in range(6)]
-    deadline = time.monotonic() + 20
-    while _tmp_bytes(s) < 3 * MB and time.monotonic() < deadline:
-        time.sleep(0.05)  # six halves (9 MiB) arriving: the room fills
-    answers = [_finish_upload(sock, body[half:]) for sock in socks]
+    socks = [_start_upload(s.port, s.token, size, body[:half]) for _ in range(6)]  # 9 MiB arriving at once
+    refused = _answers_of_refused(socks, within=20)
+    answers = [refused[sock] if sock in refused else _finish_upload(sock, body[half:]) for sock in socks]
     statuses = sorted(status for status, _ in answers)
     assert 507 in statuses, answers
     refused = [json.loads(raw)["error"] for status, raw in answers if status == 507]
