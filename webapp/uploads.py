@@ -100,7 +100,7 @@ class TmpRoom:
             self.taken += n
         free = free_mb(self.root)
         if free is not None and free < self.floor_mb:
-            raise ApiError(f"{what}: {free:.0f} MB free under {self.root.parent}, below the floor of "
+            raise ApiError(f"{what}: {free:.0f} MB free under $HOPE_HOME, below the floor of "
                            f"{self.floor_mb:.0f} MB (disk_floor_mb) an upload must leave", 507)
 
     def release(self) -> None:
