@@ -16,24 +16,9 @@ import shutil
 import zipfile
 from pathlib import Path
 
-import pytest
 
 import hostile_packages as hp
-from test_upload_bombs import Server
-
-
-@pytest.fixture
-def server(tmp_path):
-    made: list[Server] = []
-
-    def make(**env: str) -> Server:
-        s = Server(tmp_path / f"home{len(made)}", **env)
-        made.append(s)
-        return s
-
-    yield make
-    for s in made:
-        s.close()
+from test_upload_bombs import Server, server  # noqa: F401 - the real server the uploads go to
 
 
 ODD = {  # entry -> the words of the refusal
