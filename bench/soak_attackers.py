@@ -79,7 +79,7 @@ def attack_binary(port: int, token: str, seconds: float) -> dict:
     while time.monotonic() < end - 5:
         try:
             out = binary_attachment_bomb(port, token, megabytes=8.0)
-        except (OSError, ConnectionError):
+        except Exception:  # noqa: BLE001 - refused or cut before it logged in: the next bomb tries again
             out = {"closed": True, "sent": 0, "client": None}
         tries += 1
         closed += bool(out["closed"])

@@ -432,3 +432,45 @@ def test_the_socket_io_ping_interval_is_a_setting(served):
     # production keeps Engine.IO's 25 s; the real-serve test above shortens it through the environment
     assert served().socketio.server.eio.ping_interval == 25
     assert served(HOPE_SOCKETIO_PING_INTERVAL_S="3").socketio.server.eio.ping_interval == 3
+
+
+def test_a_login_the_server_is_slow_to_check_is_not_cut_at_the_deadline(served):
+    # Under load the thread that checks a CONNECT may start seconds after it arrived; the client
+    # logged in in time, so it must not be cut for the server's slowness (a soak under attack once
+    # dropped two editors that way).
+    s = served(socket_auth_timeout_s=1.0)
+    eio = s.socketio.server.eio
+    inner = eio.handlers["message"]
+
+    def slow_check(sid, data, *args):
+        if isinstance(data, str) and data.startswith("0"):
+            time.sleep(2.0)
+        return inner(sid, data, *args)
+
+    eio.on("message", slow_check)
+    good = SocketIOClient(s.port, s.token)
+    assert good.connected, good.connect_reply
+    good.pump(2.5)  # past the deadline, twice
+    assert good.ws.connected
+    refused = SocketIOClient(s.port, "not-the-token-at-all")
+    assert not refused.connected and "unauthorized" in refused.connect_reply
+    with pytest.raises(ConnectionError):
+        refused.pump(3.0)  # checked and refused after its deadline: closed at once
+    good.close()
+
+
+def test_one_address_holds_only_a_share_of_the_sessions_waiting_to_log_in(served):
+    s = served()
+    s.guard._rate, s.guard._burst, s.guard._tokens = 0.001, 1000.0, 1000.0
+    share = s.guard.max_pending_per_client
+    assert 1 <= share < s.guard.max_pending
+    from hostile_clients import raw_request
+
+    neighbour = [polling_handshake(s.port, source="127.0.0.2") for _ in range(share + 3)]
+    assert all(neighbour[:share]) and not any(neighbour[share:])
+    status, body = http_request(s.port, "GET", "/socket.io/?EIO=4&transport=polling", source="127.0.0.2")
+    assert status == 401 and b"127.0.0.2 has" in body and b"one client address" in body, body
+    assert raw_request(s.port, "GET", "/socket.io/?EIO=4&transport=polling") == 200  # the editor's address
+    editor = SocketIOClient(s.port, s.token)
+    assert editor.connected, editor.connect_reply
+    editor.close()

@@ -86,3 +86,21 @@ def test_engineio_buffers_at_most_the_cap_per_message(served):
         ok.pump(0.5)
     finally:
         ok.close()
+
+
+def test_a_websocket_closed_for_an_oversized_message_leaves_no_connection_behind(served):
+    # simple-websocket ends its reader on an oversized message in an order that could leave
+    # Engine.IO's receive() waiting for ever: one thread and one connection per message, which
+    # filled a client address's share of connections in a soak (new editors then got 503)
+    from webapp.socket_packets import MAX_MESSAGE_BYTES
+
+    served.guard._rate = served.guard._burst = 1000.0
+    for _ in range(5):
+        client = SocketIOClient(served.port, served.token)
+        try:
+            assert client.connected, client.connect_reply
+            client.ws.send('42["x","' + "y" * (MAX_MESSAGE_BYTES + 1) + '"]')
+            assert wait_until(lambda: not client.ws.connected, timeout=10)
+        finally:
+            client.close()
+    assert wait_until(lambda: served.server.open_connections == 0, timeout=5), served.server.open_connections

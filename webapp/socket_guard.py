@@ -12,10 +12,12 @@ Two holes in python-engineio (4.15) as Flask-SocketIO runs it in threading mode,
 2. An Engine.IO session needs no token: authentication is the Socket.IO CONNECT packet. A client
    that opens a WebSocket (or polling session) and never sends CONNECT, or sends a refused one,
    would hold it open while answering pings. Every session must be authorised within
-   `auth_timeout_s` or it is closed.
+   `auth_timeout_s` or it is closed; one whose CONNECT arrived in time is not cut while the server
+   is still checking it (a loaded server may start that check seconds late), up to CHECK_LIMIT_S.
 3. Each new session starts a ping thread that sleeps `ping_interval` (25 s) before it notices its
    session is gone, so handshakes alone (no token) could pile up thousands of threads. New sessions
-   are therefore limited: at most `max_pending` waiting to log in at once, and no more than
+   are therefore limited: at most `max_pending` waiting to log in at once (a quarter of them from
+   any one client address, so a neighbour's handshakes leave room for the editor's), and no more than
    `sessions_per_s` (with a burst) started; beyond that the handshake is refused (401 with a
    message) and a real client retries, as it does after any refused connection.
 4. A long-polling GET waits for packets up to ping_interval + ping_timeout (45 s), and any number of
@@ -40,6 +42,7 @@ import logging
 import socket
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qs
 
@@ -50,6 +53,7 @@ DEFAULT_AUTH_TIMEOUT_S = 10.0
 MAX_PENDING = 64
 SESSIONS_PER_S = 20.0
 SESSIONS_BURST = 60
+CHECK_LIMIT_S = 60.0  # a login check that takes longer than this is not waited for
 POLL_DEADLINE_S = 15.0  # well under Engine.IO's 45 s; a browser polls again at once
 
 
@@ -78,6 +82,13 @@ def _bounded_poll_socket_class(base: type, guard: "SocketGuard") -> type:
                     self.queue.task_done()
                 except empty:
                     return packets
+
+        def receive(self, pkt):
+            # here, on the thread that read it: Engine.IO hands the message itself to a thread of
+            # its own, which a loaded server may start seconds later
+            if pkt.packet_type == packet.MESSAGE and isinstance(pkt.data, str) and pkt.data[:1] == "0":
+                guard.login_arrived(self.sid)
+            return super().receive(pkt)
 
     return BoundedPollSocket
 
@@ -111,6 +122,20 @@ def _second_poll_refused(start_response):
     return [body]
 
 
+@dataclass
+class _Pending:
+    """A session waiting to log in."""
+
+    deadline: float
+    environ: dict
+    client: str  # the address it came from: one address may hold only a share of the places
+    checking_since: float | None = None  # its CONNECT arrived and the server is checking it
+    checked: bool = False
+
+    def checking(self, now: float) -> bool:
+        return self.checking_since is not None and now - self.checking_since < CHECK_LIMIT_S
+
+
 def mark_authorized(environ: dict) -> None:
     """Called by the Socket.IO connect handler once the token checked out."""
     environ[AUTHORIZED_KEY] = True
@@ -135,23 +160,26 @@ class SocketGuard:
         self._polling: dict[str, dict] = {}  # session id -> environ of its waiting long-poll GET
         self.second_polls = 0
         self.auth_timeout_s = float(auth_timeout_s)
-        self._pending: dict[str, tuple[float, dict]] = {}
+        self._pending: dict[str, _Pending] = {}
         self._websockets: dict[str, dict] = {}  # session id -> environ of its WebSocket request
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._closed = False
         self.max_pending = int(max_pending)
+        self.max_pending_per_client = max(1, self.max_pending // 4)
         self._rate, self._burst = float(sessions_per_s), float(sessions_burst)
         self._tokens, self._refilled = self._burst, time.monotonic()
         self.refused = 0
         inner_connect = eio.handlers.get("connect")
+        inner_message = eio.handlers.get("message")
         inner_disconnect = eio.handlers.get("disconnect")
 
         def on_connect(eio_sid, environ, *args):
             with self._lock:
-                refusal = self._admit()
+                client = str(environ.get("REMOTE_ADDR", ""))
+                refusal = self._admit(client)
                 if refusal is None:
-                    self._pending[eio_sid] = (time.monotonic() + self.auth_timeout_s, environ)
+                    self._pending[eio_sid] = _Pending(time.monotonic() + self.auth_timeout_s, environ, client)
                     self._ensure_reaper()
             if refusal is not None:
                 return refusal  # engineio drops the session before its ping thread starts
@@ -165,8 +193,16 @@ class SocketGuard:
                 self._pending.pop(eio_sid, None)
             return inner_disconnect(eio_sid, *args) if inner_disconnect else None
 
+        def on_message(eio_sid, data, *args):
+            try:
+                return inner_message(eio_sid, data, *args)
+            finally:
+                if isinstance(data, str) and data[:1] == "0":  # a Socket.IO CONNECT, answered
+                    self.login_checked(eio_sid)
+
         eio.on("connect", on_connect)
         eio.on("disconnect", on_disconnect)
+        eio.on("message", on_message)
 
     def middleware(self, app):
         """WSGI: remember which TCP connection carries each session's WebSocket while it is open."""
@@ -223,13 +259,35 @@ class SocketGuard:
         except (OSError, AttributeError):
             pass
 
-    def _admit(self) -> str | None:
+    def login_arrived(self, sid: str) -> None:
+        """The session's first Socket.IO CONNECT came. Checking it is the server's part, which under
+        load may take longer than the deadline: the session is not cut for the server's own
+        slowness while its check runs (up to CHECK_LIMIT_S). Only the first CONNECT counts, so
+        CONNECTs sent again and again do not keep a session alive."""
+        with self._lock:
+            entry = self._pending.get(sid)
+            if entry is not None and entry.checking_since is None and not entry.checked:
+                entry.checking_since = time.monotonic()
+
+    def login_checked(self, sid: str) -> None:
+        """The server has answered that CONNECT: authorised (the reaper lets it go), or refused (it
+        is closed at its deadline, or at once when that has passed)."""
+        with self._lock:
+            entry = self._pending.get(sid)
+            if entry is not None and entry.checking_since is not None:
+                entry.checking_since, entry.checked = None, True
+
+    def _admit(self, client: str = "") -> str | None:
         """None when a new session may start, else why not (under self._lock)."""
         now = time.monotonic()
         self._tokens = min(self._burst, self._tokens + (now - self._refilled) * self._rate)
         self._refilled = now
+        mine = sum(1 for entry in self._pending.values() if entry.client == client)
         if len(self._pending) >= self.max_pending:
             why = f"{len(self._pending)} Socket.IO sessions are waiting to log in, the limit"
+        elif mine >= self.max_pending_per_client:
+            # one address may not take every place: a neighbour's handshakes leave room for the editor's
+            why = f"{client} has {mine} Socket.IO sessions waiting to log in, the limit for one client address"
         elif self._tokens < 1.0:
             why = f"more than {self._rate:g} new Socket.IO sessions a second"
         else:
@@ -257,12 +315,12 @@ class SocketGuard:
             now = time.monotonic()
             expired = []
             with self._lock:
-                for sid, (deadline, environ) in list(self._pending.items()):
-                    if environ.get(AUTHORIZED_KEY):
+                for sid, entry in list(self._pending.items()):
+                    if entry.environ.get(AUTHORIZED_KEY):
                         del self._pending[sid]
-                    elif now >= deadline:
+                    elif now >= entry.deadline and not entry.checking(now):
                         del self._pending[sid]
-                        expired.append((sid, environ, self._websockets.get(sid)))
+                        expired.append((sid, entry.environ, self._websockets.get(sid)))
                 if not self._pending or self._closed:
                     self._thread = None
                     stop = True

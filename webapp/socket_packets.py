@@ -167,7 +167,12 @@ def install(socketio: Any, guard: Any = None) -> None:
     _wrap_handle_request(sio, eio, _CURRENT, guard)
 
 
+WAIT_STEP_S = 1.0
+
+
 def _bounded_websocket_class(base: type) -> type:
+    import simple_websocket
+
     class BoundedWebSocket(base):
         def __init__(self, handler, server, **kwargs):
             # simple-websocket stops reading a message past this size (and closes) instead of
@@ -179,6 +184,18 @@ def _bounded_websocket_class(base: type) -> type:
                 super().close()
             except OSError:  # _cut shut the socket under Engine.IO's writer thread
                 pass
+
+        def wait(self):
+            # simple-websocket (1.1) ends its reader on a message past max_message_size by waking
+            # receive() before it marks the socket closed: a receive() that wakes in between waits
+            # on its event for ever, holding the connection and its thread. Look again every second.
+            while True:
+                try:
+                    data = self.ws.receive(timeout=WAIT_STEP_S)
+                except simple_websocket.ConnectionClosed:
+                    return None
+                if data is not None or not self.ws.connected:
+                    return data
 
     return BoundedWebSocket
 
