@@ -187,7 +187,9 @@ def test_no_worker_on_the_queue_waits_visibly_cancel_ends_it_a_late_worker_refus
             time.sleep(0.3)
         assert run["state"] == "starting" and run["worker_pid"] is None, why()
         assert run["waiting"].startswith("waiting for a worker on queue 'gpu' since "), run
-        assert (state_dir / "broker" / "broker.sqlite").is_file()  # the message really was sent
+        # the message really was sent: the daemon commits `starting` first and sends right after,
+        # so a poll may see the state a moment before the broker file exists
+        wait_until(lambda: (state_dir / "broker" / "broker.sqlite").is_file(), 15, "the run's task in the broker")
         table = cli(user, "status").stdout.splitlines()
         assert [row.split()[3] for row in table if row.startswith(rid + " ")] == ["starting"]
         assert any(row.startswith(f"{rid}: waiting for a worker on queue 'gpu'") for row in table), table
