@@ -133,6 +133,18 @@ def promote_pointer(home: Path, ckpt: Path, component: str = "fast_loop", model_
     return obj
 
 
+def serve_a_copy(home: Path, tmp_path_factory, name: str = "alpha30") -> Path:
+    """The brain run `name` copied under `home`/runs and promoted there (what a real serve in
+    `home` then serves); the copy's checkpoint dir."""
+    import shutil
+
+    ckpt = brain_runs(tmp_path_factory)[name]
+    run_dir = home / "runs" / "alpha"
+    shutil.copytree(ckpt.parents[1], run_dir)
+    promote_pointer(home, run_dir / "checkpoints" / ckpt.name)
+    return run_dir / "checkpoints" / ckpt.name
+
+
 def overflowing_copy(src: Path, dst: Path, column: int = 0) -> tuple[Path, float]:
     """A copy of fast_loop checkpoint `src` that computes NaN from some valid observations: the
     obs_in weights reading observation value `column` are +-1e33 (finite, so the checkpoint loads),

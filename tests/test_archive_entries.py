@@ -18,7 +18,7 @@ from pathlib import Path
 
 
 import hostile_packages as hp
-from test_upload_bombs import Server, server  # noqa: F401 - the real server the uploads go to
+from test_upload_bombs import served, server  # noqa: F401 - the real server the uploads go to
 
 
 ODD = {  # entry -> the words of the refusal

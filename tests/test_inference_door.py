@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from brain_fixtures import brain_runs, promote_pointer
+from brain_fixtures import brain_runs, promote_pointer, serve_a_copy
 from hostile_clients import LongPollFlood, _dechunk, http_request, polling_handshake, process_counts, raw_request, wait_until
 from test_server_hardening import OBS, Served, served  # noqa: F401 - the fixture
 
@@ -195,10 +195,7 @@ def test_a_real_serve_answers_inference_through_the_long_poll_flood(tmp_path, tm
     # Engine.IO's ping threads outlive their session by one ping interval: 3 s lets the counts
     # come back within this test's budget without changing what is measured.
     home = Home(tmp_path / "home", extra_env={"HOPE_SOCKETIO_PING_INTERVAL_S": "3"})
-    ckpt = brain_runs(tmp_path_factory)["alpha30"]
-    run_dir = home.path / "runs" / "alpha"
-    shutil.copytree(ckpt.parents[1], run_dir)
-    promote_pointer(home.path, run_dir / "checkpoints" / ckpt.name)
+    serve_a_copy(home.path, tmp_path_factory)
     proc, (port, token, door) = _serve_with_door(home)
     auth = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
     try:

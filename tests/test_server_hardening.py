@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 import socket
 import threading
 import time
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from brain_fixtures import brain_runs, promote_pointer
+from brain_fixtures import serve_a_copy
 from hostile_clients import (BAD_POLL_BODIES, HostileRound, SocketIOClient, bad_poll_pair, half_header_socket,
                              http_request, polling_handshake, process_counts, silent_websocket, wait_until)
 
@@ -61,8 +60,8 @@ class Served:
 def served(tmp_path):
     made = []
 
-    def make(**kwargs):
-        s = Served(tmp_path / f"s{len(made)}", **kwargs)
+    def make(cls=None, **kwargs):
+        s = (cls or Served)(tmp_path / f"s{len(made)}", **kwargs)
         made.append(s)
         return s
 
@@ -363,10 +362,7 @@ def test_a_real_serve_comes_back_to_its_baseline_after_the_hostile_patterns(tmp_
     # (25 s by default), so threads come back to the baseline only after one; 3 s here spares the two
     # waits below ~45 s without changing what is measured (the editor still answers every ping).
     home = Home(tmp_path / "home", extra_env={"HOPE_SOCKETIO_PING_INTERVAL_S": "3"})
-    ckpt_src = brain_runs(tmp_path_factory)["alpha30"]
-    run_dir = home.path / "runs" / "alpha"
-    shutil.copytree(ckpt_src.parents[1], run_dir)
-    promote_pointer(home.path, run_dir / "checkpoints" / ckpt_src.name)
+    serve_a_copy(home.path, tmp_path_factory)
     serve = Serve(home)
     try:
         port = int(serve.url.rstrip("/").rsplit(":", 1)[1])

@@ -28,26 +28,16 @@ import pytest
 
 import hostile_packages as hp
 from hostile_clients import http_request
+from test_server_hardening import Served, served  # noqa: F401 - the fixture `server` builds on
 
 MB = 1 << 20
 
 
-class Server:
-    """create_app on the real (guarded) HTTP server in this process, on a fresh HOPE_HOME."""
+class Server(Served):
+    """Served with the upload helpers, and a 4 MB body limit the bombs stay far below."""
 
-    def __init__(self, home: Path, **env: str):
-        from hope_models.settings import load_settings
-        from webapp import create_app
-        from webapp.auth import load_or_create_token
-        from webapp.server import HttpServer
-
-        self.settings = load_settings(env={"HOPE_HOME": str(home), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": "",
-                                           "HOPE_UPLOAD_MAX_MB": "4", **env})
-        self.token = load_or_create_token(self.settings)
-        self.app, _ = create_app(self.settings, token=self.token)
-        self.server = HttpServer(self.app, "127.0.0.1", 0)
-        self.server.start()
-        self.port = self.server.port
+    def __init__(self, tmp_path: Path, **env: str):
+        super().__init__(tmp_path, **{"HOPE_UPLOAD_MAX_MB": "4", **env})
 
     def upload(self, body: bytes, *, headers: dict | None = None, timeout: float = 120.0) -> tuple[int, dict]:
         status, raw = http_request(self.port, "POST", "/api/episodes/upload", body,
@@ -59,24 +49,10 @@ class Server:
         tmp = Path(self.settings.home) / "tmp"
         return sorted(p.name for p in tmp.iterdir()) if tmp.exists() else []
 
-    def close(self) -> None:
-        self.server.stop()
-        self.app.extensions["hope"].close()
-        self.app.extensions["hope"].registry.close()
-
 
 @pytest.fixture
-def server(tmp_path):
-    made: list[Server] = []
-
-    def make(**env: str) -> Server:
-        s = Server(tmp_path / f"home{len(made)}", **env)
-        made.append(s)
-        return s
-
-    yield make
-    for s in made:
-        s.close()
+def server(served):
+    return lambda **env: served(cls=Server, **env)
 
 
 class PeakRss:
