@@ -254,11 +254,10 @@ def drive(args) -> int:
         _enqueue_chain(port, token, args.chain_steps)
         sampler.chains = 1
         logs_before = _log_bytes(home)
-        quiet = _phase(home, "quiet", {"sockets": (port, 0.0), "inference": (door, 2.0)}, args.quiet_seconds,
-                       sampler)
-        roles = {"sockets": (port, 0.0), "inference": (door, 2.0)}  # the editors log in before the attack
-        roles.update({name: (port, 0.0) for name in args.attackers})
-        attacked = _phase(home, "attack", roles, args.seconds, sampler)
+        legitimate = {"sockets": (port, 0.0), "inference": (door, 2.0)}  # the editors log in first
+        quiet = _phase(home, "quiet", legitimate, args.quiet_seconds, sampler)
+        attackers = {name: (port, 0.0) for name in args.attackers}
+        attacked = _phase(home, "attack", {**legitimate, **attackers}, args.seconds, sampler)
         time.sleep(30)  # the last attackers' sessions and ping sleepers end
         sampler.sample("after 30 s quiet")
         logs_grew = _log_bytes(home) - logs_before

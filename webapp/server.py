@@ -142,7 +142,6 @@ class GuardedServer(ThreadedWSGIServer):
     def __init__(self, *args, limits: ConnectionLimits, **kwargs):
         self.limits = limits
         self._conns: dict[int, _Connection] = {}
-        self._per_client: dict[str, int] = {}
         self._conns_lock = threading.Lock()
         self.refused = 0
         super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
@@ -165,11 +164,10 @@ class GuardedServer(ThreadedWSGIServer):
         one to drop (slow-header floods), not the newcomer: the oldest such, from the same address
         when that address is at its own cap."""
         limits = self.limits
-        mine = self._per_client.get(client, 0)
-        if limits.max_per_client and mine >= limits.max_per_client:
-            why = f"{client} has {mine} connections open, the limit for one client address"
-            pool = [c for c in self._conns.values() if c.client == client]
-            cap = limits.max_per_client
+        mine = [c for c in self._conns.values() if c.client == client]  # a scan of at most max_connections + slack
+        if limits.max_per_client and len(mine) >= limits.max_per_client:
+            why = f"{client} has {len(mine)} connections open, the limit for one client address"
+            pool, cap = mine, limits.max_per_client
         elif len(self._conns) >= limits.max_connections:
             why = f"the server has {limits.max_connections} connections open, its limit"
             pool, cap = list(self._conns.values()), limits.max_connections
@@ -191,7 +189,6 @@ class GuardedServer(ThreadedWSGIServer):
             if why is None:
                 self._conns[id(request)] = _Connection(request, client,
                                                        time.monotonic() + self.limits.header_timeout_s)
-                self._per_client[client] = self._per_client.get(client, 0) + 1
         if victim is not None:
             victim.cut()
         if why is not None:
@@ -213,13 +210,7 @@ class GuardedServer(ThreadedWSGIServer):
 
     def _forget(self, request) -> None:
         with self._conns_lock:
-            conn = self._conns.pop(id(request), None)
-            if conn is not None:
-                left = self._per_client.get(conn.client, 1) - 1
-                if left > 0:
-                    self._per_client[conn.client] = left
-                else:
-                    self._per_client.pop(conn.client, None)
+            self._conns.pop(id(request), None)
 
     def _refuse(self, request, why: str) -> None:
         # On the accepting thread: never block it. Read what the client already sent (so closing
