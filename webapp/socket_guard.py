@@ -136,6 +136,18 @@ class _Pending:
         return self.checking_since is not None and now - self.checking_since < CHECK_LIMIT_S
 
 
+def cut_websocket(environ: dict | None) -> None:
+    """Shut the TCP connection of a WebSocket request: its reader thread wakes with EOF and stops
+    reading (and buffering); the handler ends. Anything but a WebSocket request is left alone."""
+    if not environ or environ.get("HTTP_UPGRADE", "").lower() != "websocket":
+        return
+    sock = environ.get("werkzeug.socket")
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except (OSError, AttributeError):
+        pass
+
+
 def mark_authorized(environ: dict) -> None:
     """Called by the Socket.IO connect handler once the token checked out."""
     environ[AUTHORIZED_KEY] = True
@@ -249,15 +261,18 @@ class SocketGuard:
                 if self._polling.get(sid) is environ:
                     del self._polling[sid]
 
-    @staticmethod
-    def _cut(environ: dict | None) -> None:
-        if not environ or environ.get("HTTP_UPGRADE", "").lower() != "websocket":
-            return
-        sock = environ.get("werkzeug.socket")
+    def close_session(self, sid: str, environ: dict | None) -> None:
+        """Drop an Engine.IO session now and cut the TCP connections of its WebSocket (`environ`, the
+        session's own request, and an upgraded polling session's WebSocket request): closing a
+        WebSocket from the server only sends a close frame, which a silent client never answers."""
+        with self._lock:
+            upgraded = self._websockets.get(sid)
         try:
-            sock.shutdown(socket.SHUT_RDWR)  # the reader thread wakes with EOF; the handler ends
-        except (OSError, AttributeError):
-            pass
+            self.eio.disconnect(sid)
+        except Exception:  # noqa: BLE001 - the session may have gone meanwhile
+            log.debug("closing %s failed", sid, exc_info=True)
+        cut_websocket(environ)
+        cut_websocket(upgraded)
 
     def login_arrived(self, sid: str) -> None:
         """The session's first Socket.IO CONNECT came. Checking it is the server's part, which under
@@ -320,20 +335,15 @@ class SocketGuard:
                         del self._pending[sid]
                     elif now >= entry.deadline and not entry.checking(now):
                         del self._pending[sid]
-                        expired.append((sid, entry.environ, self._websockets.get(sid)))
+                        expired.append((sid, entry.environ))
                 if not self._pending or self._closed:
                     self._thread = None
                     stop = True
                 else:
                     stop = False
-            for sid, environ, upgraded in expired:
+            for sid, environ in expired:
                 log.info("socket.io session %s did not log in within %.0f s; closed", sid, self.auth_timeout_s)
-                try:
-                    self.eio.disconnect(sid)
-                except Exception:  # noqa: BLE001 - the session may have gone meanwhile
-                    log.debug("closing %s failed", sid, exc_info=True)
-                self._cut(environ)
-                self._cut(upgraded)
+                self.close_session(sid, environ)
             if stop:
                 return
 
@@ -342,4 +352,4 @@ class SocketGuard:
             self._closed = True
 
 
-__all__ = ["AUTHORIZED_KEY", "SocketGuard", "mark_authorized"]
+__all__ = ["AUTHORIZED_KEY", "SocketGuard", "cut_websocket", "mark_authorized"]

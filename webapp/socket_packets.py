@@ -1,7 +1,7 @@
 """What a Socket.IO client may send, and how its mistakes are logged: one WARNING line, never a
 traceback, and a session that sent something this server never takes is closed at once.
 
-    install(socketio)      # in create_app, after SocketGuard
+    install(socketio, guard)      # in create_app, after SocketGuard
 
 Our clients (the Robot Editor, the Continuon app) send one CONNECT with the token and then only
 Engine.IO pongs; every event flows from the server. So:
@@ -33,6 +33,8 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from socketio import packet as sio_packet
+
+from webapp.socket_guard import SocketGuard, cut_websocket
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +151,7 @@ def quiet_loggers() -> dict[str, logging.Logger]:
     return loggers
 
 
-def install(socketio: Any, guard: Any = None) -> None:
+def install(socketio: Any, guard: SocketGuard) -> None:
     """Refuse binary data and malformed packets on this Flask-SocketIO server, log each as one line."""
     from engineio.async_drivers._websocket_wsgi import SimpleWebSocketWSGI
 
@@ -182,7 +184,7 @@ def _bounded_websocket_class(base: type) -> type:
         def close(self):
             try:
                 super().close()
-            except OSError:  # _cut shut the socket under Engine.IO's writer thread
+            except OSError:  # cut_websocket shut the socket under Engine.IO's writer thread
                 pass
 
         def wait(self):
@@ -198,28 +200,6 @@ def _bounded_websocket_class(base: type) -> type:
                     return data
 
     return BoundedWebSocket
-
-
-def _close(sio: Any, eio: Any, eio_sid: str, guard: Any) -> None:
-    environ = sio.environ.get(eio_sid)
-    upgraded = getattr(guard, "_websockets", {}).get(eio_sid)
-    try:
-        eio.disconnect(eio_sid)
-    except Exception:  # noqa: BLE001 - it may be closing already
-        log.debug("closing %s failed", eio_sid, exc_info=True)
-    for env in (environ, upgraded):
-        _cut(env)
-
-
-def _cut(environ: dict | None) -> None:
-    """Shut a WebSocket's TCP connection: simple-websocket's reader stops reading (and buffering)."""
-    if not environ or environ.get("HTTP_UPGRADE", "").lower() != "websocket":
-        return
-    sock = environ.get("werkzeug.socket")
-    try:
-        sock.shutdown(2)  # SHUT_RDWR
-    except (OSError, AttributeError):
-        pass
 
 
 def _wrap_message_handler(sio: Any, eio: Any, guard: Any) -> None:
@@ -241,7 +221,7 @@ def _wrap_message_handler(sio: Any, eio: Any, guard: Any) -> None:
                 return None
             log.warning("Socket.IO session %s from %s closed: it sent %s", eio_sid,
                         client_of(sio.environ.get(eio_sid)), exc)
-            _close(sio, eio, eio_sid, guard)
+            guard.close_session(eio_sid, sio.environ.get(eio_sid))
             return None
         except KeyError:
             if eio_sid in sio.environ:
@@ -267,8 +247,8 @@ def _wrap_handle_request(sio: Any, eio: Any, current: _Current, guard: Any) -> N
             log.warning("Engine.IO WebSocket from %s (session %s) closed: it sent a malformed packet (%s)",
                         client_of(environ), sid or "already closed", _short(exc))
             if sid is not None:
-                _close(sio, eio, sid, guard)
-            _cut(environ)
+                guard.close_session(sid, sio.environ.get(sid))
+            cut_websocket(environ)
             raise ConnectionError("closed after a malformed packet") from None  # Werkzeug: dropped, no log
         finally:
             current.environ = current.sid = None
