@@ -213,7 +213,14 @@ class SocketIOClient:
 
         # timeout: socket.io-client's default connection timeout (20 s)
         self.ws = simple_websocket.Client(f"ws://{host}:{port}/socket.io/?EIO=4&transport=websocket")
-        opened = self.ws.receive(timeout=timeout)
+        opened = self.ws.receive(timeout=0.5)
+        if opened is None:
+            # simple-websocket's client (1.1) takes only the first event of the handshake's read: when
+            # the server's OPEN came in the same segment as its 101 (a loaded box), the OPEN waits in
+            # wsproto's buffer until more data arrives, which the server never sends before CONNECT.
+            # The reader is idle in recv() by now: hand those events over once.
+            self.ws._handle_events()
+            opened = self.ws.receive(timeout=timeout)
         if not (isinstance(opened, str) and opened.startswith("0")):
             raise ConnectionError(f"no Engine.IO OPEN packet: {opened!r}")
         self.ws.send("40" + json.dumps({"token": token} if token else {}))
