@@ -25,6 +25,7 @@ under $HOPE_HOME/runs are ever deleted; the run rows stay, each deletion a `log`
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import shutil
@@ -142,7 +143,7 @@ class DiskGuard:
 
     def _kept(self, s: Any, finished: list[Run]) -> set[str]:
         keep_n = int(self.settings.keep_runs)
-        kept = {r.id for r in [r for r in finished if produced(r.run_dir)][:keep_n]}
+        kept = {r.id for r in itertools.islice((r for r in finished if produced(r.run_dir)), keep_n)}
         newest: dict[str, str] = {}
         for r in finished:  # newest first: a component's last trained model is never the one pruned
             if r.state == "completed":
@@ -167,6 +168,8 @@ class DiskGuard:
             doomed = [(r.id, r.component, r.state, Path(r.run_dir)) for r in finished if r.id not in kept]
         pruned = []
         for run_id, component, state, run_dir in doomed:
+            if not run_dir.is_dir():
+                continue  # gone already (most of them, on a robot with a long history): one stat, no resolve
             target = run_dir.resolve()
             if not target.is_dir() or target.parent != root or (target / PIN_FILE).exists():
                 continue  # gone already, not ours to delete (outside $HOPE_HOME/runs), or pinned

@@ -55,6 +55,13 @@ from daemon.system_history import SystemHistory
 log = logging.getLogger(__name__)
 
 START_BATCHES = 200  # reports applied at start, in batches: a backlog of hours from a remote job
+# A client may send requests as fast as it likes, and each wakes the daemon: a burst is answered by
+# one tick per MIN_TICK_GAP_S, not one tick per request (a tick samples the system, reconciles, and
+# dispatches, all in the process that also answers the robot).
+MIN_TICK_GAP_S = 0.2
+# Retention looks at every finished run the registry holds; runs finishing by the hundred (a flood
+# of cancelled requests) make it look at most this often.
+PRUNE_EVERY_S = 10.0
 
 
 class Daemon:
@@ -93,6 +100,7 @@ class Daemon:
         self._remote_failures = 0
         self.last_sample: dict[str, Any] | None = None
         self._stats_at: float | None = None
+        self._pruned_at: float | None = None
         self._failures = 0
         self.ticks = 0
         self._status = ""
@@ -166,6 +174,7 @@ class Daemon:
             self.safe_tick()
             if self._wake.wait(max(0.0, self.tick_s - (time.monotonic() - started))):
                 self._wake.clear()
+                stop_event.wait(max(0.0, MIN_TICK_GAP_S - (time.monotonic() - started)))
 
     def wake(self) -> None:
         """Tick now rather than at the next tick_s (the webapp calls it after an enqueue or a
@@ -205,9 +214,11 @@ class Daemon:
         if self.remote is not None:
             self.remote_step(self.remote.publish_running)
         self.autopromoter.tick()  # returns at once; one promote child at a time
-        self.dispatcher.disk.maybe_prune()  # retention, once a run has finished (daemon/disk_guard.py)
-        self.tailer.poll()
         now = time.monotonic()
+        if self._pruned_at is None or now - self._pruned_at >= PRUNE_EVERY_S:
+            self._pruned_at = now
+            self.dispatcher.disk.maybe_prune()  # retention, once a run has finished (daemon/disk_guard.py)
+        self.tailer.poll()
         if self._stats_at is None or now - self._stats_at >= self.stats_every_s:
             self._stats_at = now
             self.tailer.push(STATS_EVENT, {**sample, "throttle_level": self.policy.level})

@@ -453,6 +453,42 @@ def test_wake_makes_the_loop_tick_now(home, tiny_dataset, broker, tmp_path):
     d.stop()
 
 
+def test_a_burst_of_wakes_costs_a_few_ticks_and_retention_looks_at_most_every_ten_seconds(
+        home, tiny_dataset, broker, tmp_path, monkeypatch):
+    """Every run request wakes the daemon; a client sending hundreds must not make it tick (and
+    scan every finished run for retention) hundreds of times in the process that answers the robot."""
+    from daemon import service
+
+    zone = tmp_path / "temp"
+    zone.write_text("40000\n")
+    d = make_daemon(home, broker, zone, ListSink())
+    d.tick_s = 30.0
+    scans = []
+    monkeypatch.setattr(d.dispatcher.disk, "maybe_prune", lambda: scans.append(time.monotonic()) or [])
+    stop = threading.Event()
+    t = threading.Thread(target=d.run_forever, args=(stop,))
+    t.start()
+    try:
+        deadline = time.monotonic() + 5
+        while d.ticks < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        first = d.ticks
+        began = time.monotonic()
+        while time.monotonic() - began < 1.0:  # ~1,000 wakes in one second
+            d.wake()
+            time.sleep(0.001)
+        spent = time.monotonic() - began
+        woken = d.ticks - first
+    finally:
+        stop.set()
+        d.wake()
+        t.join(5)
+    d.stop()
+    assert 1 <= woken <= spent / service.MIN_TICK_GAP_S + 2, (woken, spent)
+    assert len(scans) == 1, "retention scanned again within PRUNE_EVERY_S"
+
+
 def test_daemon_start_resends_a_dispatch_a_crash_left_unsent(home, tiny_dataset, broker, tmp_path):
     rid = home.enqueue(tiny_dataset)
     with home.registry.session() as s:  # committed as dispatched, then the daemon died before sending

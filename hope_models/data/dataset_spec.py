@@ -3,10 +3,18 @@
 `infer_dataset_spec` is the build's first pass (an even sample of the sources votes on the
 fields); `probe_dataset_spec` is the bounded look at a path's first usable episodes that a run
 request is checked with before any cache exists, in a process that must stay small (the webapp).
+A probe is remembered (by the path, the files it read, their sizes and times) so that asking about
+the same dataset again, as every run request does, costs a directory listing and a few stats, not
+a parse: a client may ask as often as it likes.
 """
 from __future__ import annotations
 
+import copy
+import itertools
 import os
+import threading
+import time
+from collections import OrderedDict
 from pathlib import Path
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
@@ -68,13 +76,31 @@ def probe_dataset_spec(data: str | Path, request: SpecRequest | None = None) -> 
     when every source it looked at is larger than PROBE_MAX_SOURCE_BYTES (not read here: the
     training job's own checks still apply)."""
     data = Path(data)
+    key = (str(data), repr(request))
+    remembered = _PROBES.get(key, data)
+    if remembered is not None:
+        return remembered.answer()
+    probe = _Probe(time.time_ns())
+    try:
+        probe.spec = _probe(data, request, probe.looked)
+    except FeatureSpecError as exc:
+        probe.error = str(exc)
+    if probe.stamp(data):
+        _PROBES.put(key, probe)
+    return probe.answer()
+
+
+def _sources(data: Path):
     if data.is_dir():
-        sources = iter_sources(data)
-    elif data.is_file() and kind_from_name(data.name) is not None and not is_manifest(data.name):
-        sources = iter([data])
-    else:
-        raise FeatureSpecError(f"{data}: not a dataset (an RLDS dataset dir, an episode dir, or an episode file: "
-                               ".json, .jsonl, TFRecord or .mcap)")
+        return iter_sources(data)
+    if data.is_file() and kind_from_name(data.name) is not None and not is_manifest(data.name):
+        return iter([data])
+    raise FeatureSpecError(f"{data}: not a dataset (an RLDS dataset dir, an episode dir, or an episode file: "
+                           ".json, .jsonl, TFRecord or .mcap)")
+
+
+def _probe(data: Path, request: SpecRequest | None, looked_at: list[Path]) -> FeatureSpec | None:
+    sources = _sources(data)
     problems: list[str] = []
     signatures: list[EpisodeSignature] = []
     looked = too_big = 0
@@ -83,6 +109,7 @@ def probe_dataset_spec(data: str | Path, request: SpecRequest | None = None) -> 
             if looked >= PROBE_MAX_SOURCES or len(signatures) >= PROBE_EPISODES:
                 break
             looked += 1
+            looked_at.append(src)
             if _source_bytes(src) > PROBE_MAX_SOURCE_BYTES:
                 too_big += 1
                 continue
@@ -100,6 +127,88 @@ def probe_dataset_spec(data: str | Path, request: SpecRequest | None = None) -> 
         return infer_spec(signatures, request)
     except FeatureSpecError as exc:
         raise FeatureSpecError(f"{data}: {exc}") from None
+
+class _Probe:
+    """One probe's answer (a spec, None, or the refusal's text), the sources it read in order, and
+    the size and time of every file under them when it was made."""
+
+    def __init__(self, started_ns: int):
+        self.started_ns = started_ns
+        self.spec: FeatureSpec | None = None
+        self.error: str | None = None
+        self.looked: list[Path] = []
+        self.files: tuple = ()
+        self.exhausted = False
+
+    def answer(self) -> FeatureSpec | None:
+        if self.error is not None:
+            raise FeatureSpecError(self.error)
+        return copy.deepcopy(self.spec)  # callers add notes to theirs
+
+    def _now(self, data: Path) -> tuple[list[Path], bool, tuple] | None:
+        """(the first sources of data now, whether there are no more, their files' stamps); None
+        when the path cannot be listed (no answer is remembered for it)."""
+        try:
+            first = list(itertools.islice(_sources(data), len(self.looked) + 1))
+            stamps = []
+            for src in first[:len(self.looked)]:
+                walk = [(d, f) for d, _, files in os.walk(src) for f in files] if src.is_dir() else [("", str(src))]
+                for d, f in sorted(walk):
+                    st = os.stat(os.path.join(d, f))
+                    stamps.append((d, f, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino))
+            return first[:len(self.looked)], len(first) <= len(self.looked), tuple(stamps)
+        except (OSError, FeatureSpecError):
+            return None
+
+    def stamp(self, data: Path) -> bool:
+        """Take the stamps the answer is remembered by; False (not remembered) when the sources
+        moved or a file changed so recently that the parse may have seen it half-written (within
+        CHANGED_LATELY_NS of the probe's start: coarse clocks on some cards)."""
+        now = self._now(data)
+        if now is None or now[0] != self.looked:
+            return False
+        if any(max(st[3], st[4]) >= self.started_ns - CHANGED_LATELY_NS for st in now[2]):
+            return False
+        _, self.exhausted, self.files = now
+        return True
+
+    def still_holds(self, data: Path) -> bool:
+        """The same sources in the same order (and no new one, when the probe read them all), and
+        not one of their files changed in size, time or inode."""
+        now = self._now(data)
+        return now is not None and now[0] == self.looked and now[2] == self.files and (
+            now[1] or not self.exhausted)
+
+
+class _ProbeMemory:
+    """The last PROBES_REMEMBERED probes, each answered again only while its files are unchanged."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.lock = threading.Lock()
+        self.probes: OrderedDict[tuple, _Probe] = OrderedDict()
+
+    def get(self, key: tuple, data: Path) -> _Probe | None:
+        with self.lock:
+            probe = self.probes.get(key)
+        if probe is None or not probe.still_holds(data):
+            return None
+        with self.lock:
+            if key in self.probes:
+                self.probes.move_to_end(key)
+        return probe
+
+    def put(self, key: tuple, probe: _Probe) -> None:
+        with self.lock:
+            self.probes[key] = probe
+            self.probes.move_to_end(key)
+            while len(self.probes) > self.size:
+                self.probes.popitem(last=False)
+
+
+PROBES_REMEMBERED = 32
+CHANGED_LATELY_NS = 2_000_000_000
+_PROBES = _ProbeMemory(PROBES_REMEMBERED)
 
 
 def _source_bytes(src: Path) -> int:
