@@ -47,6 +47,10 @@ class Settings:
     # open connections from one client address at once (a browser's six, its editor tabs' WebSockets
     # and the phone app stay far below); one neighbour cannot take the whole server (webapp/server.py)
     max_connections_per_client: int = 32
+    # protocol errors no real client makes (a second long-poll on one session, malformed Engine.IO
+    # packets) from one address within 10 s before its connections are refused at accept for 10 s;
+    # 0 = never (webapp/strikes.py)
+    strikes_to_ban: int = 20
     # the robot's door: POST /api/brain/infer, GET /api/brain, /api/ping and /api/health on a
     # listener of their own, which nothing on the Robot Editor's side can fill (0 = any free port)
     inference_port: int = 8766
@@ -132,6 +136,7 @@ _ENV = {
     "HOPE_ALLOWED_HOSTS": "allowed_hosts",
     "HOPE_MAX_CONNECTIONS": "max_connections",
     "HOPE_MAX_CONNECTIONS_PER_CLIENT": "max_connections_per_client",
+    "HOPE_STRIKES_TO_BAN": "strikes_to_ban",
     "HOPE_INFERENCE_PORT": "inference_port",
     "HOPE_INFERENCE_SOCKET": "inference_socket",
     "HOPE_SOCKETIO_PING_INTERVAL_S": "socketio_ping_interval_s",
@@ -170,7 +175,8 @@ _FALSE = {"0", "false", "no", "off"}
 # field -> (lowest allowed value, inclusive): a negative tolerance or zero episodes is a mistake
 _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_reflex_episodes": 1,
             "gate_vqvae_max_nmse": 0.0, "gate_mid_loop_min_gain": 0.0,
-            "max_connections": 8, "max_connections_per_client": 2, "inference_port": 0,
+            "max_connections": 8, "max_connections_per_client": 2, "strikes_to_ban": 0,
+            "inference_port": 0,
             "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0, "max_queued_runs": 1,
             "upload_max_mb": 1, "upload_tmp_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0,
             "log_max_mb": 1, "log_backups": 0}

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 
 from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler, select_address_family
 
+from webapp.strikes import STRIKE_KEY, Strikes
+
 log = logging.getLogger(__name__)
 
 
@@ -60,11 +62,13 @@ class ConnectionLimits:
     drain_timeout_s: float = 2.0  # after the answer: reading what is left of an unread request body
     min_body_rate: int = 64 << 10  # bytes/s a body must average to be given time past body_timeout_s
     websockets: bool = True  # False: an Upgrade request is an ordinary one, under the ordinary deadlines
+    strikes_to_ban: int = 20  # webapp/strikes.py; 0 = an address is never refused for its protocol errors
 
     @classmethod
     def from_settings(cls, settings) -> "ConnectionLimits":
         return cls(max_connections=int(getattr(settings, "max_connections", cls.max_connections)),
-                   max_per_client=int(getattr(settings, "max_connections_per_client", cls.max_per_client)))
+                   max_per_client=int(getattr(settings, "max_connections_per_client", cls.max_per_client)),
+                   strikes_to_ban=int(getattr(settings, "strikes_to_ban", cls.strikes_to_ban)))
 
 
 class _Connection:
@@ -120,6 +124,8 @@ class GuardedRequestHandler(WSGIRequestHandler):
         environ[_CONN_KEY] = conn
         limits = self.server.limits
         if conn is not None:
+            client, strikes = conn.client, self.server.strikes
+            environ[STRIKE_KEY] = lambda why: strikes.strike(client, why)
             if limits.websockets and environ.get("HTTP_UPGRADE", "").lower() == "websocket":
                 conn.enter("websocket", None)
                 self.connection.settimeout(limits.ws_idle_timeout_s)
@@ -144,6 +150,7 @@ class GuardedServer(ThreadedWSGIServer):
         self._conns: dict[int, _Connection] = {}
         self._conns_lock = threading.Lock()
         self.refused = 0
+        self.strikes = Strikes(to_ban=limits.strikes_to_ban)  # addresses refused at accept for a while
         super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
         self._reaper_stop = threading.Event()
         self._reaper = threading.Thread(target=self._reap, name="http-deadlines", daemon=True)
@@ -164,6 +171,9 @@ class GuardedServer(ThreadedWSGIServer):
         one to drop (slow-header floods), not the newcomer: the oldest such, from the same address
         when that address is at its own cap."""
         limits = self.limits
+        ban = self.strikes.banned(client)
+        if ban:
+            return f"{client} kept sending requests no client sends; refused for {ban:.0f} s more", None
         mine = [c for c in self._conns.values() if c.client == client]  # a scan of at most max_connections + slack
         if limits.max_per_client and len(mine) >= limits.max_per_client:
             why = f"{client} has {len(mine)} connections open, the limit for one client address"
@@ -416,6 +426,10 @@ class HttpServer:
     @property
     def refused_connections(self) -> int:
         return self._server.refused
+
+    @property
+    def strikes(self) -> Strikes:
+        return self._server.strikes
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._server.serve_forever, name=f"http-{self.name}", daemon=True)

@@ -46,6 +46,8 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qs
 
+from webapp.strikes import strike
+
 log = logging.getLogger(__name__)
 
 AUTHORIZED_KEY = "hope.socket_authorized"
@@ -246,6 +248,7 @@ class SocketGuard:
                 self._polling[sid] = environ
         if waiting is not None:
             self.second_polls += 1
+            strike(environ, "a second long-poll GET on one Engine.IO session")
             if self.second_polls in (1, 10, 100) or self.second_polls % 1000 == 0:
                 log.warning("closed a Socket.IO session that sent a second long-poll GET while one waited "
                             "(%d so far)", self.second_polls)

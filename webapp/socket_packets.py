@@ -35,6 +35,7 @@ from urllib.parse import parse_qs
 from socketio import packet as sio_packet
 
 from webapp.socket_guard import SocketGuard, cut_websocket
+from webapp.strikes import strike
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +222,7 @@ def _wrap_message_handler(sio: Any, eio: Any, guard: Any) -> None:
                 return None
             log.warning("Socket.IO session %s from %s closed: it sent %s", eio_sid,
                         client_of(sio.environ.get(eio_sid)), exc)
+            strike(sio.environ.get(eio_sid), str(exc))
             guard.close_session(eio_sid, sio.environ.get(eio_sid))
             return None
         except KeyError:
@@ -237,8 +239,14 @@ def _wrap_handle_request(sio: Any, eio: Any, current: _Current, guard: Any) -> N
     def handle_request(environ, start_response):
         sid = parse_qs(environ.get("QUERY_STRING", "")).get("sid", [None])[0]
         current.environ, current.sid = environ, sid
+
+        def answer(status, headers, exc_info=None):
+            if status.startswith("400"):  # a packet, session or transport Engine.IO could not take
+                strike(environ, f"an Engine.IO {environ.get('REQUEST_METHOD')} refused {status[:3]}")
+            return start_response(status, headers, exc_info)
+
         try:
-            return inner(environ, start_response)
+            return inner(environ, answer)
         except DECODE_ERRORS as exc:
             if environ.get("HTTP_UPGRADE", "").lower() != "websocket":
                 raise  # not a client's packet: ours to fix, with its traceback
@@ -246,6 +254,7 @@ def _wrap_handle_request(sio: Any, eio: Any, current: _Current, guard: Any) -> N
             sid = sid or next((s for s, env in list(sio.environ.items()) if env is environ), None)
             log.warning("Engine.IO WebSocket from %s (session %s) closed: it sent a malformed packet (%s)",
                         client_of(environ), sid or "already closed", _short(exc))
+            strike(environ, "a malformed Engine.IO WebSocket packet")
             if sid is not None:
                 guard.close_session(sid, sio.environ.get(sid))
             cut_websocket(environ)
