@@ -42,6 +42,7 @@ class QueueFullError(RunRequestError):
 
     status = 429
     exit_code = 75  # sysexits' EX_TEMPFAIL: nothing wrong with the request, retry later
+    retry_after_s = 30  # the HTTP answer's Retry-After: a queued run waits minutes, not seconds
 
 
 def listed(names: list[str], at_most: int = 5) -> str:

@@ -107,6 +107,8 @@ def test_runs_waiting_to_start_are_capped_per_queue_with_a_429(home, tiny_datase
     assert [server.post("/api/runs", run)[0] for _ in range(3)] == [201, 201, 201]
     status, body = server.post("/api/runs", run)
     assert status == 429 and "max_queued_runs=3" in body["error"] and "'q1'" in body["error"], body
+    answer = server.app.test_client().post("/api/runs", json=run, headers={"Authorization": f"Bearer {server.token}"})
+    assert answer.status_code == 429 and answer.headers.get("Retry-After") == "30", answer.headers
     status, body = server.post("/api/training/sequential", {**chain, "components": "vqvae,fast_loop"})
     assert status == 429 and "max_queued_runs" in body["error"], body
     # another queue has its own room; a chain needs room for all its members

@@ -27,10 +27,11 @@ LARGE_BODY_ATTR = "hope_large_body"  # set on a view by webapp.uploads.large_bod
 class ApiError(Exception):
     """Raised by a view to answer `status` {"error": message}."""
 
-    def __init__(self, message: str, status: int = 400):
+    def __init__(self, message: str, status: int = 400, retry_after_s: int | None = None):
         super().__init__(message)
         self.message = message
         self.status = status
+        self.retry_after_s = retry_after_s  # a Retry-After header, for "not now" answers (429, 503)
 
 
 def error_response(message: str, status: int, **extra):
@@ -61,7 +62,10 @@ def install(app: Flask) -> None:
 
     @app.errorhandler(ApiError)
     def _api_error(exc: ApiError):
-        return error_response(exc.message, exc.status)
+        response = error_response(exc.message, exc.status)
+        if exc.retry_after_s is not None:
+            response.headers["Retry-After"] = str(int(exc.retry_after_s))
+        return response
 
     @app.errorhandler(HTTPException)
     def _http_error(exc: HTTPException):

@@ -93,7 +93,7 @@ def create_run():
         req = request_from_json(json_body(), allowed_roots=data_roots(settings), base=Path(settings.datasets_dir))
         obj = queue_run(state.registry, settings, req)
     except RunRequestError as exc:  # 429 when the queue is full (QueueFullError)
-        raise ApiError(str(exc), exc.status) from None
+        raise ApiError(str(exc), exc.status, getattr(exc, "retry_after_s", None)) from None
     state.wake_daemon()
     response = jsonify({"run": obj})
     response.status_code = 201

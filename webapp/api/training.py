@@ -62,7 +62,7 @@ def sequential():
         sequence_id, members = queue_sequence(state.registry, settings, names, req)
         out = {"sequence_id": sequence_id, "runs": members}
     except (RunRequestError, runs.RunError) as exc:  # 429 when the queue is full (QueueFullError)
-        raise ApiError(str(exc), getattr(exc, "status", 400)) from None
+        raise ApiError(str(exc), getattr(exc, "status", 400), getattr(exc, "retry_after_s", None)) from None
     state.wake_daemon()
     response = jsonify(out)
     response.status_code = 201
