@@ -3,7 +3,8 @@
     python bench/soak.py                      # 1 quiet minute, then 10 minutes under attack (the recorded figure)
     python bench/soak.py --seconds 60 --quiet-seconds 20    # a quick look
 
-What runs, all on loopback against one `run_trainer.py serve` (webapp + daemon + worker child):
+What runs, all on loopback against one `run_trainer.py serve` (webapp + daemon + worker child + the
+inference door child, whose RSS and descriptors are sampled too):
 - a promoted fast_loop (trained and force-promoted first, on a synthetic dataset);
 - a training chain vqvae -> fast_loop -> mid_loop queued through the API, re-queued when it ends;
 - 20 inference clients, each POSTing /api/brain/infer at 50 Hz to the robot's door (the inference
@@ -140,6 +141,19 @@ def _rss_mb(pid: int) -> float:
     return 0.0
 
 
+def _door_pid(serve_pid: int) -> int | None:
+    """serve's inference door child (webapp/door_process.py), or None."""
+    import psutil
+
+    try:
+        for child in psutil.Process(serve_pid).children():
+            if "webapp.door_process" in " ".join(child.cmdline()):
+                return child.pid
+    except psutil.Error:
+        pass
+    return None
+
+
 def _spawn_role(role: str, port: int, token: str, seconds: float, out: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, __file__, "--role", role, "--port", str(port), "--token", token,
                              "--seconds", str(seconds), "--out", str(out)], cwd=REPO)
@@ -207,8 +221,11 @@ class Sampler:
 
     def sample(self, phase: str) -> None:
         threads, fds = process_counts(self.pid)
+        door = _door_pid(self.pid)
+        door_fds = process_counts(door)[1] if door else 0
         self.samples.append({"t_s": round(time.monotonic() - self.started), "phase": phase,
-                             "rss_mb": round(_rss_mb(self.pid), 1), "threads": threads, "fds": fds})
+                             "rss_mb": round(_rss_mb(self.pid), 1), "threads": threads, "fds": fds,
+                             "door_rss_mb": round(_rss_mb(door), 1) if door else 0.0, "door_fds": door_fds})
 
     def follow(self, procs: dict, phase: str) -> None:
         while any(p.poll() is None for p in procs.values()):
@@ -291,18 +308,21 @@ def report(args, quiet_roles: dict, attacked: dict, sampler: Sampler, logs_grew:
     for name in args.attackers:
         print(f"attacker {name}: {json.dumps(attacked[name])}")
     print(f"logs grew by {logs_grew / 1024:.0f} KB; training chains queued {sampler.chains}")
-    print("serve process over time (t s, phase, RSS MB, threads, fds):")
+    print("serve process over time (t s, phase, RSS MB, threads, fds; its inference door child's RSS MB, fds):")
     for s in samples:
-        print(f"  {s['t_s']:5d}  {s['phase']:16s} {s['rss_mb']:7.1f}  {s['threads']:5d}  {s['fds']:5d}")
+        print(f"  {s['t_s']:5d}  {s['phase']:16s} {s['rss_mb']:7.1f}  {s['threads']:5d}  {s['fds']:5d}"
+              f"   door {s['door_rss_mb']:6.1f}  {s['door_fds']:4d}")
     print(f"under attack, median RSS first/second half: {med(first, 'rss_mb'):.1f} / {med(second, 'rss_mb'):.1f} MB; "
           f"median fds {med(first, 'fds'):.0f} / {med(second, 'fds'):.0f}; threads "
           f"{med(first, 'threads'):.0f} / {med(second, 'threads'):.0f}; after: {samples[-1]['fds']} fds, "
-          f"{samples[-1]['threads']} threads")
+          f"{samples[-1]['threads']} threads; the door's median RSS {med(first, 'door_rss_mb'):.1f} / "
+          f"{med(second, 'door_rss_mb'):.1f} MB")
     for f in quiet["failures"] + quiet_socks["failures"] + inf["failures"] + socks["failures"]:
         print("  failure:", f)
     missed = {"failed inferences": quiet["failed"] + inf["failed"] > 0, "editors dropped": socks["failed"] + quiet_socks["failed"] > 0,
               "p99 over 2x quiet": not a99 <= 2 * q99, "logs over 1 MB": logs_grew > 1 << 20,
               "RSS grew": med(second, "rss_mb") > med(first, "rss_mb") * 1.1 + 20,
+              "door RSS grew": med(second, "door_rss_mb") > med(first, "door_rss_mb") * 1.1 + 10,
               "fds grew": samples[-1]["fds"] > samples[0]["fds"] + 10}
     summary = {"seconds": args.seconds, "quiet_seconds": args.quiet_seconds, "quiet": quiet_roles, "attack": attacked,
                "logs_grew_bytes": logs_grew, "chains": sampler.chains, "missed": [k for k, v in missed.items() if v]}

@@ -8,6 +8,7 @@ not an import, so this lowest layer can start the top layer's commands.
 """
 from __future__ import annotations
 
+import os
 import sys
 
 TRAINER_MODULE = "hope_trainer"  # `python -m hope_trainer <verb>` is `hope-trainer <verb>`
@@ -23,4 +24,25 @@ def trainer_argv(*args: str, python: str | None = None) -> list[str]:
     return module_argv(TRAINER_MODULE, *args, python=python)
 
 
-__all__ = ["TRAINER_MODULE", "module_argv", "trainer_argv"]
+# Runs a long-lived child (the worker, the inference door) under PR_SET_PDEATHSIG, so it gets SIGTERM
+# if its parent dies without stopping it (SIGKILL, OOM): an orphaned worker would keep taking jobs
+# next to the next serve's worker, an orphaned door would hold the robot's port. Set in a tiny exec
+# wrapper instead of preexec_fn, which is unsafe in a threaded parent.
+_PDEATHSIG_WRAPPER = (
+    "import ctypes, os, signal, sys\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG\n"
+    "except (OSError, AttributeError):\n"
+    "    pass  # not Linux: the supervisor still stops the child on a clean exit\n"
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    sys.exit(0)  # the parent died before we got here\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
+def dies_with_parent(argv: list[str]) -> list[str]:
+    """`argv` (argv[0] a path to an executable) run so that it gets SIGTERM when this process dies."""
+    return [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *argv]
+
+
+__all__ = ["TRAINER_MODULE", "dies_with_parent", "module_argv", "trainer_argv"]

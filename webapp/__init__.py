@@ -133,8 +133,9 @@ def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
 
     def on_swap(component, version, checkpoint=None, *_rest):
         try:
-            socketio.emit(RELOADED_EVENT, {"component": component, "version": version,
-                                           "checkpoint": None if checkpoint is None else str(checkpoint)})
+            if socketio is not None:  # None: the inference door's process, which has no browsers
+                socketio.emit(RELOADED_EVENT, {"component": component, "version": version,
+                                               "checkpoint": None if checkpoint is None else str(checkpoint)})
         except Exception:  # noqa: BLE001 - a browser push must not disturb the swap
             log.exception("could not push %s", RELOADED_EVENT)
         log.info("brain: %s now serves %s", component, version)

@@ -111,7 +111,7 @@ def public(view: Callable) -> Callable:
 
 
 def install(app: Flask, socketio) -> None:
-    """Default-deny on /api/ and the Socket.IO connect check."""
+    """Default-deny on /api/ and the Socket.IO connect check (none without `socketio`: the door)."""
 
     @app.before_request
     def _api_needs_token():
@@ -122,6 +122,8 @@ def install(app: Flask, socketio) -> None:
             return None
         return check_request()
 
+    if socketio is None:
+        return
     # '*': every namespace. A namespace that registers its own connect handler must call
     # socket_authorized(auth) itself: python-socketio prefers the specific handler over this one.
     # flask_socketio's, not the builtin ConnectionRefusedError: only its message reaches the client

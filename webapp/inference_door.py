@@ -64,6 +64,31 @@ def door_app(app):
     return robots_routes_only
 
 
+def create_door_app(settings, *, token: str, registry, brain):
+    """The app of the door's own process (webapp/door_process.py): the robot's routes only, under the
+    same rules as create_app's (the Host rule, the token, JSON errors, the body limit), without
+    Socket.IO or the editor's blueprints (~17 MB less to import), wrapped by door_app()."""
+    from flask import Flask
+
+    from webapp import MAX_BODY_BYTES, HopeState, auth, errors, wire_brain
+    from webapp.api import brain as brain_api, health
+    from webapp.hosts import HostAllowlist, HostPolicy
+    from webapp.json_provider import FiniteJSONProvider
+
+    app = Flask("webapp-door")
+    app.config.update(JSON_SORT_KEYS=False, MAX_CONTENT_LENGTH=MAX_BODY_BYTES)
+    app.json = FiniteJSONProvider(app)
+    app.json.sort_keys = False
+    app.extensions["hope"] = HopeState(settings=settings, registry=registry, token=token, brain=brain)
+    errors.install(app)
+    auth.install(app, None)
+    app.register_blueprint(health.bp)
+    app.register_blueprint(brain_api.bp)
+    wire_brain(brain, None, registry)  # first inferences recorded (the loop closure); no browsers here
+    app.wsgi_app = HostAllowlist(app.wsgi_app, HostPolicy.from_settings(settings))
+    return app
+
+
 def door_limits(settings) -> ConnectionLimits:
     """The editor's caps, on separate threads; no WebSocket phase (no upgrades here)."""
     limits = ConnectionLimits.from_settings(settings)
@@ -115,4 +140,4 @@ def open_inference_door(app, settings, host: str | None = None) -> InferenceDoor
     return InferenceDoor(servers)
 
 
-__all__ = ["DOOR_ROUTES", "InferenceDoor", "door_app", "open_inference_door", "socket_path"]
+__all__ = ["DOOR_ROUTES", "InferenceDoor", "create_door_app", "door_app", "open_inference_door", "socket_path"]

@@ -165,6 +165,10 @@ class GuardedServer(ThreadedWSGIServer):
         with self._conns_lock:
             return len(self._conns)
 
+    def connections_of(self, client: str) -> int:
+        with self._conns_lock:
+            return sum(1 for c in self._conns.values() if c.client == client)
+
     def _admit(self, client: str) -> tuple[str | None, _Connection | None]:
         """(why a newcomer from `client` is refused, or None; the stalled connection to evict for it),
         under the lock. A client still sending its request after others have been served is the
@@ -422,6 +426,10 @@ class HttpServer:
     @property
     def open_connections(self) -> int:
         return self._server.open_connections
+
+    def connections_of(self, client: str) -> int:
+        """Open connections from one client address (what its cap counts)."""
+        return self._server.connections_of(client)
 
     @property
     def refused_connections(self) -> int:

@@ -264,6 +264,11 @@ class SocketGuard:
                 if self._polling.get(sid) is environ:
                     del self._polling[sid]
 
+    def waiting_polls(self) -> int:
+        """Long-poll GETs waiting in the app now (one per session at most)."""
+        with self._lock:
+            return len(self._polling)
+
     def close_session(self, sid: str, environ: dict | None) -> None:
         """Drop an Engine.IO session now and cut the TCP connections of its WebSocket (`environ`, the
         session's own request, and an upgraded polling session's WebSocket request): closing a

@@ -14,9 +14,11 @@ SIGKILL after 20 s); a job that could not finish in time is recorded as interrup
 The next `serve` finds the runs as they were left and resumes the queued one from its checkpoint.
 A second Ctrl-C skips the waiting. Exit 0 after a clean stop, 2 when it cannot start (port taken,
 unreadable token), 1 when the daemon loop died.
-BrainService (the promoted models, hot-reloaded from $HOPE_HOME/promoted/) runs in this process
-behind POST /api/brain/infer, on the inference port (the robot's door, webapp/inference_door.py)
-and on the editor's; promoting and the sim reflex run as `hope-trainer` children.
+BrainService (the promoted models, hot-reloaded from $HOPE_HOME/promoted/) answers POST
+/api/brain/infer on the inference port (the robot's door, webapp/inference_door.py) in a child
+process of its own (webapp/door_process.py: no editor request shares its interpreter; its log is
+$HOPE_HOME/logs/door.log), and in this process on the editor's port; promoting and the sim reflex
+run as `hope-trainer` children.
 Nothing in this process imports torch: only the worker's job child and those children do.
 """
 from __future__ import annotations
@@ -32,6 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hope_models.child_command import dies_with_parent
 from hope_models.numbers import NumberError, int_from_text
 
 log = logging.getLogger("hope.serve")
@@ -40,21 +43,6 @@ SHUTDOWN_WAIT_S = 30.0  # for the running job to checkpoint and requeue itself
 WORKER_STOP_S = 20.0  # for the worker to exit after SIGTERM, before SIGKILL
 BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0, 60.0)  # worker restarts; reset after it stayed up STABLE_S
 STABLE_S = 60.0
-
-# Runs the worker under PR_SET_PDEATHSIG, so it gets SIGTERM if `serve` dies without stopping it
-# (SIGKILL, OOM): an orphaned worker would keep taking jobs next to the next serve's worker.
-# Set in a tiny exec wrapper instead of preexec_fn, which is unsafe in a threaded parent.
-_PDEATHSIG_WRAPPER = (
-    "import ctypes, os, signal, sys\n"
-    "try:\n"
-    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG\n"
-    "except (OSError, AttributeError):\n"
-    "    pass  # not Linux: the supervisor still stops the worker on a clean exit\n"
-    "if os.getppid() != int(sys.argv[1]):\n"
-    "    sys.exit(0)  # serve died before we got here\n"
-    "os.execv(sys.argv[2], sys.argv[2:])\n"
-)
-
 
 def port_number(text: str) -> int:
     try:  # the one rule for numbers (hope_models/numbers.py)
@@ -120,7 +108,7 @@ class WorkerSupervisor:
         from hope_models.log_limits import PipeToLog
 
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        argv = [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *self.cmd]
+        argv = dies_with_parent(self.cmd)
         # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order.
         # Its output (and its job child's, tracebacks and prints included) through a pipe we rotate:
         # an appended file would grow without bound.
@@ -202,7 +190,7 @@ class Serve:
         self.daemon_stop = threading.Event()
         self.registry = None
         self.server = None
-        self.door = None  # the inference port (webapp/inference_door.py)
+        self.door = None  # the inference port, a child process (webapp/door_process.py)
         self.daemon = None
         self.daemon_thread: threading.Thread | None = None
         self.worker: WorkerSupervisor | None = None
@@ -217,7 +205,7 @@ class Serve:
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
         from webapp import create_app
         from webapp.auth import load_or_create_token
-        from webapp.inference_door import open_inference_door
+        from webapp.door_process import DoorProcess
         from webapp.server import ConnectionLimits, HttpServer
 
         self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
@@ -227,7 +215,7 @@ class Serve:
         self.app = app
         self.server = HttpServer(app, self.settings.host, self.settings.port,  # bind before anything runs
                                  ConnectionLimits.from_settings(self.settings))
-        self.door = open_inference_door(app, self.settings)
+        self.door = DoorProcess(self.settings).start()  # the robot's door, in a process of its own
         # remote_reports=False: serve's own worker child trains every run, on this host.
         self.daemon = Daemon(self.settings, SocketIOSink(socketio), tick_s=self.args.tick, registry=self.registry,
                              local_queues=(self.args.queue,), remote_reports=False)
@@ -235,7 +223,6 @@ class Serve:
         self.daemon.start()  # reconcile what the last stop (or crash) left
         self.brain.start()  # loads what is promoted now, then watches the pointers
         self.server.start()
-        self.door.start()
         self.daemon_thread = threading.Thread(target=self._run_daemon, name="daemon", daemon=True)
         self.daemon_thread.start()
         if not self.args.no_worker:
@@ -369,7 +356,9 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.settings import SettingsError
     from webapp.auth import TokenError
     from webapp.server import ServerError
+    from hope_models.malloc_arenas import limit_malloc_arenas
 
+    limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     try:
         settings = listen_settings(args)
     except SettingsError as exc:

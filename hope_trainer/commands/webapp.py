@@ -9,7 +9,7 @@ registry's run events itself (same host only; no system.stats, which only the da
 
 It hosts BrainService (the promoted models behind POST /api/brain/infer, hot-reloaded from
 $HOPE_HOME/promoted/), so production's inference lives here, next to the Robot Editor, and answers
-the robot on the inference port, a listener of its own (webapp/inference_door.py).
+the robot on the inference port, in a child process of its own (webapp/door_process.py).
 
 Under systemd (Type=notify) it sends READY=1 once the ports are bound and WATCHDOG=1 only while its
 own GET /api/health answers on the inference port, so a wedged server is restarted. SIGTERM stops it cleanly.
@@ -68,9 +68,11 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.settings import SettingsError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
-    from webapp.inference_door import open_inference_door
+    from webapp.door_process import DoorProcess
     from webapp.server import ConnectionLimits, HttpServer, ServerError
+    from hope_models.malloc_arenas import limit_malloc_arenas
 
+    limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
     configure_logging(getattr(logging, args.log_level.upper()))
     for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
@@ -95,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
         registry.close()
         return 2
     try:
-        door = open_inference_door(app, settings)
-    except ServerError as exc:
+        door = DoorProcess(settings).start()  # the robot's door, in a process of its own
+    except (ServerError, OSError) as exc:
         print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         server.stop()
         registry.close()
@@ -109,7 +111,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         brain.start()  # loads what is promoted now, then watches the pointers
         server.start()
-        door.start()
         if settings.redis_url:
             log.info("events from the daemon through Redis (Socket.IO message queue)")
         else:

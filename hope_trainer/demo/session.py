@@ -125,7 +125,8 @@ class Demo(ChainSteps, ClosureSteps):
         self.url = self.serve.server.url
         self.inference_url = self.serve.door.url
         say(f"2. services: webapp + daemon + BrainService in this process, a worker child on queue "
-            f"{self.args.queue} (embedded broker); logs in {Path(self.settings.home) / 'logs'}")
+            f"{self.args.queue} (embedded broker) and the robot's inference door as another; "
+            f"logs in {Path(self.settings.home) / 'logs'}")
         say(f"   Robot Editor: {self.url}  token: {self.token}")
         say(f"   inference (the robot's port): {self.inference_url}api/brain/infer")
 
