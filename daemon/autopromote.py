@@ -34,7 +34,7 @@ from sqlalchemy import exists, func, select
 
 from registry import runs
 from registry.models import Model, Run, utcnow
-from hope_models.child_command import trainer_argv
+from hope_models.child_command import end_child, trainer_argv
 from hope_models.child_result import last_json_object
 from hope_models.log_limits import rotate_if_over
 from hope_models.settings import GATE_ENV
@@ -164,13 +164,7 @@ class AutoPromoter:
         proc = self._proc
         if proc is None:
             return
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout)
+        end_child(proc, timeout)
         if self._out_path is not None:
             self._out_path.unlink(missing_ok=True)
         self._log_line(f"run {self._run_id}: gate stopped (the service is stopping)")

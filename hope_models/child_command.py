@@ -9,6 +9,7 @@ not an import, so this lowest layer can start the top layer's commands.
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 
 TRAINER_MODULE = "hope_trainer"  # `python -m hope_trainer <verb>` is `hope-trainer <verb>`
@@ -45,4 +46,15 @@ def dies_with_parent(argv: list[str]) -> list[str]:
     return [sys.executable, "-c", _PDEATHSIG_WRAPPER, str(os.getpid()), *argv]
 
 
-__all__ = ["TRAINER_MODULE", "dies_with_parent", "module_argv", "trainer_argv"]
+def end_child(proc: subprocess.Popen, timeout: float) -> None:
+    """SIGTERM, up to `timeout` seconds for it to exit, then SIGKILL; reaped either way."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+__all__ = ["TRAINER_MODULE", "dies_with_parent", "end_child", "module_argv", "trainer_argv"]

@@ -4,6 +4,7 @@ order and one-at-a-time, send failures, throttle and thermal/memory requeue, rec
 and hung children, claim timeouts, chains, event tailing, system.stats."""
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
@@ -22,7 +23,7 @@ from registry.models import utcnow
 from daemon.monitor import SystemMonitor, ThrottlePolicy
 from daemon.reconcile import Reconciler, child_alive
 from daemon.service import Daemon
-from daemon_fixtures import Home, home, tiny_dataset  # noqa: F401
+from daemon_fixtures import Home, home, tiny_dataset, wait_until  # noqa: F401
 
 HOST = socket.gethostname()
 
@@ -427,30 +428,33 @@ def test_a_memory_paused_run_that_makes_no_progress_is_not_requeued_forever(home
     assert home.run(rid)["state"] == "queued"
 
 
-def test_wake_makes_the_loop_tick_now(home, tiny_dataset, broker, tmp_path):
-    zone = tmp_path / "temp"
-    zone.write_text("40000\n")
-    d = make_daemon(home, broker, zone, ListSink())
-    d.tick_s = 30.0  # without wake() the second tick would come in 30 s
+@contextlib.contextmanager
+def _looping(d: Daemon):
+    """d.run_forever on a thread, from its first tick until the block ends (then stopped and joined)."""
     stop = threading.Event()
     t = threading.Thread(target=d.run_forever, args=(stop,))
     t.start()
     try:
-        deadline = time.monotonic() + 5
-        while d.ticks < 1:
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        rid = home.enqueue(tiny_dataset)
-        d.wake()
-        while home.run(rid)["state"] != "starting":
-            assert time.monotonic() < deadline, "wake() did not make the daemon dispatch at once"
-            time.sleep(0.01)
+        wait_until(lambda: d.ticks >= 1, 5, "the first tick", interval=0.01)
+        yield
     finally:
         stop.set()
         d.wake()
         t.join(5)
     assert not t.is_alive()
     d.stop()
+
+
+def test_wake_makes_the_loop_tick_now(home, tiny_dataset, broker, tmp_path):
+    zone = tmp_path / "temp"
+    zone.write_text("40000\n")
+    d = make_daemon(home, broker, zone, ListSink())
+    d.tick_s = 30.0  # without wake() the second tick would come in 30 s
+    with _looping(d):
+        rid = home.enqueue(tiny_dataset)
+        d.wake()
+        wait_until(lambda: home.run(rid)["state"] == "starting", 5,
+                   "wake() did not make the daemon dispatch at once", interval=0.01)
 
 
 def test_a_burst_of_wakes_costs_a_few_ticks_and_retention_looks_at_most_every_ten_seconds(
@@ -465,14 +469,7 @@ def test_a_burst_of_wakes_costs_a_few_ticks_and_retention_looks_at_most_every_te
     d.tick_s = 30.0
     scans = []
     monkeypatch.setattr(d.dispatcher.disk, "maybe_prune", lambda: scans.append(time.monotonic()) or [])
-    stop = threading.Event()
-    t = threading.Thread(target=d.run_forever, args=(stop,))
-    t.start()
-    try:
-        deadline = time.monotonic() + 5
-        while d.ticks < 1:
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
+    with _looping(d):
         first = d.ticks
         began = time.monotonic()
         while time.monotonic() - began < 1.0:  # ~1,000 wakes in one second
@@ -480,11 +477,6 @@ def test_a_burst_of_wakes_costs_a_few_ticks_and_retention_looks_at_most_every_te
             time.sleep(0.001)
         spent = time.monotonic() - began
         woken = d.ticks - first
-    finally:
-        stop.set()
-        d.wake()
-        t.join(5)
-    d.stop()
     assert 1 <= woken <= spent / service.MIN_TICK_GAP_S + 2, (woken, spent)
     assert len(scans) == 1, "retention scanned again within PRUNE_EVERY_S"
 

@@ -34,8 +34,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hope_models.child_command import dies_with_parent, module_argv
-from webapp.server import ServerError
+from hope_models.child_command import dies_with_parent, end_child, module_argv
+from webapp.server import ServerError, http_url
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +83,7 @@ class DoorProcess:
 
     @property
     def url(self) -> str:
-        host = str(self.settings.host)
-        if host in ("0.0.0.0", "::", ""):
-            host = "127.0.0.1"
-        if ":" in host:
-            host = f"[{host}]"
-        return f"http://{host}:{self.port}/"
+        return http_url(str(self.settings.host), self.port)
 
     def start(self) -> "DoorProcess":
         self.proc, ready = self._spawn(self.settings.inference_port)
@@ -116,7 +111,7 @@ class DoorProcess:
         finally:
             os.close(read_fd)
         if "error" in ready:
-            _end(proc, STOP_S)
+            end_child(proc, STOP_S)
             raise ServerError(ready["error"])
         log.info("inference door: pid %d on port %d%s, log %s", proc.pid, ready["port"],
                  f" and {ready['socket']}" if ready.get("socket") else "", self.log_path)
@@ -153,7 +148,7 @@ class DoorProcess:
         with self._lock:
             proc = self.proc
         if proc is not None:
-            _end(proc, timeout)
+            end_child(proc, timeout)
         if self._watcher is not None:
             self._watcher.join(timeout)
 
@@ -165,7 +160,7 @@ def _read_ready(fd: int, proc: subprocess.Popen, timeout: float) -> dict:
     while b"\n" not in data:
         left = deadline - time.monotonic()
         if left <= 0:
-            _end(proc, STOP_S)
+            end_child(proc, STOP_S)
             raise ServerError(f"the inference door did not start within {timeout:.0f} s (see logs/door.log)")
         readable, _, _ = select.select([fd], [], [], min(left, 0.5))
         if readable:
@@ -178,19 +173,9 @@ def _read_ready(fd: int, proc: subprocess.Popen, timeout: float) -> dict:
     try:
         ready = json.loads(data.split(b"\n", 1)[0])
     except ValueError:
-        _end(proc, STOP_S)
+        end_child(proc, STOP_S)
         raise ServerError(f"the inference door said {data[:200]!r}, not its port") from None
     return ready
-
-
-def _end(proc: subprocess.Popen, timeout: float) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 # -- the child --------------------------------------------------------------------------------

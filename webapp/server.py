@@ -104,6 +104,15 @@ def _client_key(client_address) -> str:
     return host[7:] if isinstance(host, str) and host.startswith("::ffff:") else str(host)
 
 
+def http_url(host: str, port: int | None) -> str:
+    """The URL a client on this machine uses for a listener bound to host:port (any-address -> loopback)."""
+    if host in ("0.0.0.0", "::", ""):
+        host = "127.0.0.1"
+    if ":" in host:
+        host = f"[{host}]"
+    return f"http://{host}:{port}/"
+
+
 def _refusal(why: str) -> bytes:
     body = json.dumps({"error": f"{why}; try again shortly"}).encode()
     head = ("HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 2\r\n"
@@ -416,12 +425,7 @@ class HttpServer:
     def url(self) -> str:
         if self.unix_path is not None:
             return f"unix://{self.unix_path}"
-        host = self.host
-        if host in ("0.0.0.0", "::", ""):
-            host = "127.0.0.1"
-        if ":" in host:
-            host = f"[{host}]"
-        return f"http://{host}:{self.port}/"
+        return http_url(self.host, self.port)
 
     @property
     def open_connections(self) -> int:
