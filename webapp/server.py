@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler, select_address_family
 
+from webapp.request_phases import CONN_KEY, BodyReader, bounded_drain, has_body
 from webapp.strikes import STRIKE_KEY, Strikes
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,6 @@ class _Connection:
         self.phase, self.deadline = phase, deadline
 
 
-_CONN_KEY = "hope.connection"
 # At the cap, a stalled request may be evicted for a new connection; the evicted ones take a moment
 # to leave, so the count may pass the cap by this much before newcomers are refused outright.
 EVICTION_SLACK = 32
@@ -130,7 +130,7 @@ class GuardedRequestHandler(WSGIRequestHandler):
     def make_environ(self):
         environ = super().make_environ()
         conn = self.server.connection_of(self.connection)
-        environ[_CONN_KEY] = conn
+        environ[CONN_KEY] = conn
         limits = self.server.limits
         if conn is not None:
             client, strikes = conn.client, self.server.strikes
@@ -138,9 +138,9 @@ class GuardedRequestHandler(WSGIRequestHandler):
             if limits.websockets and environ.get("HTTP_UPGRADE", "").lower() == "websocket":
                 conn.enter("websocket", None)
                 self.connection.settimeout(limits.ws_idle_timeout_s)
-            elif _has_body(environ):
+            elif has_body(environ):
                 conn.enter("body", time.monotonic() + limits.body_timeout_s)
-                environ["wsgi.input"] = _BodyReader(environ["wsgi.input"], conn, environ, limits)
+                environ["wsgi.input"] = BodyReader(environ["wsgi.input"], conn, environ, limits)
             else:
                 conn.enter("app", None)
         return environ
@@ -268,106 +268,6 @@ class GuardedServer(ThreadedWSGIServer):
         super().server_close()
 
 
-def _has_body(environ) -> bool:
-    if environ.get("HTTP_TRANSFER_ENCODING", "").lower() == "chunked":
-        return True
-    try:
-        return int(environ.get("CONTENT_LENGTH") or 0) > 0
-    except ValueError:
-        return False
-
-
-_PIECE = 64 << 10
-
-
-class _BodyReader:
-    """wsgi.input that moves the connection's body deadline on as bytes arrive (at min_body_rate)
-    and ends it once the declared body is read."""
-
-    def __init__(self, raw, conn: _Connection, environ, limits: ConnectionLimits):
-        self._raw = raw
-        self._conn = conn
-        self._start = time.monotonic()
-        self._timeout_s = limits.body_timeout_s
-        self._rate = max(1, limits.min_body_rate)
-        self._received = 0
-        try:
-            self._left = int(environ.get("CONTENT_LENGTH") or -1)
-        except ValueError:
-            self._left = -1
-
-    def _consumed(self, data: bytes) -> bytes:
-        self._received += len(data)
-        if self._left >= 0:
-            self._left -= len(data)
-        if self._conn.phase == "body":
-            if not data or self._left == 0:
-                self._conn.enter("app", None)
-            else:
-                self._conn.deadline = self._start + self._timeout_s + self._received / self._rate
-        return data
-
-    def read(self, size: int | None = -1):
-        # In pieces, so the deadline moves on while a large read is still filling: one blocking
-        # read of megabytes would otherwise be cut at body_timeout_s however fast it arrives.
-        if size is not None and 0 <= size <= _PIECE:
-            return self._consumed(self._raw.read(size))
-        parts = []
-        want = None if size is None or size < 0 else size
-        while want is None or want > 0:
-            piece = self._consumed(self._raw.read(_PIECE if want is None else min(_PIECE, want)))
-            if not piece:
-                break
-            parts.append(piece)
-            if want is not None:
-                want -= len(piece)
-        return b"".join(parts)
-
-    def readinto(self, buffer) -> int:
-        # werkzeug's LimitedStream reads through readinto when the stream has one: a short read
-        # (at most a piece) is allowed, and keeps the deadline moving
-        data = self.read(min(len(buffer), _PIECE))
-        buffer[:len(data)] = data
-        return len(data)
-
-    def readline(self, *args):
-        return self._consumed(self._raw.readline(*args))
-
-    def readlines(self, *args):
-        return [self._consumed(line) for line in self._raw.readlines(*args)]
-
-    def __iter__(self):
-        return iter(self.readline, b"")
-
-    def __getattr__(self, name):
-        return getattr(self._raw, name)
-
-
-class _AnswerSent:
-    """The app's response iterable; once it is exhausted, the connection only has Werkzeug's drain
-    of unread request bytes left, which reads until EOF: give that `drain_s` and no more."""
-
-    def __init__(self, iterable, conn: _Connection | None, drain_s: float):
-        self._iterable, self._conn, self._drain_s = iterable, conn, drain_s
-
-    def __iter__(self):
-        yield from self._iterable
-        if self._conn is not None and self._conn.phase != "websocket":
-            self._conn.enter("drain", time.monotonic() + self._drain_s)
-
-    def close(self):
-        close = getattr(self._iterable, "close", None)
-        if close is not None:
-            close()
-
-
-def _bounded_drain(app, drain_s: float):
-    def guarded(environ, start_response):
-        return _AnswerSent(app(environ, start_response), environ.get(_CONN_KEY), drain_s)
-
-    return guarded
-
-
 def _bind_unix(sock, path: str) -> None:
     """Bind a Unix socket at `path`, 0600: one a dead process left is replaced, a live one is not."""
     if os.path.exists(path):
@@ -407,7 +307,7 @@ class HttpServer:
                 sock.bind((host, port))
                 bound_port = sock.getsockname()[1]
             sock.listen(128)
-            self._server = GuardedServer(host, bound_port, _bounded_drain(app, self.limits.drain_timeout_s),
+            self._server = GuardedServer(host, bound_port, bounded_drain(app, self.limits.drain_timeout_s),
                                          fd=sock.fileno(), limits=self.limits)
         except OSError as exc:
             where = host if unix_path is not None else f"{host}:{port}"

@@ -60,10 +60,19 @@ def _tail_events(registry, socketio, stop: threading.Event) -> None:
         stop.wait(0.5)
 
 
+def _start_logging(level: str) -> None:
+    """Under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp."""
+    from hope_models.log_format import configure_logging
+
+    configure_logging(getattr(logging, level.upper()))
+    for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
 def run(args: argparse.Namespace) -> int:
     from registry.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
-    from hope_models.log_format import configure_logging, journal_prefix
+    from hope_models.log_format import journal_prefix
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError
     from webapp import create_app
@@ -73,10 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.malloc_arenas import limit_malloc_arenas
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
-    # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
-    configure_logging(getattr(logging, args.log_level.upper()))
-    for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    _start_logging(args.log_level)
     notifier = SdNotifier()
     stop = threading.Event()
     try:
