@@ -50,8 +50,9 @@ _MAX_HEADER = 100_000_000  # safetensors' own limit on the JSON header
 SNIFF_BYTES = 9  # what safetensors_problem needs to see
 
 
-class CheckpointError(RuntimeError):
-    """A checkpoint cannot be written or read; the message names the dir or file and why."""
+class CheckpointError(ValueError):
+    """A checkpoint cannot be written, read or used (the one such error, whichever layer finds it);
+    the message names the dir or file and why."""
 
 
 # -- hashing: the one function every checkpoint file is hashed with ------------------------------------

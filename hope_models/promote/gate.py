@@ -127,7 +127,7 @@ def non_finite_tensors(ckpt: Path) -> list[str]:
 
 
 def _load_component(ckpt: Path):
-    from hope_models.train.components import CheckpointError, component_from_checkpoint
+    from hope_models.train.components import component_from_checkpoint
 
     try:
         return component_from_checkpoint(ckpt)

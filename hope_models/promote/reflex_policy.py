@@ -113,10 +113,9 @@ class ReflexPolicy:
                         expect_observation: Sequence[tuple[str, int]] | None = SIM_OBSERVATION,
                         expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
                         action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
-        from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, version_name
-        from hope_models.train.checkpoint import CheckpointError as CkptError
+        from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
         from hope_models.train.checkpoint import open_checkpoint
-        from hope_models.train.components import CheckpointError, component_from_checkpoint
+        from hope_models.train.components import component_from_checkpoint
 
         p = Path(path)
         if not p.exists():
@@ -124,7 +123,7 @@ class ReflexPolicy:
         try:
             verified = open_checkpoint(p, keep=(CONFIG_FILE,))  # each file hashed once, the version from it
             version = version_name(verified.path, verified.sha256[MODEL_FILE], verified.json(CONFIG_FILE))
-        except CkptError as exc:
+        except CheckpointError as exc:
             raise ReflexPolicyError(str(exc)) from None
         ckpt = verified.path
         try:

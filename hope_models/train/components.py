@@ -43,7 +43,8 @@ import torch.nn.functional as F
 from safetensors.torch import load_file
 
 from hope_models.checkpoint_format import (
-    CONFIG_FILE, CONFIG_FORMAT, MODEL_FILE, SNIFF_BYTES, looks_like_pickle, weights_misfit,
+    CONFIG_FILE, CONFIG_FORMAT, MODEL_FILE, SNIFF_BYTES, CheckpointError, looks_like_pickle, read_json_object,
+    weights_misfit,
 )
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.windows import WindowSpec
@@ -57,10 +58,6 @@ from hope_models.train.contract import COMPONENTS
 from hope_models.train.model_config import make_config, resolve
 
 log = logging.getLogger(__name__)
-
-
-class CheckpointError(ValueError):
-    """A checkpoint cannot be used; the message names the file and why."""
 
 
 def _tensor(a: np.ndarray) -> torch.Tensor:
@@ -328,15 +325,10 @@ def _raise_unless_fits(path: Path, expected: dict[str, Any], found: dict[str, An
 # -- helpers -------------------------------------------------------------------------------------
 
 def _read_json(path: Path) -> dict:
-    from hope_models.checkpoint_format import CheckpointError as FileError
-    from hope_models.checkpoint_format import read_json_object
-
     try:
         return read_json_object(path)
     except FileNotFoundError:
         raise CheckpointError(f"{path}: not found (a checkpoint dir holds {MODEL_FILE} + {CONFIG_FILE})") from None
-    except FileError as exc:
-        raise CheckpointError(str(exc)) from None
 
 
 def _config_sha256(obj: dict) -> str:
