@@ -21,7 +21,7 @@
    validation loss of the candidate, and of the promoted model on the same split for the second
    run); BrainService (poll 0.2 s) follows the pointer, and a "robot" thread asks for an action
    every 20 ms (a 50 Hz control loop); on_first_inference records first_inference_at and
-   loop_closure_s through daemon.promotion.record_first_inference, as the webapp does. The figure
+   loop_closure_s through registry.promotion.record_first_inference, as the webapp does. The figure
    is the registry's loop_closure_s. With the daemon, add up to one daemon tick (0.5 s) before the
    auto-promotion starts.
 4. The RSS of a fresh process holding BrainService with the model loaded (no torch imported).
@@ -260,7 +260,7 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
 # -- 3. the loop-closure time ---------------------------------------------------------------------------
 
 def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
-    from daemon import promotion
+    from registry import promotion
     from registry import runs
     from registry.db import Registry
     from registry.models import Run

@@ -99,7 +99,7 @@ class Run(Base):
     loss: Mapped[float | None] = mapped_column(Float)  # last progress loss
     steps_per_s: Mapped[float | None] = mapped_column(Float)
     # The loop closure: when a served model made by this run first answered an inference, and
-    # how long after the run finished that was (daemon.promotion.record_first_inference).
+    # how long after the run finished that was (registry.promotion.record_first_inference).
     first_inference_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     loop_closure_s: Mapped[float | None] = mapped_column(Float)
 
@@ -180,7 +180,7 @@ class Model(Base):
 
     The history of a component is its rows: refused candidates keep their gate_result (why), a
     demoted one its demoted_at, and previous_model_id says what was served before this one was
-    promoted, which is what a rollback goes back to (daemon/promotion.py)."""
+    promoted, which is what a rollback goes back to (registry/promotion.py)."""
 
     __tablename__ = "models"
 

@@ -796,8 +796,8 @@ print(json.dumps({{"torch": "torch" in sys.modules, "version": r.get_json()["mod
 
 
 def test_first_inference_time_is_recorded_once_through_the_callback(api, settings, tmp_path_factory):
-    """wire_brain: BrainService's on_first_inference -> daemon.promotion.record_first_inference."""
-    from daemon import promotion
+    """wire_brain: BrainService's on_first_inference -> registry.promotion.record_first_inference."""
+    from registry import promotion
     from registry.models import Run
 
     run_id, last = add_completed_run(api.registry, settings, brain_runs(tmp_path_factory)["alpha30"].parent.parent,

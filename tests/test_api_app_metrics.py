@@ -209,7 +209,7 @@ def test_unknown_query_parameters_are_refused(api):
 
 
 def _promote(api, ckpt: Path, component: str, run_id, *, promote=True, metrics=None, passed=True) -> int:
-    from daemon import promotion
+    from registry import promotion
     from hope_models.promoted import checkpoint_version
 
     version, _ = checkpoint_version(ckpt)

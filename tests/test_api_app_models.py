@@ -33,7 +33,7 @@ def api(settings):
 
 def _record(api, ckpt: Path, run_id: str | None, *, component: str = "fast_loop", passed: bool = True,
             promote: bool = False, reasons=(), metrics=None) -> int:
-    from daemon import promotion
+    from registry import promotion
     from hope_models.promoted import checkpoint_version
 
     version, _sha = checkpoint_version(ckpt)
@@ -72,7 +72,7 @@ def _version(api, model_id: int) -> str:
 
 
 def _promoted_id(api, component="fast_loop") -> int | None:
-    from daemon import promotion
+    from registry import promotion
 
     with api.registry.session(readonly=True) as s:
         m = promotion.promoted(s, component)

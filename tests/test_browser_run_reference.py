@@ -6,7 +6,7 @@ The two runs are written as their trainers write them (tests/big_run.py: metrics
 component's own per-step figures, result.json with the held-out figures in summary.val, the
 registry's own moves); the gate verdicts are the real baselines check
 (hope_models/promote/baselines.py) run on those held-out figures and recorded as promotion
-candidates through daemon/promotion.py, as `run_trainer.py promote` records them. Training a real
+candidates through registry/promotion.py, as `run_trainer.py promote` records them. Training a real
 Mid Loop and gating it would take minutes; the pages only read what these files and rows hold.
 """
 from __future__ import annotations
@@ -46,7 +46,7 @@ def serve(tmp_path_factory):
     mid = make_big_run(home.path, steps=3000, component="mid_loop", validation=MID_VAL,
                        config={"batch_size": 16, "dropout": 0.1})
     vq = make_big_run(home.path, steps=3000, component="vqvae", validation=VQ_VAL, config={"groups": 4})
-    from daemon.promotion import record_candidate
+    from registry.promotion import record_candidate
     from registry.db import Registry
 
     registry = Registry.open(home.settings, migrate=True)

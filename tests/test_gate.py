@@ -15,7 +15,7 @@ import pytest
 from promote_fixtures import build_models, completed_run, copy_run, poison_with_nan, write_config
 
 import run_trainer
-from daemon import promotion
+from registry import promotion
 from registry.db import Registry
 from registry.models import Model
 from hope_models.promote.gate import GateError, gate_candidate, sim_task

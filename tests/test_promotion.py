@@ -1,4 +1,4 @@
-"""Promotion records and pointers (daemon/promotion.py, hope_models/promoted.py), rollback,
+"""Promotion records and pointers (registry/promotion.py, hope_models/promoted.py), rollback,
 the loop-closure record, the promotion settings, and the daemon's AutoPromoter with real promote
 children on a tiny trained fast_loop."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ from sqlalchemy import select
 from promote_fixtures import completed_run, train_fast_loop
 
 import run_trainer
-from daemon import promotion
+from registry import promotion
 from registry import runs
 from daemon.autopromote import LOG_FILE, AutoPromoter, describe
 from registry.db import Registry

@@ -10,7 +10,7 @@ Two ways it runs:
 `brain=` is the BrainService this process hosts (hope_models.runtime.brain_service: NumPy, no
 torch) or None; create_app wires its callbacks: a swap is pushed to browsers as `brain.reloaded`
 {component, version, checkpoint}, and the first inference on a version records the loop-closure
-time of the run that produced it (daemon.promotion.record_first_inference). The caller starts and
+time of the run that produced it (registry.promotion.record_first_inference). The caller starts and
 stops it. Whatever needs torch (the promotion gate, the sim reflex) runs as a `run_trainer.py`
 child (webapp/commands.py). Never imports torch (tests/test_api.py checks it).
 """
@@ -141,7 +141,7 @@ def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
         log.info("brain: %s now serves %s", component, version)
 
     def record(component, version, checkpoint, when):
-        from daemon.promotion import record_first_inference
+        from registry.promotion import record_first_inference
 
         try:
             with registry.session() as s:

@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon import promotion
+    from registry import promotion
     from daemon.cli.registry import USAGE_EXIT, CommandError, open_registry, print_json
 
     try:

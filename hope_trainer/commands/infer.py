@@ -136,7 +136,7 @@ def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
 def _record_first_inference(settings):
     """on_first_inference for --local: the loop-closure time goes into the registry as with serve."""
     def record(component: str, version: str, checkpoint: str, when) -> None:
-        from daemon import promotion
+        from registry import promotion
         from registry.db import Registry
 
         with Registry.open(settings) as registry, registry.session() as s:

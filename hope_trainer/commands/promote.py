@@ -168,7 +168,7 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
     """The whole command minus printing: (exit code, output object). UsageError for exit 2."""
     from sqlalchemy import select
 
-    from daemon import promotion
+    from registry import promotion
     from registry.models import Model
     from registry.runs import RunError
     from hope_models.promote.gate import GateError, gate_candidate
@@ -238,7 +238,7 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
 
 def run(args: argparse.Namespace) -> int:
     from daemon.cli.registry import CommandError, open_registry
-    from daemon.promotion import PromotionError
+    from registry.promotion import PromotionError
 
     if bool(args.run) == bool(args.checkpoint):
         return _usage(args, "give either RUN or --checkpoint DIR (exactly one)")

@@ -12,14 +12,14 @@
             409 a version the gate refused, or one never promoted, or whose checkpoint is gone
 
 The list is, per component (vqvae, fast_loop, mid_loop), the promoted model first and then the
-component's other candidates newest first (daemon/promotion.history: the rows the promotion gate
+component's other candidates newest first (registry/promotion.history: the rows the promotion gate
 recorded, refused ones included, so the app shows why a version is not served). `id` is the
 registry's model row id as a string, because the app's Dart code passes it on as a String.
 `backend` says what runs the weights when they are served: BrainService runs each component in
 hope_models/runtime/brain_service.RUNTIMES with NumPy in this process (today all three); one
 outside it would be a torch checkpoint only the trainer and the gate load.
 
-Activation follows the rule of `promote` and `rollback` (daemon/promotion.py): a version that was
+Activation follows the rule of `promote` and `rollback` (registry/promotion.py): a version that was
 promoted before (served now, demoted, or rolled away from) is served again without a new gate,
 through promotion.promote, which checks that the checkpoint still holds the weights that were
 gated; a version the gate refused is never forced from the app (409 with the gate's reasons:
@@ -113,7 +113,7 @@ def model_json(model) -> dict[str, Any]:
 
 @bp.get("")
 def list_models():
-    from daemon import promotion
+    from registry import promotion
     from hope_models.train.contract import COMPONENTS
 
     query_args("history")
@@ -136,7 +136,7 @@ def _model_id(body: dict) -> str:
 
 @bp.post("/activate")
 def activate():
-    from daemon import promotion
+    from registry import promotion
     from registry.models import Model
     from webapp.api.brain import wait_serving
 

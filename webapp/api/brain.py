@@ -33,7 +33,7 @@
 
 Promotion runs `run_trainer.py promote ... --json` as a child process: the gate computes validation
 loss with torch, which this process never imports (webapp/commands.py). One promotion at a time.
-Rollback needs no torch and runs here (daemon.promotion). After either, the response waits briefly
+Rollback needs no torch and runs here (registry.promotion). After either, the response waits briefly
 (SERVE_WAIT_S) for BrainService to load the new pointer, so "serving" says which version now answers.
 """
 from __future__ import annotations
@@ -99,7 +99,7 @@ def wait_serving(brain, component: str, version: str | None, timeout_s: float = 
 
 @bp.get("")
 def status():
-    from daemon import promotion
+    from registry import promotion
     from hope_models.promoted import PointerError, read_pointer
 
     limit = query_int("history", default=10, minimum=0, maximum=100)
@@ -232,7 +232,7 @@ def _component_of(out: dict) -> str | None:
 
 @bp.post("/rollback")
 def rollback():
-    from daemon import promotion
+    from registry import promotion
 
     body = json_body(allowed=("component",), required=("component",))
     component = get_str(body, "component", choices=_components())
