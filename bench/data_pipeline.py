@@ -134,10 +134,10 @@ def _baseline_windows(episodes, times, offsets, anchors, lags, spec_paths, norm,
 def child_baseline(dataset: str, batches: int, spec_path: str, dump: str | None) -> dict:
     import random
 
-    from hope_models.data.features import FeatureSpec
+    from hope_models.data.spec_request import load_spec
     from hope_models.data.windows import window_spec
 
-    spec = FeatureSpec.load(spec_path)
+    spec = load_spec(spec_path)
     norm = spec.normalizer()
     paths = tuple([tuple(f.path.split(".")) for f in g.fields] for g in (spec.observation, spec.action))
     rss0 = _rss()

@@ -9,7 +9,7 @@ import pytest
 
 from hope_models.data.cache import CacheError, load_or_build
 from hope_models.data.features import FeatureSpec, FeatureSpecError
-from hope_models.data.spec_request import SpecRequest
+from hope_models.data.spec_request import SpecRequest, spec_from_json_obj
 from hope_models.rlds.discover import read_path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -158,7 +158,7 @@ def test_spec_json_roundtrip_and_given_stats_are_kept(tmp_path):
     ds = tmp_path / "ds"
     gen.generate_dataset(ds, 400, obs_dim=4, act_dim=2, episode_seconds=(5, 10))
     cache, _ = load_or_build(ds, tmp_path / "c")
-    again = FeatureSpec.from_json_obj(json.loads(cache.spec.to_json()))
+    again = spec_from_json_obj(json.loads(cache.spec.to_json()))
     assert again.to_json_obj() == cache.spec.to_json_obj()
     override = tmp_path / "spec.json"
     override.write_text(json.dumps({

@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import save_file
 
 from hope_models.data.cache import load_or_build
-from hope_models.data.features import FeatureSpec
+from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.sampler import AnchorSampler
 from hope_models.data.synthetic import generate_dataset
 from hope_models.data.windows import make_windows
@@ -199,7 +199,7 @@ def test_config_is_json_with_dims_window_spec_and_vqvae_reference(cache, vq_ckpt
     assert cfg["model_config"]["obs_dim"] == 20 and cfg["model_config"]["act_dim"] == 6
     assert cfg["model_config"]["n_codes"] == 128
     assert cfg["window"] == {"scale": "fast", "duration_s": 0.1, "k": 5, "horizons_s": []}
-    assert FeatureSpec.from_json_obj(cfg["feature_spec"]).obs_dim == 20
+    assert spec_from_json_obj(cfg["feature_spec"]).obs_dim == 20
     ref = cfg["vqvae"]
     assert Path(ref["path"]) == vq_ckpt.resolve()
     assert ref["weights_sha256"] == file_sha256(vq_ckpt / "model.safetensors")

@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.features import FeatureSpecError
+from hope_models.data.spec_request import load_spec
 
 # 5: frame blobs (inference may now choose a frame it did not before); 6: play.npy. A format change
 # changes every cache key (cache.cache_key), so older caches are rebuilt, never read without play.npy.
@@ -62,7 +63,7 @@ class DatasetCache:
         self.path = Path(path)
         try:
             self.manifest: dict[str, Any] = json.loads((self.path / "manifest.json").read_text(encoding="utf-8"))
-            self.spec = FeatureSpec.load(self.path / "spec.json")
+            self.spec = load_spec(self.path / "spec.json")
             self.episodes: list[dict[str, Any]] = json.loads((self.path / "episodes.json").read_text(encoding="utf-8"))
             self.offsets = np.load(self.path / "offsets.npy", allow_pickle=False)
             self.imagined = np.load(self.path / "imagined.npy", allow_pickle=False)

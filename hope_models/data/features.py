@@ -33,7 +33,6 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -131,17 +130,6 @@ class FeatureSpec:
 
     def to_json(self) -> str:
         return json.dumps(self.to_json_obj(), indent=1)
-
-    @classmethod
-    def from_json_obj(cls, obj: Any, where: str = "feature spec") -> "FeatureSpec":
-        # The parser lives with the override files it shares (spec_request.py builds on these types).
-        from hope_models.data.spec_request import spec_from_json_obj
-        return spec_from_json_obj(obj, where)
-
-    @classmethod
-    def load(cls, path: str | Path) -> "FeatureSpec":
-        from hope_models.data.spec_request import read_spec_json
-        return cls.from_json_obj(read_spec_json(Path(path)), str(path))
 
     def normalizer(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(obs_mean, obs_std, act_mean, act_std) as float32 arrays."""

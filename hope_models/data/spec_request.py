@@ -177,6 +177,11 @@ def spec_from_json_obj(obj: Any, where: str = "feature spec") -> FeatureSpec:
                        frame=partial.frame, std_floor=partial.std_floor, notes=list(notes))
 
 
+def load_spec(path: str | Path) -> FeatureSpec:
+    """A spec.json file (a cache's, or one a user wrote) as a FeatureSpec; FeatureSpecError names it."""
+    return spec_from_json_obj(read_spec_json(Path(path)), str(path))
+
+
 def spec_from_request(request: SpecRequest) -> FeatureSpec:
     """The spec an override file fully determines (every field sized, frame stated)."""
     if request.needs_inference:

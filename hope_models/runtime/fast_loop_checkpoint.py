@@ -30,6 +30,7 @@ from hope_models.checkpoint_format import (
     version_name, weights_misfit,
 )
 from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K
 
 MODEL_CONFIG_KEYS = ("obs_dim", "act_dim", "window_k", "d_model", "d_state", "mlp_ratio", "min_timescale",
@@ -182,7 +183,7 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
         raise FastLoopNumpyError(f"{where}: window.k={window.get('k')!r} differs from model_config.window_k="
                                  f"{mc['window_k']} (the stepped form must see the training window's K points)")
     try:
-        spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
+        spec = spec_from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
     except FeatureSpecError as exc:
         raise FastLoopNumpyError(str(exc)) from None
     if spec.obs_dim != mc["obs_dim"] or spec.act_dim != mc["act_dim"]:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K
 from hope_models.runtime.fast_loop_checkpoint import (
     CheckpointRefused, FastLoopCheckpoint, check_header, check_weights, read_component,
@@ -69,7 +70,7 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
     mc = config.get("model_config")
     _check_model(mc, config.get("window"), where)
     try:
-        spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
+        spec = spec_from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
     except FeatureSpecError as exc:
         raise MidLoopNumpyError(str(exc)) from None
     if spec.act_dim != mc["act_dim"]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.runtime.fast_loop_checkpoint import (
     MAX_GROUPS, CheckpointRefused, check_header, check_trained, check_weights, read_component,
 )
@@ -163,7 +164,7 @@ def check_vqvae_tensors(t: dict[str, np.ndarray], vq_cfg: dict[str, Any], where:
 def _check_config(config: Any, where: Path) -> FeatureSpec:
     check_header(config, where, "vqvae", VQVAENumpyError)
     try:
-        spec = FeatureSpec.from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
+        spec = spec_from_json_obj(config.get("feature_spec"), f"{where}: feature_spec")
     except FeatureSpecError as exc:
         raise VQVAENumpyError(str(exc)) from None
     check_vqvae_ref(config.get("model_config"), spec.obs_dim, where, VQVAENumpyError)

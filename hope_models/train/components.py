@@ -47,6 +47,7 @@ from hope_models.checkpoint_format import (
     weights_misfit,
 )
 from hope_models.data.features import FeatureSpec, FeatureSpecError
+from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import WindowSpec
 from hope_models.durable import file_sha256
 from hope_models.models.fast_loop import FastLoop
@@ -345,7 +346,7 @@ def _from_config(obj: dict, where: Path) -> _Component:
     for key in ("model_config", "feature_spec", "window"):
         if not isinstance(obj.get(key), dict):
             raise CheckpointError(f"{where}: '{key}' is missing or not an object")
-    spec = FeatureSpec.from_json_obj(obj["feature_spec"], f"{where}: feature_spec")
+    spec = spec_from_json_obj(obj["feature_spec"], f"{where}: feature_spec")
     model_config = dict(obj["model_config"])
     model_config["window"] = dict(obj["window"])
     vq = None
