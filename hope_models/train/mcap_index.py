@@ -34,6 +34,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hope_models.durable import atomic_open, fsync_path
+from hope_models.train.metrics_files import MCAP_STEM, PROFILE, mcap_segments
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +74,6 @@ def merged_names(path: Path) -> list[str]:
 def clean_merged(run_dir: Path) -> list[Path]:
     """Delete the segments the first segment already holds (a crash between the rename and the
     deletes) and temp files a crashed rewrite left; returns the segments still to read."""
-    from hope_models.train.metrics import mcap_segments
-
     for tmp in run_dir.glob(TMP_PREFIX + "*"):
         tmp.unlink(missing_ok=True)
     segments = mcap_segments(run_dir)
@@ -131,8 +130,6 @@ class _Copier:
 def index_segments(run_dir: str | os.PathLike) -> Path | None:
     """Rewrite the run's MCAP segments as one indexed metrics.mcap; its path, or None when there
     is none or the rewrite failed (then the segments are untouched)."""
-    from hope_models.train.metrics import MCAP_STEM, PROFILE
-
     run = Path(run_dir)
     t0 = time.monotonic()
     try:

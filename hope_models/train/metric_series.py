@@ -36,7 +36,7 @@ from math import fsum, isfinite
 from pathlib import Path
 
 from hope_models.durable import atomic_open
-from hope_models.train.metrics import JSONL_NAME, RESERVED
+from hope_models.train.metrics_files import JSONL_NAME, RESERVED
 
 log = logging.getLogger(__name__)
 

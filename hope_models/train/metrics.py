@@ -44,15 +44,14 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hope_models.durable import fsync_path
+from hope_models.train.mcap_index import clean_merged, index_segments, merged_names
+from hope_models.train.metric_series import write_columns
+from hope_models.train.metrics_files import (  # noqa: F401 - the names every reader of a run's metrics uses
+    EVENTS_TOPIC, JSONL_NAME, MCAP_STEM, METRICS_TOPIC, PROFILE, RESERVED, mcap_segments, segment_number,
+)
 
 log = logging.getLogger(__name__)
 
-JSONL_NAME = "metrics.jsonl"
-MCAP_STEM = "metrics"
-METRICS_TOPIC = "/metrics"
-EVENTS_TOPIC = "/events"
-PROFILE = "hope.train.metrics"
-RESERVED = ("type", "step", "wall_time")
 FINAL_STATES = ("completed", "failed", "cancelled")  # a "state" event naming one ends the run for good
 
 METRIC_SCHEMA = {
@@ -112,31 +111,14 @@ def _dumps(obj: dict) -> str:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
 
 
-def mcap_segments(run_dir: str | os.PathLike) -> list[Path]:
-    """The run's MCAP segments in writing order: metrics.mcap, metrics.1.mcap, metrics.2.mcap, ..."""
-    run = Path(run_dir)
-    found: list[tuple[int, Path]] = []
-    for p in run.glob(f"{MCAP_STEM}*.mcap"):
-        m = re.fullmatch(rf"{MCAP_STEM}(?:\.(\d+))?\.mcap", p.name)
-        if m:
-            found.append((int(m.group(1) or 0), p))
-    return [p for _, p in sorted(found)]
-
-
-def _segment_number(name: str) -> int:
-    return 0 if name == f"{MCAP_STEM}.mcap" else int(name.split(".")[1])
-
-
 def _next_segment(run: Path) -> Path:
     """The next unused segment name; past the names a merged metrics.mcap already holds, so a
     segment written after a merge is never mistaken for one it merged (train/mcap_index.py)."""
-    from hope_models.train.mcap_index import merged_names
-
     existing = mcap_segments(run)
     if not existing:
         return run / f"{MCAP_STEM}.mcap"
     merged = [n for n in merged_names(existing[0]) if re.fullmatch(rf"{MCAP_STEM}(?:\.\d+)?\.mcap", n)]
-    n = max(_segment_number(p.name) for p in existing + [run / m for m in merged])
+    n = max(segment_number(p.name) for p in existing + [run / m for m in merged])
     return run / f"{MCAP_STEM}.{n + 1}.mcap"
 
 
@@ -172,7 +154,6 @@ class MetricsLog:
         jsonl = self.run_dir / JSONL_NAME
         if jsonl.exists():
             _truncate_partial_line(jsonl)
-        from hope_models.train.mcap_index import clean_merged
         clean_merged(self.run_dir)  # segments a merge crashed before deleting: never counted twice
         self.jsonl_path = jsonl
         # Line buffering would split nothing we care about; we flush explicitly after each line.
@@ -257,8 +238,6 @@ class MetricsLog:
             self._jsonl.close()
         fsync_path(self.run_dir)
         if self._final if index is None else index:
-            from hope_models.train.mcap_index import index_segments
-            from hope_models.train.metric_series import write_columns
             index_segments(self.run_dir)
             write_columns(self.run_dir)  # the run page's first look at it loads, not parses
 
