@@ -11,36 +11,14 @@ page size, thermal sources, memory, disk), `children.py` what has to be proven i
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass
+from collections.abc import Iterable
 from typing import Any
 
-OK, WARN, FAIL, SKIP = "ok", "warn", "fail", "skip"
-STATUSES = (OK, WARN, FAIL, SKIP)
-
-
-@dataclass(frozen=True)
-class Check:
-    check: str  # the check's name, e.g. "token"
-    status: str  # ok | warn | fail | skip (skip: not applicable here, e.g. no systemd)
-    detail: str  # what was found
-    fix: str = ""  # what to do about it ("" when nothing needs doing)
-
-    def __post_init__(self):
-        if self.status not in STATUSES:
-            raise ValueError(f"check {self.check!r}: status {self.status!r} is not one of {STATUSES}")
-
-    def to_json_obj(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-CheckFn = Callable[[Any], "Check | Iterable[Check]"]
-
+from hope_trainer.doctor import children, host, state
+from hope_trainer.doctor.check import FAIL, OK, SKIP, STATUSES, WARN, Check, CheckFn
 
 def all_checks() -> list[tuple[str, CheckFn]]:
     """(name, function) in the order they are printed; a function returns one Check or several."""
-    from hope_trainer.doctor import children, host, state
-
     return [("architecture", host.check_architecture), ("python", host.check_python),
             ("torch", children.check_torch), ("render", children.check_render),
             ("memory-cgroup", host.check_memory_cgroup), ("page-size", host.check_page_size),
@@ -72,4 +50,4 @@ def check_names() -> list[str]:
     return [name for name, _ in all_checks()]
 
 
-__all__ = ["FAIL", "OK", "SKIP", "STATUSES", "WARN", "Check", "all_checks", "check_names", "run_checks"]
+__all__ = ["FAIL", "OK", "SKIP", "STATUSES", "WARN", "Check", "CheckFn", "all_checks", "check_names", "run_checks"]

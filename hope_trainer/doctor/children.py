@@ -14,7 +14,7 @@ import subprocess
 import sys
 from typing import Any
 
-from hope_trainer.doctor import FAIL, OK, SKIP, WARN, Check
+from hope_trainer.doctor.check import FAIL, OK, SKIP, WARN, Check
 
 TORCH_TIMEOUT_S = 180.0  # importing torch on a Pi 5 from an SD card takes several seconds cold
 RENDER_TIMEOUT_S = 120.0

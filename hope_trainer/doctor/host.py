@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hope_trainer.doctor import FAIL, OK, SKIP, WARN, Check
+from hope_trainer.doctor.check import FAIL, OK, SKIP, WARN, Check
 
 MB = 1024 * 1024
 CGROUP_CONTROLLERS = Path("/sys/fs/cgroup/cgroup.controllers")

@@ -12,7 +12,7 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from hope_trainer.doctor import FAIL, OK, SKIP, WARN, Check
+from hope_trainer.doctor.check import FAIL, OK, SKIP, WARN, Check
 
 SERVICES = ("hope-daemon", "hope-webapp", "hope-worker")
 REDIS_TIMEOUT_S = 2.0
