@@ -12,8 +12,8 @@ import pytest
 
 from hope_models.data import synthetic as gen
 from hope_models.data.cache import CacheError, load_or_build
-from hope_models.data.features import FeatureSpec, FeatureSpecError, FrameFeature
-from hope_models.data.spec_request import SpecRequest
+from hope_models.data.features import FeatureSpecError, FrameFeature
+from hope_models.data.spec_request import SpecRequest, spec_from_json_obj
 from hope_models.data.frames import frame_blob_refs
 from hope_models.data.windows import make_windows, window_spec
 
@@ -278,10 +278,10 @@ def test_spec_files_name_a_blob_frame_and_old_specs_stay_inline(tmp_path):
                                          r'\(a frame file needs "source": "blob"'):
         load_or_build(ds, tmp_path / "cache", spec_path=inline)
 
-    old = FeatureSpec.from_json_obj(json.loads(cache.spec.to_json()) | {
+    old = spec_from_json_obj(json.loads(cache.spec.to_json()) | {
         "frame": {"path": "observation.image_rgb", "shape": [64, 64, 3]}})  # written before blobs existed
     assert old.frame == FrameFeature("observation.image_rgb", SHAPE, "inline")
-    back = FeatureSpec.from_json_obj(json.loads(cache.spec.to_json()))
+    back = spec_from_json_obj(json.loads(cache.spec.to_json()))
     assert back.frame == cache.spec.frame and back.to_json_obj() == cache.spec.to_json_obj()
     bad = tmp_path / "bad.json"
     for frame, msg in (({"path": "observation.rgb_front", "source": "png"}, "source must be one of inline, blob"),
