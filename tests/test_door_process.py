@@ -69,3 +69,27 @@ def test_the_door_is_a_child_of_serve_restarted_on_its_port_and_gone_with_serve(
         proc.popen.wait(10)
         home.close()
     assert child is not None and wait_until(lambda: _gone(child), 15), "the door outlived serve"
+
+
+def test_the_door_stops_on_a_burst_of_signals(tmp_path):
+    """Its parent's death and a service stop can both send SIGTERM at once: the door must still exit
+    (a handler that took a lock once deadlocked it, with the robot's port held for good)."""
+    from hope_models.settings import load_settings
+    from registry.db import Registry
+    from webapp.door_process import DoorProcess
+
+    settings = load_settings(tmp_path / "home", env={})
+    settings.inference_port = 0
+    Registry.open(settings, migrate=True).close()
+    door = DoorProcess(settings).start()
+    try:
+        pid = door.pid
+        assert wait_until(lambda: http_request(door.port, "GET", "/api/ping")[0] == 200, 20)
+        for _ in range(200):  # as fast as they come: a handler runs while the last one still does
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:
+                break
+        assert wait_until(lambda: _gone(pid), 15), "the door did not exit after SIGTERM"
+    finally:
+        door.stop()

@@ -195,9 +195,12 @@ def child(ready_fd: int) -> int:
     configure_logging(logging.INFO)
     for noisy in ("werkzeug", "engineio", "socketio"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    # The handler only appends to a list: one that took a lock (Event.set) could run while the main
+    # thread held that very lock in Event.wait, and a second SIGTERM (its parent's death and a stop)
+    # then deadlocked the door for good.
+    stopping: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, _frame: stopping.append(signum))
+    signal.signal(signal.SIGINT, lambda signum, _frame: stopping.append(signum))
 
     def say(obj: dict) -> None:
         os.write(ready_fd, (json.dumps(obj) + "\n").encode())
@@ -222,8 +225,8 @@ def child(ready_fd: int) -> int:
     say({"port": door.port, "socket": None if door.socket is None else str(door.socket)})
     os.close(ready_fd)
     log.info("inference door serving on %s (pid %d)", door.url, os.getpid())
-    while not stop.wait(1.0):
-        pass
+    while not stopping:
+        time.sleep(0.5)
     door.stop()
     app.extensions["hope"].close()
     brain.stop()
