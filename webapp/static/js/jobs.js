@@ -63,6 +63,7 @@ export const events = {
     }
   },
   "run.state": (d) => {
+    stateEvents.set(d.run_id, d.state);
     const run = runs.get(d.run_id);
     // the full `waiting` text (since when, how to start a worker) comes with the refresh below
     const waiting = d.state === "starting" ? `waiting for a worker on queue '${run?.queue ?? "?"}'` : null;
@@ -282,8 +283,13 @@ async function fetchMetrics(runId) {
   return records;
 }
 
+// The last state each run's events said: a state event that arrives while selectRun still awaits
+// its fetches is newer than what the fetch returned, and must not be overwritten by it.
+const stateEvents = new Map();
+
 async function selectRun(runId, { keepLog = false } = {}) {
   selected = runId;
+  stateEvents.delete(runId);
   localStorage.setItem(SELECTED_KEY, runId);
   for (const tr of document.querySelectorAll("#runs-table tr[data-run]")) tr.classList.toggle("selected", tr.dataset.run === runId);
   let run;
@@ -300,7 +306,9 @@ async function selectRun(runId, { keepLog = false } = {}) {
   if ($("#run-detail").dataset.run !== runId) $("#run-detail").dataset.livePoints = "0";
   $("#run-detail").dataset.run = runId;
   setText("#detail-id", `${run.id} · ${run.component}`);
-  setState(run.state, run.waiting);
+  const newer = stateEvents.get(runId);
+  setState(newer ?? run.state, newer && newer !== run.state
+    ? (newer === "starting" ? `waiting for a worker on queue '${run.queue}'` : null) : run.waiting);
   resetChart();
   peakRss = null;
   const metrics = records.filter((r) => r.type === "metric");
