@@ -66,7 +66,7 @@ export const events = {
     stateEvents.set(d.run_id, d.state);
     const run = runs.get(d.run_id);
     // the full `waiting` text (since when, how to start a worker) comes with the refresh below
-    const waiting = d.state === "starting" ? `waiting for a worker on queue '${run?.queue ?? "?"}'` : null;
+    const waiting = eventWaiting(d.state, run?.queue);
     if (run) { run.state = d.state; run.waiting = waiting; run.pause_reason = d.reason ?? run.pause_reason; renderRow(run); }
     if (d.run_id === selected) {
       appendLog(`[state] ${d.from ?? "?"} -> ${d.state}${d.message ? ": " + d.message : ""}`);
@@ -283,6 +283,11 @@ async function fetchMetrics(runId) {
   return records;
 }
 
+// What a state event lets the card say about waiting (the full text comes with the next fetch).
+function eventWaiting(state, queue) {
+  return state === "starting" ? `waiting for a worker on queue '${queue ?? "?"}'` : null;
+}
+
 // The last state each run's events said: a state event that arrives while selectRun still awaits
 // its fetches is newer than what the fetch returned, and must not be overwritten by it.
 const stateEvents = new Map();
@@ -307,8 +312,7 @@ async function selectRun(runId, { keepLog = false } = {}) {
   $("#run-detail").dataset.run = runId;
   setText("#detail-id", `${run.id} · ${run.component}`);
   const newer = stateEvents.get(runId);
-  setState(newer ?? run.state, newer && newer !== run.state
-    ? (newer === "starting" ? `waiting for a worker on queue '${run.queue}'` : null) : run.waiting);
+  setState(newer ?? run.state, newer && newer !== run.state ? eventWaiting(newer, run.queue) : run.waiting);
   resetChart();
   peakRss = null;
   const metrics = records.filter((r) => r.type === "metric");
