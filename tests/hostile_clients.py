@@ -195,6 +195,20 @@ def process_counts(pid: int) -> tuple[int, int]:
     return len(os.listdir(f"/proc/{pid}/task")), len(os.listdir(f"/proc/{pid}/fd"))
 
 
+def fd_kinds(pid: int) -> dict[str, int]:
+    """What a process's descriptors point at, counted by kind (a file's name, or socket/pipe/anon
+    without its inode): says what grew when a count did."""
+    kinds: dict[str, int] = {}
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue  # closed meanwhile
+        kind = target.split(":", 1)[0] if ":[" in target else os.path.basename(target)
+        kinds[kind] = kinds.get(kind, 0) + 1
+    return dict(sorted(kinds.items()))
+
+
 def wait_until(predicate, timeout: float, step: float = 0.25):
     deadline = time.monotonic() + timeout
     while True:

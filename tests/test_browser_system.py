@@ -162,6 +162,47 @@ def test_system_page_plots_the_last_hour_and_live_samples(page, serve, shots):
     assert not page.errors, page.errors
 
 
+def test_a_throttle_change_while_the_system_page_loads_stays_in_its_history(page, serve):
+    """The page's history is loaded after two requests; a system.throttle event that lands while
+    the sampled hour is still on its way is kept, not wiped by the load it raced (the load's own
+    samples predate the change and no run is active to have recorded it, so nothing else would
+    bring it back)."""
+    from playwright.sync_api import expect
+
+    held = []
+
+    def hold(route):  # the hour as the server had it before the change, answered later
+        held.append((route, route.fetch()))
+
+    page.click('#nav a[data-page="workers"]')
+    expect(page.locator("#throttle-level")).to_have_attribute("data-level", "0")
+    loads = lambda: int(page.get_attribute("#page-system", "data-loaded") or 0)  # noqa: E731
+    seen = loads()
+    page.route(re.compile(r"/api/system/history\?"), hold)
+    try:
+        page.click('#nav a[data-page="system"]')
+        # the route handler runs only while Playwright is called, hence the page's own wait
+        poll(lambda: page.wait_for_timeout(100) or held, 15, "the System page asking for its hour", serve.home)
+        entries = page.locator("#throttle-history li").count()
+        serve.home.zone.write_text("78000\n")  # past the soft limit (75 C): level 1
+        expect(page.locator("#throttle-level")).to_have_attribute("data-level", "1", timeout=15_000)
+        poll(lambda: page.locator("#throttle-history li").count() > entries, 15,
+             "the system.throttle event in the history", serve.home)
+        route, response = held[0]
+        route.fulfill(response=response)
+        poll(lambda: loads() > seen, 15, "the System page's load to finish", serve.home)
+        first = page.locator("#throttle-history li").first
+        expect(first).to_contain_text("level 1")
+        expect(first).not_to_contain_text("sampled change")
+    finally:
+        page.unroute(re.compile(r"/api/system/history\?"))
+        for route, response in held[1:]:
+            route.fulfill(response=response)
+        serve.home.zone.write_text("45000\n")
+    expect(page.locator("#throttle-level")).to_have_attribute("data-level", "0", timeout=15_000)
+    assert not page.errors, page.errors
+
+
 def _current_href(page) -> str | None:
     link = page.locator('#workers-table tr[data-state="online"] td[data-key="current"] a.run-link')
     return link.first.get_attribute("href") if link.count() else None

@@ -4,7 +4,7 @@
 // system.stats samples. Throttle changes (system.throttle) go in a history list. The history
 // before this page was opened comes from the sampled history's level changes and the running /
 // recent runs' recorded throttle events (their metrics.jsonl, through the API), so a reload does
-// not empty it.
+// not empty it. #page-system[data-loaded] counts the finished loads.
 import { $, setText, el, time, duration } from "./util.js";
 import * as charts from "./system_charts.js";
 
@@ -12,7 +12,8 @@ const LEVELS = { 0: "normal", 1: "slowed", 2: "paused (too hot)" };
 const HISTORY_MAX = 100;
 const TEMP_SCALE_C = 90;  // the gauge's full scale; the hard limit is below it
 let ctx;
-const history = [];  // {when, level, text}
+let loads = 0;
+const history = [];  // {when, level, text, live}
 
 export function init(c) { ctx = c; }
 
@@ -25,6 +26,7 @@ export async function show() {
   setText("#process-text", data.process ? `webapp process ${data.process.pid}: ${data.process.rss_mb} MB RSS` : "");
   const { samples, intervalS } = await loadSamples();
   await loadHistory(data.queue, samples, intervalS);
+  $("#page-system").dataset.loaded = String(++loads);
 }
 
 // The charts' hour; a failure leaves the gauges and says why under the charts.
@@ -54,7 +56,7 @@ export const events = {
     if (!$("#page-system").hidden) charts.append(d);  // show() reloads the hour when it comes back
   },
   "system.throttle": (d) => {
-    addHistory(d.time ? new Date(d.time) : new Date(), d.level, d.reason || d.message || "", d.run_id);
+    addHistory(d.time ? new Date(d.time) : new Date(), d.level, d.reason || d.message || "", d.run_id, true);
     renderThrottle(d.level, d.source || "event");
   },
 };
@@ -95,8 +97,16 @@ function renderThrottle(level, source) {
   setText("#throttle-text", known ? `from ${source || "?"}` : "no running job and no daemon in this process to ask");
 }
 
-function addHistory(when, level, text, runId) {
-  history.push({ when, level, text: text + (runId ? ` (run ${runId})` : "") });
+function entry(when, level, text, runId, live = false) {
+  return { when, level, text: text + (runId ? ` (run ${runId})` : ""), live };
+}
+
+function addHistory(when, level, text, runId, live = false) {
+  history.push(entry(when, level, text, runId, live));
+  renderHistory();
+}
+
+function renderHistory() {
   history.sort((a, b) => b.when - a.when);
   history.length = Math.min(history.length, HISTORY_MAX);
   const ul = $("#throttle-history");
@@ -104,8 +114,11 @@ function addHistory(when, level, text, runId) {
   if (!history.length) ul.append(el("li", { class: "muted", text: "no throttle changes recorded" }));
 }
 
+// Built apart and swapped in at the end: a system.throttle event that arrives while this loads
+// stays in the list unless what was loaded already holds it (same level, within `near`).
 async function loadHistory(queue, samples, intervalS) {
-  history.length = 0;
+  const loaded = [];
+  const near = 1000 * (2 * (intervalS || 5) + 1);
   const ids = new Set([...(queue?.running || []), ...(queue?.paused || [])].map((r) => r.id));
   try {
     const recent = await ctx.api("/api/runs?limit=5");
@@ -117,24 +130,26 @@ async function loadHistory(queue, samples, intervalS) {
       for (const rec of data.records) {
         if (rec.type === "event" && rec.kind === "throttle") {
           const p = rec.payload || {};
-          addHistory(new Date(rec.wall_time * 1000), p.level, p.reason || p.message || "", id);
+          loaded.push(entry(new Date(rec.wall_time * 1000), p.level, p.reason || p.message || "", id));
         }
       }
     } catch { /* a run without metrics yet */ }
   }
   // The sampled level changes (no reason recorded, only when), unless a run's event (with its
   // reason) already says it: the sample comes within an interval or two of the event.
-  const near = 1000 * (2 * (intervalS || 5) + 1);
-  const events = history.slice();
+  const events = loaded.slice();
   let level = null;
   for (const s of samples) {
     if (typeof s.throttle_level !== "number") continue;
     const when = new Date(s.time);
     if (level !== null && s.throttle_level !== level &&
         !events.some((h) => h.level === s.throttle_level && Math.abs(h.when - when) <= near)) {
-      addHistory(when, s.throttle_level, "sampled change");
+      loaded.push(entry(when, s.throttle_level, "sampled change"));
     }
     level = s.throttle_level;
   }
-  if (!history.length) $("#throttle-history").replaceChildren(el("li", { class: "muted", text: "no throttle changes recorded" }));
+  const live = history.filter((h) => h.live && !loaded.some((l) => l.level === h.level && Math.abs(l.when - h.when) <= near));
+  history.length = 0;
+  history.push(...loaded, ...live);
+  renderHistory();
 }
