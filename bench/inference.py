@@ -124,8 +124,8 @@ def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[s
     import torch
 
     from hope_models.runtime.brain_service import BrainService
-    from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
-    from hope_models.train.components import component_from_checkpoint
+    from hope_models.components.fast_loop.numpy_act import FastLoopNumpyAct
+    from hope_models.components.build import component_from_checkpoint
 
     torch.set_num_threads(1)
     model = FastLoopNumpyAct.from_checkpoint(ckpt)
@@ -378,7 +378,7 @@ print(json.dumps({{"python_mb": before / 2**20, "with_brain_mb": after / 2**20,
 
 def whole_answer(root: Path, data: Path, fast_ckpt: Path, ticks: int, block: int = 250) -> dict[str, Any]:
     from hope_models.runtime.brain_service import BrainService
-    from hope_models.runtime.mid_loop_numpy import MidLoopNumpy
+    from hope_models.components.mid_loop.numpy_form import MidLoopNumpy
 
     cache = root / "cache"
     vq = train_run(data, root / "runs" / "vq", cache, 20, 20, {}, component="vqvae")

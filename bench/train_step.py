@@ -39,8 +39,8 @@ BUDGET_MB = 3072.0
 
 def child_rss(args) -> None:
     from hope_models.data.cache import load_or_build
-    from hope_models.train.components import build_component
-    from hope_models.train.checkpoint import resolve_checkpoint_dir
+    from hope_models.components.build import build_component
+    from hope_models.checkpoints import resolve_checkpoint_dir
     from hope_models.train.estimate import cache_resident_mb, estimate_memory
     from hope_models.train.loop import TrainConfig, train
 
@@ -115,7 +115,7 @@ def bare_round(component, cache, vqvae_dir, steps, warm, threads) -> tuple[float
 
     from hope_models.data.sampler import AnchorSampler
     from hope_models.data.windows import WindowLoader
-    from hope_models.train.components import build_component
+    from hope_models.components.build import build_component
     from hope_models.train.loop import TrainConfig, lr_at
 
     cfg = TrainConfig(component=component, data="", run_dir="", steps=steps, seed=0)  # the trainer's defaults
@@ -239,7 +239,7 @@ def run(args, work: Path) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    from hope_models.train.checkpoint import resolve_checkpoint_dir
+    from hope_models.checkpoints import resolve_checkpoint_dir
     vq_ckpt = resolve_checkpoint_dir(vq_dir)
     print(f"\nSteps/s, trainer (guards + metrics + checkpoints every {args.checkpoint_every} steps) vs bare "
           f"PyTorch loop; {args.rounds} rounds x {args.steps} steps, timed from step {args.warm}, "

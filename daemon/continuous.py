@@ -43,8 +43,8 @@ from typing import Any, Callable, Iterable
 from sqlalchemy import select
 
 from hope_models import disk
-from hope_models.data.inbox import InboxError
-from hope_models.train.contract import NEEDS_VQVAE
+from hope_models.intake.inbox import InboxError
+from hope_models.components import NEEDS_VQVAE, TOKENIZER
 from registry import learning, runs
 from registry.models import LearningState, Model, Run
 
@@ -68,7 +68,7 @@ def read_inbox(inbox_dir: Path) -> dict[str, set[str]]:
     """{episode_id: the components it can train} from the inbox's manifest ({} when there is none;
     a rejected episode trains nothing). hope_models/data/inbox.py raises InboxError for a manifest
     that is not ours."""
-    from hope_models.data.inbox import list_inbox
+    from hope_models.intake.inbox import list_inbox
 
     return {e["episode_id"]: set(e["trainable"]) for e in list_inbox(inbox_dir)
             if e.get("status") != "rejected" and e.get("episode_id")}
@@ -254,17 +254,18 @@ class ContinuousLearning:
     def _chain(self, ready: list[str], trainable: dict[str, set[str]]) -> tuple[list[str], str | None, str]:
         """The chain's components, the served VQ-VAE's run a mid_loop without a vqvae reads, a note."""
         chain = list(ready)
-        if not any(c in NEEDS_VQVAE for c in chain) or "vqvae" in chain:
+        if not any(c in NEEDS_VQVAE for c in chain) or TOKENIZER in chain:
             return chain, None, ""
         with self.registry.session(readonly=True) as s:
             served = s.scalars(select(Model.run_id).join(Run, Run.id == Model.run_id).where(
-                Model.component == "vqvae", Model.promoted_at.is_not(None), Run.state == "completed")).first()
+                Model.component == TOKENIZER, Model.promoted_at.is_not(None), Run.state == "completed")).first()
         if served is not None:
             return chain, served, f"; codes from the served VQ-VAE (run {served})"
-        if trainable.get("vqvae"):
-            return ["vqvae", *chain], None, "; vqvae added: no VQ-VAE is served for the mid_loop's codes"
+        needing = ", ".join(c for c in chain if c in NEEDS_VQVAE)
+        if trainable.get(TOKENIZER):
+            return [TOKENIZER, *chain], None, f"; {TOKENIZER} added: no VQ-VAE is served for the {needing}'s codes"
         kept = [c for c in chain if c not in NEEDS_VQVAE]
-        return kept, None, "; mid_loop left out: no VQ-VAE is served and none can be trained"
+        return kept, None, f"; {needing} left out: no VQ-VAE is served and none can be trained"
 
     def _start(self, ready, new, trainable, sample, data, stamp) -> Decision:
         from registry.run_request import RunRequestError, build_request, check_vqvae_run, preflight

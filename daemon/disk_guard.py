@@ -35,7 +35,8 @@ from typing import Any
 from sqlalchemy import func, or_, select
 
 from hope_models import disk
-from hope_models.train.checkpoint import list_step_dirs
+from hope_models.checkpoints import list_step_dirs
+from hope_models.components import spec_of
 from hope_models.train.metrics import JSONL_NAME
 from hope_models.train.config import TrainConfig
 from registry import runs
@@ -52,18 +53,18 @@ def _estimated_checkpoint_mb(run: Run) -> float:
     is then the margin alone, and the job's own ENOSPC handling still stands)."""
     from hope_models.data.dataset_spec import probe_dataset_spec
     from hope_models.train.estimate import checkpoint_mb_from_config
-    from hope_models.train.model_config import resolve
+    from hope_models.components.resolve import resolve
 
     cfg = run.config or {}
     try:
         spec = probe_dataset_spec(cfg["data"])
-        if spec is None or run.component != "vqvae" and cfg.get("vqvae_dir") is None and \
-                cfg.get("vqvae_run") is not None:
+        reads = spec_of(run.component).reads_vqvae != "never"
+        if spec is None or reads and cfg.get("vqvae_dir") is None and cfg.get("vqvae_run") is not None:
             return 0.0  # too large to probe here, or codes from a VQ-VAE not trained yet
         vq = None
-        if run.component != "vqvae" and cfg.get("vqvae_dir"):
-            from hope_models.train.checkpoint import resolve_checkpoint_dir
-            from hope_models.train.model_config import read_vqvae_config
+        if reads and cfg.get("vqvae_dir"):
+            from hope_models.checkpoints import resolve_checkpoint_dir
+            from hope_models.components.resolve import read_vqvae_config
             vq = read_vqvae_config(resolve_checkpoint_dir(cfg["vqvae_dir"]))
         resolved = resolve(run.component, spec, dict(cfg.get("model_config") or {}), vq)
         return checkpoint_mb_from_config(resolved, spec.obs_dim, spec.act_dim)

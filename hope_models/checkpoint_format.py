@@ -35,6 +35,9 @@ CHECKPOINT_FORMAT = "hope.checkpoint/1"  # manifest.json, training_state.json, t
 CONFIG_FORMAT = "hope.component_config/1"  # config.json: the component a checkpoint holds
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+# The key of config.json, of a run's provenance and of the API's answers about a run that names the
+# frozen VQ-VAE a component read codes of (null or absent: it read none).
+VQVAE_REF = "vqvae"
 STATE_TENSORS = "training_state.safetensors"
 STATE_JSON = "training_state.json"
 MANIFEST = "manifest.json"

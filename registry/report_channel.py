@@ -14,19 +14,20 @@ from typing import Any, Iterator
 from sqlalchemy import select
 from sqlalchemy.exc import OperationalError, SQLAlchemyError
 
+from hope_models.components import TOKENIZER
 from registry import runs
 from registry.models import Run
 from registry.report_protocol import REQUESTS, ChannelError, ControlRow, RunSnapshot, StaleDelivery
 
 
 def resolve_vqvae_run(s, vqvae_run: str, for_run: str) -> str:
-    """The run dir of `vqvae_run`, which must be a completed vqvae run (RunError otherwise)."""
+    """The run dir of `vqvae_run`, which must be a completed run of the tokenizer (RunError otherwise)."""
     other = s.get(Run, vqvae_run)
     if other is None:
         raise runs.RunError(f"run {for_run}: vqvae_run {vqvae_run} does not exist")
-    if other.component != "vqvae" or other.state != "completed":
+    if other.component != TOKENIZER or other.state != "completed":
         raise runs.RunError(f"run {for_run}: vqvae_run {vqvae_run} is a {other.state} {other.component} run, "
-                            "not a completed vqvae run")
+                            f"not a completed {TOKENIZER} run")
     return other.run_dir
 
 

@@ -24,7 +24,8 @@ from hope_models.numbers import NumberError, as_int, short
 from hope_models.paths import PathError, confine_path
 from hope_models.train.config import (DEFAULT_REQUEST_STEPS, REQUEST_FIELDS, ConfigValueError, check_value,
                                       over_deployment_budget)
-from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
+from hope_models.components import COMPONENTS, TOKENIZER
+from hope_models.components.chain import tokenizer_missing
 
 QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
 DEFAULT_STEPS = DEFAULT_REQUEST_STEPS
@@ -178,8 +179,8 @@ def check_vqvae_run(session, run_id: str | None) -> str | None:
         source = runs.get_run(session, run_id)
     except runs.RunError as exc:
         raise RunRequestError(f"vqvae_run: {exc}") from None
-    if source.component != "vqvae":
-        raise RunRequestError(f"vqvae_run: run {source.id} trains {source.component}, not vqvae")
+    if source.component != TOKENIZER:
+        raise RunRequestError(f"vqvae_run: run {source.id} trains {source.component}, not {TOKENIZER}")
     if source.state != "completed":
         raise RunRequestError(f"vqvae_run: run {source.id} is {source.state}, not completed; wait for it, or queue "
                               "the components as one chain with `run_trainer.py sequential`")
@@ -188,16 +189,15 @@ def check_vqvae_run(session, run_id: str | None) -> str | None:
 
 def _check_vqvae_source(req: RunRequest, components: list[str], chain: bool) -> None:
     """Each member that predicts VQ-VAE codes has a VQ-VAE: given, or trained earlier in the chain."""
-    have = bool(req.vqvae_dir or req.vqvae_run)
-    for name in components:
-        if name in NEEDS_VQVAE and not have:
-            if chain:
-                raise RunRequestError(f"components: {name} needs a trained VQ-VAE: put vqvae before it in the chain, "
-                                      "or give vqvae_dir / vqvae_run")
-            raise RunRequestError(f"{name} predicts VQ-VAE codes: give vqvae_dir (a trained VQ-VAE) or vqvae_run (a "
-                                  "completed vqvae run), or queue vqvae first in one chain with "
-                                  f"`run_trainer.py sequential --components vqvae,{name}`")
-        have = have or name == "vqvae"
+    name = tokenizer_missing(components, bool(req.vqvae_dir or req.vqvae_run))
+    if name is None:
+        return
+    if chain:
+        raise RunRequestError(f"components: {name} needs a trained VQ-VAE: put {TOKENIZER} before it in the chain, "
+                              "or give vqvae_dir / vqvae_run")
+    raise RunRequestError(f"{name} predicts VQ-VAE codes: give vqvae_dir (a trained VQ-VAE) or vqvae_run (a "
+                          f"completed {TOKENIZER} run), or queue {TOKENIZER} first in one chain with "
+                          f"`run_trainer.py sequential --components {TOKENIZER},{name}`")
 
 
 def _model_config_error(exc: Exception, chain: bool) -> RunRequestError:
@@ -217,10 +217,10 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
 
     from hope_models.data.dataset_spec import probe_dataset_spec
     from hope_models.data.features import FeatureSpecError
-    from hope_models.train import checkpoint as ckpt
+    from hope_models import checkpoints as ckpt
     from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
     from hope_models.train.config import TrainConfig
-    from hope_models.train.model_config import check_keys, read_vqvae_config, resolve
+    from hope_models.components.resolve import check_keys, read_vqvae_config, resolve
 
     names = components or [req.component]
     chain = components is not None
@@ -253,14 +253,14 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
     estimates = []
     for name in names:
         try:
-            resolved = resolve(name, spec, model_config, None if name == "vqvae" else vq)
+            resolved = resolve(name, spec, model_config, vq)  # ignored by a component that reads none
             est = estimate_from_config(resolved, batch_size, spec.obs_dim, spec.act_dim)
             estimates.append(check_fits(est, budget, defaults["memory_soft_fraction"]))
         except MemoryBudgetError as exc:
             raise RunRequestError(str(exc)) from None
         except ValueError as exc:
             raise _model_config_error(exc, chain) from None
-        if name == "vqvae":
+        if name == TOKENIZER:
             vq = resolved.cfg  # the chain's later members read this one's codes
     return estimates
 

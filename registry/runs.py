@@ -26,7 +26,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from hope_models.json_finite import finite
-from hope_models.train.contract import COMPONENTS
+from hope_models.components import COMPONENTS
 from registry.models import Run, new_run_id, utcnow
 from registry.run_states import (ACTIVE, ALLOWED, CONTROL_ACTIONS, DESIRED_STATES, EVENT_KINDS, HEARTBEAT_FIELDS,
                                  OUTCOMES, PAUSE_REASONS, SHUTDOWN_MESSAGE, STATES, TERMINAL, RunError, add_event,

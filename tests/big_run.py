@@ -25,7 +25,7 @@ from pathlib import Path
 
 def component_metrics(component: str, loss: float, frac: float, rng: random.Random) -> dict:
     """The component's own per-step figures, named as its trainer names them."""
-    if component == "mid_loop":  # hope_models/models/mid_loop_metrics.py, per horizon
+    if component == "mid_loop":  # hope_models/components/mid_loop/metrics.py, per horizon
         out = {}
         for h, k in (("0.5s", 1.0), ("1s", 1.2)):
             out.update({f"nll_{h}": 14.0 * k * (0.8 + 0.2 * loss / 2.8), f"copy_last_nll_{h}": 19.0 * k,

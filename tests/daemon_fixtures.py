@@ -205,14 +205,15 @@ def all_states(home, ids, state="completed"):
 class Proc:
     """A child process with its output in a log file; stop() is SIGTERM, then SIGKILL."""
 
-    def __init__(self, name: str, cmd: list[str], env: dict[str, str], log: Path, *, teardown_kill: bool = False):
+    def __init__(self, name: str, cmd: list[str], env: dict[str, str], log: Path, *, teardown_kill: bool = False,
+                 cwd: Path = REPO):
         self.name, self.cmd, self.log = name, cmd, log
         # A Celery worker's warm shutdown takes ~4 s even when idle; once a test is over nothing
         # checks it, so the fixture kills its process group instead (tests that check a clean
         # stop call stop() themselves).
         self.teardown_kill = teardown_kill
         self._fh = open(log, "ab")
-        self.popen = subprocess.Popen(cmd, env=env, cwd=REPO, stdout=self._fh, stderr=subprocess.STDOUT,
+        self.popen = subprocess.Popen(cmd, env=env, cwd=cwd, stdout=self._fh, stderr=subprocess.STDOUT,
                                       start_new_session=True)
 
     @property

@@ -287,7 +287,7 @@ def test_too_many_parts_are_refused(client):
 
 
 def test_a_rejected_episode_is_a_422_with_its_reasons_and_listed(client):
-    from hope_models.data.inbox import list_inbox
+    from hope_models.intake.inbox import list_inbox
 
     rec = record()
     rec["steps"][2]["action"]["command"] = [float("nan")]

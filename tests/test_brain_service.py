@@ -23,7 +23,7 @@ import pytest
 from brain_fixtures import brain_runs, overflowing_copy, promote_pointer, rewrite_manifest
 from hope_models.promoted import checkpoint_version, pointer_path
 from hope_models.runtime.brain_service import MAX_ABS_OBSERVATION, BrainError, BrainService
-from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
+from hope_models.components.fast_loop.numpy_act import FastLoopNumpyAct
 
 REPO = Path(__file__).resolve().parents[1]
 OBS6 = [0.1, -0.2, 0.3, 0.05, -0.4, 0.2]

@@ -19,9 +19,9 @@ import pytest
 from brain_fixtures import brain_runs, brain_whole_runs, promote_pointer, rewrite_manifest
 from hope_models.promoted import checkpoint_version
 from hope_models.runtime.brain_service import BrainError, BrainService
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
-from hope_models.runtime.mid_loop_numpy import MidLoopNumpy
-from hope_models.runtime.vqvae_numpy import VQVAERuntime
+from hope_models.components.fast_loop.numpy_form import FastLoopNumpy
+from hope_models.components.mid_loop.numpy_form import MidLoopNumpy
+from hope_models.components.vqvae.numpy_form import VQVAERuntime
 
 OBS6 = [0.1, -0.2, 0.3, 0.05, -0.4, 0.2]
 
@@ -62,7 +62,7 @@ def promote_all(home: Path, runs, vq="vq_a", fast="alpha30", mid="mid_a") -> Non
 def test_numpy_vqvae_and_mid_loop_equal_torch(runs):
     import torch
 
-    from hope_models.train.components import component_from_checkpoint
+    from hope_models.components.build import component_from_checkpoint
 
     rng = np.random.default_rng(0)
     vq, tvq = VQVAERuntime.from_checkpoint(runs["vq_a"]), component_from_checkpoint(runs["vq_a"]).model.eval()

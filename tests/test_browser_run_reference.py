@@ -29,7 +29,7 @@ VQ_VAL = {"loss": 0.031, "recon_nmse": 0.027, "perplexity": 96.0, "code_usage": 
 
 
 def _gate_result(val: dict, min_gain: float) -> dict:
-    from hope_models.promote.baselines import mid_loop_verdict
+    from hope_models.components.mid_loop.held_out import mid_loop_verdict
     from hope_models.promote.gate import FAILED, GateResult
 
     status, detail = mid_loop_verdict(val, list(HORIZONS), True, min_gain)

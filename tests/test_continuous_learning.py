@@ -43,7 +43,7 @@ def home(tmp_path):
 
 
 def hand_off(home: Home, dirs: list[Path]) -> None:
-    from hope_models.data.inbox import ingest_into_inbox
+    from hope_models.intake.inbox import ingest_into_inbox
 
     out = ingest_into_inbox([str(d) for d in dirs], home.settings.inbox_dir, origin="test")
     assert all(r.get("action") == "written" for r in out["episodes"]), out

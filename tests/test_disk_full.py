@@ -17,7 +17,7 @@ import pytest
 
 from hope_models import disk
 from hope_models.data.synthetic import generate_dataset
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 from hope_models.train.contract import OUTCOME_EXIT_CODES, ControlCommand
 from hope_models.train.loop import TrainConfig, train
 from test_train_loop_standin import factory

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 from daemon.disk_guard import PIN_FILE, DiskGuard
 from daemon.service import Daemon
 from daemon_fixtures import Home, home, tiny_dataset  # noqa: F401

@@ -19,9 +19,9 @@ import torch
 
 from brain_fixtures import brain_runs, rewrite_manifest
 from hope_models.promoted import checkpoint_version
-from hope_models.runtime.fast_loop_act import FastLoopNumpyAct
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy, FastLoopNumpyError
-from hope_models.train.components import component_from_checkpoint
+from hope_models.components.fast_loop.numpy_act import FastLoopNumpyAct
+from hope_models.components.fast_loop.numpy_form import FastLoopNumpy, FastLoopNumpyError
+from hope_models.components.build import component_from_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 TOL = 1e-5
@@ -244,7 +244,7 @@ def test_refuses_pickle_and_a_sha_mismatch(runs, tmp_path):
 
 
 def test_runtime_modules_do_not_import_torch():
-    code = ("import sys; import hope_models.runtime.brain_service, hope_models.runtime.fast_loop_numpy; "
+    code = ("import sys; import hope_models.runtime.brain_service, hope_models.components.fast_loop.numpy_form; "
             "bad = [m for m in ('torch', 'dm_control', 'mujoco') if m in sys.modules]; print(bad); "
             "sys.exit(1 if bad else 0)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 import run_trainer
-from hope_models.promote.baselines import mid_loop_verdict, vqvae_verdict
+from hope_models.components.mid_loop.held_out import mid_loop_verdict
+from hope_models.components.vqvae.held_out import vqvae_verdict
 from hope_models.promote.gate import gate_candidate
 from hope_models.promoted import read_pointer
 from hope_models.settings import load_settings

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hope_models.data.inbox import InboxError, ingest_into_inbox, ingest_record, list_inbox, tag_episode
-from hope_models.data.trainable import trainable
+from hope_models.intake.inbox import InboxError, ingest_into_inbox, ingest_record, list_inbox, tag_episode
+from hope_models.intake.trainable import trainable
 from hope_models.rlds.discover import read_path
 from hope_models.rlds.ingest import MANIFEST
 
@@ -174,7 +174,7 @@ def test_ingests_in_several_processes_at_once_lose_no_record(tmp_path: Path):
 
 def test_an_episode_trainable_for_fast_loop_builds_a_cache_and_a_fast_loop_config(tmp_path: Path):
     from hope_models.data.cache import load_or_build
-    from hope_models.train.model_config import resolve
+    from hope_models.components.resolve import resolve
 
     inbox = tmp_path / "inbox"
     src = episode_file(tmp_path / "src" / "ep.json", "ep", steps(30))

@@ -42,8 +42,8 @@ ORDER_TEXT = ("hope_models < registry (+ migrations) < daemon, workers (neither 
 HOPE_MODELS_TIERS: tuple[tuple[str, ...], ...] = (
     ("rlds",),
     ("data", "sim"),
-    ("models",),
-    ("train",),
+    ("components",),
+    ("train", "intake"),
     ("promote", "runtime", "imagine"),
     ("cli",),
 )

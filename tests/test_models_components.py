@@ -22,7 +22,7 @@ from hope_models.data.sampler import AnchorSampler
 from hope_models.data.synthetic import generate_dataset
 from hope_models.data.windows import make_windows
 from hope_models.durable import file_sha256
-from hope_models.train.components import (
+from hope_models.components.build import (
     CheckpointError, build_component, component_from_checkpoint, load_model_weights,
 )
 

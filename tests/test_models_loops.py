@@ -6,11 +6,11 @@ import math
 import pytest
 import torch
 
-from hope_models.models.fast_loop import FastLoop, FastLoopConfig
-from hope_models.models.mid_loop import MidLoop, MidLoopConfig, previous_actions
-from hope_models.models.mid_loop_metrics import mid_loop_loss
-from hope_models.models.ssm import count_params
-from hope_models.models.vqvae import VQVAE, VQVAEConfig
+from hope_models.components.fast_loop.model import FastLoop, FastLoopConfig
+from hope_models.components.mid_loop.model import MidLoop, MidLoopConfig, previous_actions
+from hope_models.components.mid_loop.metrics import mid_loop_loss
+from hope_models.components.ssm import count_params
+from hope_models.components.vqvae.model import VQVAE, VQVAEConfig
 
 TOL = 1e-5
 
@@ -314,7 +314,7 @@ def test_world_model_is_causal_in_the_actions_and_forward_is_heads_of_context():
 
 
 def test_world_model_loss_targets_by_hand_and_it_never_trains_the_ssm():
-    from hope_models.models.mid_loop_metrics import world_model_loss
+    from hope_models.components.mid_loop.metrics import world_model_loss
 
     torch.manual_seed(0)
     model = _mid_wm(horizon=3).train()

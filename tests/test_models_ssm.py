@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hope_models.models.ssm import DiagonalSSM, SSMBlock, SSMConfig, SSMStack, WindowSSM
+from hope_models.components.ssm import DiagonalSSM, SSMBlock, SSMConfig, SSMStack, WindowSSM
 
 TOL = 1e-5
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from hope_models.models.vqvae import VQVAE, VQVAEConfig
+from hope_models.components.vqvae.model import VQVAE, VQVAEConfig
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

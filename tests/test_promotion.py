@@ -39,7 +39,7 @@ def make_ckpt(home: Path, name: str, value: float, step: int = 10) -> Path:
     """A complete (manifest-verified) checkpoint whose weights differ by `value`."""
     import torch
 
-    from hope_models.train.checkpoint import save_checkpoint
+    from hope_models.checkpoints import save_checkpoint
 
     return save_checkpoint(home / "runs" / name, step, model_state={"w": torch.full((4,), float(value))},
                            config={"component": "fast_loop"}, state_tensors={"x": torch.zeros(1)}, state={})

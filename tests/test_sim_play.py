@@ -50,7 +50,7 @@ def components(mixed_cache, tmp_path_factory):
     import torch
     from safetensors.torch import save_file
 
-    from hope_models.train.components import build_component
+    from hope_models.components.build import build_component
 
     from hope_models.data.windows import make_windows
     from hope_models.train.validation import anchor_sampler
@@ -205,7 +205,7 @@ def test_only_play_data_gives_a_clear_fast_loop_error(tmp_path):
     assert str(ds) in str(info.value)
     cache, _ = load_or_build(ds, tmp_path / "cache")
     assert cache.play.all()
-    from hope_models.train.components import build_component
+    from hope_models.components.build import build_component
     from hope_models.train.validation import anchor_sampler
 
     vq = anchor_sampler(cache, build_component("vqvae", cache.spec), "all", batch_size=8, seed=0,

@@ -25,7 +25,7 @@ from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError
 from hope_models.sim.evaluate import evaluate_policy, expert_factory, random_factory
 from hope_models.sim.reacher import make_env
 from hope_models.sim.recorder import record_dataset
-from hope_models.train.components import component_from_checkpoint
+from hope_models.components.build import component_from_checkpoint
 from hope_models.train.loop import TrainConfig, train
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from hope_models.durable import file_sha256
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 
 
 def _save(run_dir: Path, step: int, keep_last: int = 3, value: float | None = None) -> Path:
@@ -160,7 +160,7 @@ def test_checkpoint_json_is_read_as_untrusted_input(tmp_path, text, reason):
 
 def test_module_never_calls_torch_load():
     src = Path(ckpt.__file__).read_text()
-    loop_src = (Path(ckpt.__file__).parent / "loop.py").read_text()
+    loop_src = (Path(ckpt.__file__).parent / "train" / "loop.py").read_text()
     assert "torch.load" not in src and "torch.load" not in loop_src
     assert "import pickle" not in src and "import pickle" not in loop_src
 
@@ -215,7 +215,7 @@ def test_kill_during_checkpoint_writes_never_leave_a_bad_newest(tmp_path):
     kill the newest loadable checkpoint is complete and no step dir without a manifest loads."""
     code = (
         "import sys, torch\n"
-        "from hope_models.train import checkpoint as c\n"
+        "from hope_models import checkpoints as c\n"
         "run = sys.argv[1]\n"
         "w = torch.arange(200_000, dtype=torch.float32)\n"
         "for step in range(1, 10_000):\n"

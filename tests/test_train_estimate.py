@@ -99,7 +99,7 @@ MEASURE = textwrap.dedent("""
     from hope_models.data.cache import open_cache
     from hope_models.data.sampler import AnchorSampler
     from hope_models.data.windows import make_windows
-    from hope_models.train.components import build_component
+    from hope_models.components.build import build_component
     from hope_models.train.estimate import estimate_memory
 
     def hwm_mb():
@@ -227,7 +227,7 @@ def test_estimate_with_64x64_frames_is_within_half_to_twice_the_measured_peak(fr
 RUNTIME = textwrap.dedent("""
     import psutil, torch
     torch.set_num_threads(1)
-    import hope_models.train.components, hope_models.train.metrics, hope_models.data.windows  # noqa: F401
+    import hope_models.components.build, hope_models.train.metrics, hope_models.data.windows  # noqa: F401
     m = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.SiLU(), torch.nn.LayerNorm(16), torch.nn.Linear(16, 2))
     opt = torch.optim.AdamW(m.parameters())
     for _ in range(2):
@@ -258,11 +258,11 @@ def test_the_layers_from_a_config_are_the_layers_of_the_model_built_from_it(fram
     the loop builds anything; it must see the model build_component would build: the same layers
     (kind, parameter shapes, trainable or frozen, conv settings) and so the same estimate."""
     from hope_models.data.features import FeatureField, FeatureGroup, FeatureSpec, FrameFeature
-    from hope_models.models.fast_loop import FastLoop
-    from hope_models.models.mid_loop import MidLoop
-    from hope_models.models.vqvae import VQVAE
+    from hope_models.components.fast_loop.model import FastLoop
+    from hope_models.components.mid_loop.model import MidLoop
+    from hope_models.components.vqvae.model import VQVAE
     from hope_models.train.estimate import config_layers, estimate_from_config, model_layers
-    from hope_models.train.model_config import resolve
+    from hope_models.components.resolve import resolve
 
     spec = FeatureSpec(FeatureGroup([FeatureField("observation.state", 7)]),
                        FeatureGroup([FeatureField("action.command", 3)]),

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from hope_models.data.synthetic import generate_dataset
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 from hope_models.train.contract import OUTCOME_EXIT_CODES, ControlCommand
 from hope_models.train.guards import MemoryGuard
 from hope_models.train.loop import LossHistory, TrainConfig, TrainSetupError, lr_at, train
@@ -299,10 +299,10 @@ def test_a_second_job_in_the_same_run_dir_is_refused_while_the_first_runs(ds, tm
 
 
 def test_a_model_that_cannot_fit_is_refused_from_its_config_before_it_is_built(ds, tmp_path, monkeypatch):
-    """The pre-flight estimate runs on the configuration (model_config.resolve, estimate_from_config):
+    """The pre-flight estimate runs on the configuration (resolve.resolve, estimate_from_config):
     a model_config too big for the budget never reaches build_component, whose allocations were
     what took the memory, and leaves no run dir behind; nor does a model_config with a typo."""
-    from hope_models.train import components
+    from hope_models.components import build as components
 
     def build_nothing(*args, **kwargs):
         raise AssertionError("the model was built before the pre-flight looked at its configuration")

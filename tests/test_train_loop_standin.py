@@ -72,7 +72,7 @@ def factory(**overrides):
 
 def weights(run_dir: Path) -> dict[str, torch.Tensor]:
     """The final weights of a run, read through the checkpoint module (safetensors)."""
-    from hope_models.train import checkpoint as ckpt
+    from hope_models import checkpoints as ckpt
     return ckpt.load_latest(run_dir).model
 
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from hope_models.data.synthetic import generate_dataset
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from hope_models.data.synthetic import generate_dataset
-from hope_models.train import checkpoint as ckpt
-from hope_models.train.sequential import SequenceError, parse_sequence
+from hope_models import checkpoints as ckpt
+from hope_models.components.chain import SequenceError, parse_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 

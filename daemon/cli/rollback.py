@@ -14,7 +14,7 @@ import argparse
 import json
 import sys
 
-from hope_models.train.contract import COMPONENTS
+from hope_models.components import COMPONENTS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -56,6 +56,7 @@ import sys
 import time
 from pathlib import Path
 
+from hope_models.components import PREDICTOR
 from hope_models.cli.argtypes import non_negative_int, positive_int
 from hope_models.numbers import NumberError, float_from_text
 
@@ -129,8 +130,8 @@ def _surprise_tick(args, out):
         stream, reason = SurpriseStream.promoted(load_settings().home, CONTROL_PERIOD_S)
     except SettingsError as exc:
         stream, reason = None, f"no $HOPE_HOME to read the mid_loop pointer from: {exc}"
-    summary = {"mid_loop": stream.mid.version if stream else None, "reason": reason, "records": 0, "non_finite": 0}
-    header = {**(stream.describe() if stream else {"mid_loop": None}), "reason": reason,
+    summary = {PREDICTOR: stream.mid.version if stream else None, "reason": reason, "records": 0, "non_finite": 0}
+    header = {**(stream.describe() if stream else {PREDICTOR: None}), "reason": reason,
               "target_jump_s": args.target_jump_at}
 
     def write(obj) -> None:

@@ -20,7 +20,8 @@ import time
 from typing import Any
 
 from hope_models.train.config import OPTIONS, add_flag, add_flags
-from hope_models.train.contract import COMPONENTS, ControlCommand
+from hope_models.components import COMPONENTS
+from hope_models.train.contract import ControlCommand
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from hope_models.imagine.recorded import Goal
-from hope_models.models.mid_loop import MidLoop, previous_actions
+from hope_models.components import PREDICTOR, spec_of
+from hope_models.components.mid_loop.model import MidLoop, previous_actions
 
 ACTION_BOUNDS = (-1.0, 1.0)
 
@@ -56,12 +57,12 @@ class PlanConfig:
 def find_mid_loop_checkpoint(path: str | Path) -> Path:
     """A checkpoint dir, a mid_loop run dir, or a `train --sequential` run dir holding mid_loop/ ->
     the newest complete mid_loop checkpoint dir."""
-    from hope_models.train.checkpoint import latest_complete
+    from hope_models.checkpoints import latest_complete
 
     p = Path(path)
     if (p / "config.json").is_file():
         return p
-    for run in (p, p / "mid_loop"):
+    for run in (p, p / PREDICTOR):
         if (run / "checkpoints").is_dir():
             ckpt = latest_complete(run)
             if ckpt is not None:
@@ -73,8 +74,8 @@ def find_mid_loop_checkpoint(path: str | Path) -> Path:
 class WorldModel:
     def __init__(self, component, checkpoint: Path):
         model: MidLoop = component.model
-        if component.name != "mid_loop":
-            raise ValueError(f"{checkpoint}: a {component.name} checkpoint, not a mid_loop")
+        if not spec_of(component.name).predicts:
+            raise ValueError(f"{checkpoint}: a {component.name} checkpoint, not a {PREDICTOR}")
         if not model.has_world_model:
             raise ValueError(f"{checkpoint}: this mid_loop has no world model (trained with wm_horizon 0, "
                              "or on frames); retrain it with the default model_config")
@@ -86,7 +87,7 @@ class WorldModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "WorldModel":
-        from hope_models.train.components import component_from_checkpoint
+        from hope_models.components.build import component_from_checkpoint
 
         ckpt = find_mid_loop_checkpoint(path)
         return cls(component_from_checkpoint(ckpt), ckpt)

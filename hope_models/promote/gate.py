@@ -49,6 +49,7 @@ import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
 from hope_models.json_finite import finite
+from hope_models.components import spec_of
 from hope_models.promote.baselines import baselines_check
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
@@ -101,7 +102,7 @@ def _read_config(ckpt: Path) -> dict[str, Any]:
 
 def resolve_candidate(path: str | Path) -> Path:
     """A complete checkpoint dir from a checkpoint dir or a run dir; GateError otherwise."""
-    from hope_models.train.checkpoint import resolve_checkpoint_dir
+    from hope_models.checkpoints import resolve_checkpoint_dir
 
     p = Path(path)
     if not p.exists():
@@ -116,7 +117,7 @@ def non_finite_tensors(ckpt: Path) -> list[str]:
     """Names of the floating tensors of model.safetensors holding NaN or Inf (safetensors only)."""
     import torch
 
-    from hope_models.train.checkpoint import load_tensors
+    from hope_models.checkpoints import load_tensors
 
     try:
         tensors = load_tensors(ckpt / MODEL_FILE)
@@ -127,7 +128,7 @@ def non_finite_tensors(ckpt: Path) -> list[str]:
 
 
 def _load_component(ckpt: Path):
-    from hope_models.train.components import component_from_checkpoint
+    from hope_models.components.build import component_from_checkpoint
 
     try:
         return component_from_checkpoint(ckpt)
@@ -384,7 +385,7 @@ def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, pr
     )
     from hope_models.sim.evaluate import evaluate_policy
 
-    if cand.name != "fast_loop":
+    if not spec_of(cand.name).acts:
         return
     try:
         check_spec(cand.spec, str(cand_dir), SIM_OBSERVATION, SIM_ACTION)

@@ -24,7 +24,7 @@ can be traced to the file that produced it. The rule is hope_models.checkpoint_f
 shared with the promotion pointers and BrainService.
 
 It lives with the gate, whose sim reflex check drives it (as does `eval-reflex`, that check on its
-own); the torch-free serving form of the same model is runtime/fast_loop_numpy.py.
+own); the torch-free serving form of the same model is hope_models/components/fast_loop/numpy_form.py.
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from hope_models.components import ACTOR, spec_of
 from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
 SIM_OBSERVATION: tuple[tuple[str, int], ...] = OBS_FIELDS
@@ -84,7 +85,7 @@ def check_spec(spec, where: str, expect_observation: Sequence[tuple[str, int]] |
 class ReflexPolicy:
     """A FastLoop stepped once per control tick (see the module doc)."""
 
-    name = "fast_loop"
+    name = ACTOR
 
     def __init__(self, model, spec, version: str, action_bounds: tuple[float, float] | None = SIM_BOUNDS,
                  checkpoint_dir: Path | None = None):
@@ -114,8 +115,8 @@ class ReflexPolicy:
                         expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
                         action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
         from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
-        from hope_models.train.checkpoint import open_checkpoint
-        from hope_models.train.components import component_from_checkpoint
+        from hope_models.checkpoints import open_checkpoint
+        from hope_models.components.build import component_from_checkpoint
 
         p = Path(path)
         if not p.exists():
@@ -131,8 +132,8 @@ class ReflexPolicy:
         except CheckpointError as exc:
             raise ReflexPolicyError(str(exc)) from None
         where = str(ckpt / CONFIG_FILE)
-        if comp.name != "fast_loop":
-            raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a fast_loop checkpoint")
+        if not spec_of(comp.name).acts:
+            raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a {ACTOR} checkpoint")
         if comp.model.wants_frames:
             raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "
                                     "the reflex runtime drives state-only fast_loops")

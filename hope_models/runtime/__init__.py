@@ -1,2 +1,3 @@
-"""The torch-free serving side: BrainService (brain_service.py) and the NumPy fast_loop it runs
-(fast_loop_numpy.py; what it accepts as a checkpoint: fast_loop_checkpoint.py)."""
+"""The torch-free serving side: BrainService (brain_service.py), which runs each component's NumPy
+form (hope_models/components/<name>/numpy_form.py; what it accepts as a checkpoint: that
+folder's checkpoint.py)."""

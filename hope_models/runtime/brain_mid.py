@@ -171,22 +171,18 @@ def _fields(mid: Any, pred: np.ndarray | None, by_h: dict[str, float | None], ti
 
 
 def status_extra(model: Any, vq_model: Any) -> dict[str, Any]:
-    """What status() adds for a component: its VQ-VAE's consistency with the promoted vqvae, and its
-    shape of answer."""
+    """What status() adds for a component: its VQ-VAE's consistency with the promoted tokenizer
+    (a component that carries one), and its shape of answer (its runtime's status_fields)."""
     out: dict[str, Any] = {}
     if model is None:
         return out
-    if model.name == "vqvae":
-        out.update(groups=model.groups, n_codes=model.n_codes, sha256=model.sha256)
-    else:
+    if hasattr(model, "vqvae_sha256"):
         carried = model.vqvae_sha256
         out["vqvae_sha256"] = carried
-        # True/False: whether the VQ-VAE it carries is the one promoted as vqvae (weights sha256);
-        # None when it reads no VQ-VAE or no vqvae is served
+        # True/False: whether the VQ-VAE it carries is the one promoted as the tokenizer (weights
+        # sha256); None when it reads no VQ-VAE or no tokenizer is served
         out["vqvae_matches_promoted"] = (None if carried is None or vq_model is None else carried == vq_model.sha256)
-    if model.name == "mid_loop":
-        out.update(horizons=model.horizon_names, grid_step_s=model.grid_step_s, window_k=model.window_k,
-                   groups=model.groups, n_codes=model.n_codes)
+    out.update(model.status_fields())
     return out
 
 

@@ -1,4 +1,5 @@
-"""BrainService: serves the promoted vqvae, fast_loop and mid_loop and follows promotions without a restart.
+"""BrainService: serves every promoted component of the table (hope_models/components) through its
+NumPy form (its folder's numpy_form.RUNTIME) and follows promotions without a restart.
 
     brain = BrainService(settings.home, on_swap=..., on_first_inference=..., on_error=...)
     brain.start()                                   # loads what is promoted now, then watches
@@ -9,6 +10,10 @@
             "versions": {"vqvae": ..., "fast_loop": ..., "mid_loop": ...}}
     brain.status()["mid_loop"]                      # version, checkpoint, loaded_at, last_error, sessions, ...
     brain.stop()
+
+The answer is composed by role from the promoted components that read the request's observation
+layout: the actor's `action`, the tokenizer's `code`, the predictor's `prediction` and `surprise`
+(brain_mid.py), and `outputs` {component: its form's answer(values)} for any other component.
 
 Each component's promoted model is named by its pointer file $HOPE_HOME/promoted/<component>.json
 (hope_models.promoted). A watcher thread reads the pointers every poll_s (0.2 s) and compares
@@ -29,8 +34,8 @@ fires once per loaded version on a hook thread of its own, so the request that t
 waits for the webapp's registry write (`wait_hooks()` waits for it; `stop()` runs what is queued).
 A hook that raises is logged, never propagated. A refused pointer is not retried until it changes.
 
-Torch-free (the `serve` process's memory budget has no room for torch): FastLoopNumpy,
-VQVAERuntime and MidLoopNumpy, each tested equal to its torch model.
+Torch-free (the `serve` process's memory budget has no room for torch): each NumPy form is tested
+equal to its torch model.
 
 A request is one control tick of a session and answers from every served component that reads the
 observation's layout; `component` names the one the caller needs (503 while it is not served).
@@ -60,22 +65,21 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from hope_models.components import ACTOR, COMPONENTS, PREDICTOR, TOKENIZER
+from hope_models.components.checkpoint_checks import CheckpointRefused
+from hope_models.components.numpy_layers import NumpyWindowState
 from hope_models.promoted import PointerError, pointer_path, read_pointer
 from hope_models.runtime import brain_mid
-from hope_models.runtime.brain_input import (
-    MAX_ABS_OBSERVATION, MAX_SESSION_CHARS, MAX_SESSIONS, BrainError, observation_values,
-)
-from hope_models.runtime.fast_loop_checkpoint import CheckpointRefused
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy
+from hope_models.runtime.brain_input import (MAX_ABS_OBSERVATION, MAX_SESSION_CHARS, MAX_SESSIONS, BrainError,
+                                             observation_values)
 from hope_models.runtime.hook_thread import HookThread
-from hope_models.runtime.mid_loop_numpy import MidLoopNumpy
-from hope_models.runtime.numpy_layers import NumpyWindowState
-from hope_models.runtime.vqvae_numpy import VQVAERuntime
 
 log = logging.getLogger(__name__)
 
-# component -> its torch-free inference runtime
-RUNTIMES = {"vqvae": VQVAERuntime, "fast_loop": FastLoopNumpy, "mid_loop": MidLoopNumpy}
+# component -> its torch-free inference runtime (its folder's numpy_form.RUNTIME)
+RUNTIMES = {name: spec.part("numpy_form").RUNTIME for name, spec in COMPONENTS.items()}
+
+
 def _utcnow() -> datetime:
     return datetime.now(timezone.utc)
 
@@ -310,20 +314,25 @@ class BrainService:
                              f"({model.describe_observation()})")
         peers = {name: served if name == component else self._peer(name, model.observation_fields)
                  for name in self._slots}
-        fast, vq, mid = peers.get("fast_loop"), peers.get("vqvae"), peers.get("mid_loop")
+        fast, vq, mid = peers.get(ACTOR), peers.get(TOKENIZER), peers.get(PREDICTOR)
         given = None
         if action is not None:  # checked before any state moves: a refused request changes no session
             try:
                 given = brain_mid.action_values(action, (mid or served).model.act_dim)
             except ValueError as exc:
                 raise BrainError(str(exc)) from None
-        answered = None if fast is None else self._fast_tick(self._slots["fast_loop"], fast, values, session, reset)
+        answered = None if fast is None else self._fast_tick(self._slots[fast.model.name], fast, values, session, reset)
         out = {"action": None if answered is None else [float(v) for v in answered],
                "model_version": served.version, "latency_ms": 0.0, "session": session,
                "code": None if vq is None else [int(c) for c in vq.model.codes_of(np.asarray(values))]}
         out.update(brain_mid.EMPTY if mid is None else
-                   brain_mid.answer(self._slots["mid_loop"], mid, np.asarray(values), session, reset, given, answered,
+                   brain_mid.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
                                     fast.model if fast else None, self.max_sessions))
+        # a component with none of the roles above answers with its NumPy form's own output
+        others = {name: p.model.answer(np.asarray(values)) for name, p in peers.items()
+                  if p is not None and name not in (ACTOR, TOKENIZER, PREDICTOR)}
+        if others:
+            out["outputs"] = others
         out["versions"] = {name: p.version if p is not None else None for name, p in peers.items()}
         out["latency_ms"] = round((time.perf_counter() - started) * 1000.0, 4)
         for name, p in peers.items():
@@ -374,7 +383,7 @@ class BrainService:
                          "model, not of the request); no action is given, and a session's recurrent state is left "
                          "as it was before this tick", 500)
 
-    def _session(self, slot: _Slot, name: str, version: str, model: FastLoopNumpy, reset: bool) -> _Session:
+    def _session(self, slot: _Slot, name: str, version: str, model: Any, reset: bool) -> _Session:
         with slot.lock:
             sess = slot.sessions.get(name)
             if sess is None:
@@ -406,7 +415,7 @@ class BrainService:
     # -- status ---------------------------------------------------------------------------------
     def status(self) -> dict[str, dict[str, Any]]:
         out = {}
-        vq = self._slots["vqvae"].served if "vqvae" in self._slots else None
+        vq = self._slots[TOKENIZER].served if TOKENIZER in self._slots else None
         for name, slot in self._slots.items():
             served = slot.served
             model = served.model if served else None

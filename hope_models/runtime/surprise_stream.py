@@ -26,10 +26,11 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.components import PREDICTOR
 from hope_models.promoted import PointerError, read_pointer
 from hope_models.runtime import brain_mid
-from hope_models.runtime.fast_loop_checkpoint import CheckpointRefused
-from hope_models.runtime.mid_loop_numpy import MidLoopNumpy
+from hope_models.components.checkpoint_checks import CheckpointRefused
+from hope_models.components.mid_loop.numpy_form import MidLoopNumpy
 
 NO_MID_LOOP = "no mid_loop promoted"
 
@@ -65,7 +66,7 @@ class SurpriseStream:
         """The stream of the mid_loop promoted in `home` (the pointer BrainService follows, its sha256 and
         manifest verified the same way), or (None, the reason there is none)."""
         try:
-            pointer = read_pointer(home, "mid_loop")
+            pointer = read_pointer(home, PREDICTOR)
         except PointerError as exc:
             return None, f"the mid_loop promotion pointer is unusable: {exc}"
         if pointer is None:
@@ -81,7 +82,7 @@ class SurpriseStream:
     def describe(self) -> dict[str, Any]:
         """What the records will hold: the version, its horizons and grid (the stream's header)."""
         m = self.mid
-        return {"mid_loop": m.version, "horizons": list(m.horizon_names), "horizons_s": list(m.horizons_s),
+        return {PREDICTOR: m.version, "horizons": list(m.horizon_names), "horizons_s": list(m.horizons_s),
                 "grid_step_s": m.grid_step_s, "every_steps": self.every, "window_k": m.window_k}
 
     def check_fits(self, observation: dict[str, Any], act_dim: int) -> None:

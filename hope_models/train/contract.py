@@ -8,11 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-COMPONENTS = ("vqvae", "fast_loop", "mid_loop")
-# Components that cannot train without a frozen VQ-VAE (they predict its codes); fast_loop uses
-# one when there is one but does not need it.
-NEEDS_VQVAE = frozenset({"mid_loop"})
-
 # Outcomes of a training job (TrainResult.outcome), and the CLI exit code for each.
 OUTCOME_EXIT_CODES = {
     "completed": 0,
@@ -27,7 +22,7 @@ OUTCOME_EXIT_CODES = {
 class Component(Protocol):
     """A trainable HOPE component bound to one dataset's feature spec."""
 
-    name: str  # one of COMPONENTS
+    name: str  # one of hope_models.components.COMPONENTS
 
     @property
     def model(self) -> "Any":  # torch.nn.Module: its state_dict is what checkpoints hold

@@ -44,11 +44,12 @@ too big for the budget is refused before it can take the memory it would be refu
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from hope_models.components import spec_of
+from hope_models.components.layers import Layer
 from hope_models.train.guards import validate_budget_mb
 
 MB = 1024 * 1024
@@ -88,18 +89,6 @@ class MemoryEstimate:
 
 
 CONVS = ("Conv1d", "Conv2d", "ConvTranspose1d", "ConvTranspose2d")
-
-
-@dataclass(frozen=True)
-class Layer:
-    """A module with parameters of its own, as the estimate sees it: what model_layers() reads off a
-    torch module and config_layers() derives from a configuration alone (they must agree: tested)."""
-    kind: str  # the module's class name (Linear, Embedding, LayerNorm, Conv2d, ..., WindowSSM)
-    params: tuple[tuple[int, ...], ...]  # the shapes of its own parameters
-    trainable: bool
-    conv: tuple[int, int, int, int, int | str, int, int] | None = None
-    #      (in_channels, out_channels, kernel, stride, padding, dilation, output_padding) of a conv
-    repeat: int = 1  # the same layer this many times (a stack's blocks): counted, not listed
 
 
 def model_layers(model: Any) -> list[Layer]:
@@ -242,68 +231,9 @@ def _estimate(component_name: str, layers: list[Layer], batch_size: int, window_
     return MemoryEstimate(component_name, sum(breakdown.values()), breakdown, batch_size, window_k, details)
 
 
-# -- the layers of the three components, from their configuration (model_config.Resolved) -----------
-# These mirror the modules' __init__ (hope_models/models/*.py) in registration order;
-# tests/test_train_estimate.py compares them with model_layers() of the built models.
-
-def _linear(n_in: int, n_out: int, trainable: bool) -> Layer:
-    return Layer("Linear", ((n_out, n_in), (n_out,)), trainable)
-
-
-def _layer_norm(d: int, trainable: bool) -> Layer:
-    return Layer("LayerNorm", ((d,), (d,)), trainable)
-
-
-def _gated_mlp(d: int, hidden: int, trainable: bool) -> list[Layer]:
-    return [_linear(d, hidden, trainable), _linear(d, hidden, trainable), _linear(hidden, d, trainable)]
-
-
-def _ssm(kind: str, d: int, n: int, trainable: bool) -> Layer:
-    return Layer(kind, ((n,), (n, d), (d, n), (d,)), trainable)  # log_rate, B, C, D
-
-
-def _conv(kind: str, c_in: int, c_out: int, trainable: bool) -> Layer:
-    weight = (c_in, c_out, 4, 4) if kind.startswith("ConvTranspose") else (c_out, c_in, 4, 4)
-    return Layer(kind, (weight, (c_out,)), trainable, (c_in, c_out, 4, 2, 1, 1, 0))
-
-
-def _vqvae_layers(cfg: Any, trainable: bool) -> list[Layer]:
-    if cfg.input != "frame":
-        sizes = [cfg.obs_dim, cfg.hidden, cfg.hidden, cfg.code_dim, cfg.hidden, cfg.hidden, cfg.obs_dim]
-        return [_linear(sizes[i], sizes[i + 1], trainable) for i in range(len(sizes) - 1)]
-    h, w, _ = cfg.frame_shape
-    c = cfg.channels
-    flat = 2 * c * (h // 16) * (w // 16)
-    return [_conv("Conv2d", 3, c, trainable), _conv("Conv2d", c, 2 * c, trainable),
-            _conv("Conv2d", 2 * c, 2 * c, trainable), _conv("Conv2d", 2 * c, 2 * c, trainable),
-            _linear(flat, cfg.code_dim, trainable), _linear(cfg.code_dim, flat, trainable),
-            _conv("ConvTranspose2d", 2 * c, 2 * c, trainable), _conv("ConvTranspose2d", 2 * c, 2 * c, trainable),
-            _conv("ConvTranspose2d", 2 * c, c, trainable), _conv("ConvTranspose2d", c, 3, trainable)]
-
-
 def config_layers(resolved: Any) -> list[Layer]:
-    """The layers of the model a model_config.Resolved describes (vqvae, fast_loop, mid_loop)."""
-    cfg, vq = resolved.cfg, resolved.vq_cfg
-    if resolved.name == "vqvae":
-        return _vqvae_layers(cfg, True)
-    d = cfg.d_model
-    hidden = cfg.mlp_ratio * d
-    frozen = _vqvae_layers(vq, False) if vq is not None else []
-    if resolved.name == "fast_loop":
-        codes = [Layer("Embedding", ((cfg.n_codes * vq.groups, d),), True)] if vq is not None else []
-        return [_linear(cfg.obs_dim, d, True), *codes, _layer_norm(d, True), *_gated_mlp(d, hidden, True),
-                _layer_norm(d, True), _ssm("WindowSSM", d, cfg.d_state, True), _layer_norm(d, True),
-                *_gated_mlp(d, hidden, True), _layer_norm(d, True), _linear(d, cfg.act_dim, True), *frozen]
-    block = [_layer_norm(d, True), _ssm("DiagonalSSM", d, cfg.d_state, True), _layer_norm(d, True),
-             *_gated_mlp(d, hidden, True)]
-    wm = []  # the action-conditioned world model (mid_loop.py): a vector VQ-VAE only
-    if getattr(cfg, "wm_horizon", 0) > 0 and vq.input == "vector":
-        w, o = cfg.wm_hidden, vq.obs_dim
-        wm = [_linear(d + o, w, True), _linear(w, w, True), _linear(w + cfg.act_dim, w, True), _linear(w, w, True),
-              _linear(w, o, True)]
-    return [Layer("Embedding", ((cfg.n_codes * vq.groups, d),), True), _linear(cfg.act_dim, d, True),
-            *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), _layer_norm(d, True),
-            _linear(d, len(cfg.horizon_steps) * cfg.n_codes * vq.groups, True), *wm, *frozen]
+    """The layers of the model a components.resolve.Resolved describes, from its component's layers.py."""
+    return spec_of(resolved.name).layers(resolved.cfg, resolved.vq_cfg)
 
 
 def check_fits(estimate: MemoryEstimate, budget_mb: float, soft_fraction: float = 0.9) -> MemoryEstimate:

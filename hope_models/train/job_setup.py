@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Callable
 
 from hope_models.disk import is_disk_full
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
+from hope_models.components import spec_of
 from hope_models.train.config import TrainConfig
 from hope_models.train.contract import TrainSetupError
 from hope_models.train.dataset_dir import dataset_dir_for
@@ -80,10 +81,11 @@ def estimate_from_config(cfg: TrainConfig, cache, vqvae_dir: Path | None):
     """The memory estimate of the component cfg describes, from its configuration: nothing is
     built, so a model too big for the budget is refused before it can take the memory."""
     from hope_models.train import estimate
-    from hope_models.train.model_config import read_vqvae_config, resolve
+    from hope_models.components.resolve import read_vqvae_config, resolve
 
     try:
-        vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and cfg.component != "vqvae" else None
+        vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and spec_of(cfg.component).reads_vqvae != "never" \
+            else None
         resolved = resolve(cfg.component, cache.spec, dict(cfg.model_config), vq)
     except ValueError as exc:
         raise TrainSetupError(f"cannot build {cfg.component}: {exc}") from None

@@ -31,11 +31,12 @@ from typing import Any, Callable
 
 from hope_models import disk
 from hope_models.durable import atomic_write
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
 from hope_models.train import job_setup, rng_state
 from hope_models.train.job_setup import LOADER_CHUNK
 from hope_models.train.config import ConfigValueError, TrainConfig
-from hope_models.train.contract import COMPONENTS, Control, ControlCommand, NoControl, TrainSetupError
+from hope_models.components import COMPONENTS
+from hope_models.train.contract import Control, ControlCommand, NoControl, TrainSetupError
 from hope_models.train.loss_history import LossHistory
 from hope_models.train.result import TrainResult
 from hope_models.train.schedule import lr_at
@@ -124,7 +125,7 @@ class _Trainer:
         cfg = self.cfg
         factory = self.factory
         if factory is None:
-            from hope_models.train.components import build_component as factory
+            from hope_models.components.build import build_component as factory
         try:
             return factory(cfg.component, spec, model_config=dict(cfg.model_config), vqvae_dir=self.vqvae_dir,
                            data_fingerprint=fingerprint)

@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hope_models.checkpoint_format import VQVAE_REF
+
 log = logging.getLogger(__name__)
 
 FILE = "provenance.json"
@@ -105,7 +107,7 @@ def write_provenance(run_dir: Path, cfg, cache, vqvae_dir: Path | None) -> None:
 
     try:
         obj = {"format": FORMAT, "written_at": round(time.time(), 3), "component": cfg.component,
-               "config": cfg.to_json_obj(), "dataset": dataset_info(cfg, cache), "vqvae": vqvae_info(vqvae_dir),
+               "config": cfg.to_json_obj(), "dataset": dataset_info(cfg, cache), VQVAE_REF: vqvae_info(vqvae_dir),
                "code": code_info()}
         atomic_write(Path(run_dir) / FILE, json.dumps(obj, indent=1, default=str).encode("utf-8"))
     except Exception as exc:  # noqa: BLE001  provenance is a record, never a reason to stop training

@@ -27,34 +27,13 @@ import psutil
 
 from hope_models.child_command import trainer_argv
 from hope_models.child_result import last_json_object
-from hope_models.train import checkpoint as ckpt
+from hope_models import checkpoints as ckpt
+from hope_models.checkpoint_format import VQVAE_REF
 from hope_models.train.config import flag_of, values_from_args
-from hope_models.train.contract import COMPONENTS, NEEDS_VQVAE
+from hope_models.components import COMPONENTS, NEEDS_VQVAE, TOKENIZER
+from hope_models.components.chain import SequenceError, parse_sequence
 
 POLL_S = 0.2
-
-
-class SequenceError(ValueError):
-    """The sequence cannot start (unknown component, mid_loop without a VQ-VAE, ...)."""
-
-
-def parse_sequence(text: str) -> list[str]:
-    parts = [n.strip() for n in text.split(",")]
-    names = [n for n in parts if n]
-    if not names:
-        raise SequenceError("--sequential needs at least one component, e.g. vqvae,fast_loop,mid_loop")
-    if len(names) != len(parts):  # "vqvae,,fast_loop" is a typo, not a shorter chain
-        raise SequenceError(f"--sequential {text[:100]!r}: an empty component name (two commas in a row, or a "
-                            "comma at an end)")
-    unknown = [n for n in names if n not in COMPONENTS]
-    if unknown:
-        raise SequenceError(f"--sequential: unknown component(s) {', '.join(unknown)} "
-                            f"(known: {', '.join(COMPONENTS)})")
-    if len(set(names)) != len(names):
-        raise SequenceError(f"--sequential {text}: a component is listed twice")
-    if "vqvae" in names and any(names.index(n) < names.index("vqvae") for n in names if n != "vqvae"):
-        raise SequenceError("--sequential: vqvae must come before the components that read its codes")
-    return names
 
 
 def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae: Path | None) -> list[str]:
@@ -63,7 +42,7 @@ def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae
     for name, value in values_from_args(args, "train").items():
         if name not in ("run_dir", "vqvae_dir"):  # each child gets its own run dir; the vqvae below
             cmd += [flag_of(name), json.dumps(value) if isinstance(value, dict) else str(value)]
-    if vqvae is not None and component != "vqvae":
+    if vqvae is not None and COMPONENTS[component].reads_vqvae != "never":
         cmd += ["--vqvae", str(vqvae)]
     return cmd
 
@@ -72,7 +51,7 @@ def _vqvae_for(args: argparse.Namespace, root: Path) -> Path | None:
     if args.vqvae:
         return Path(args.vqvae)
     try:
-        return ckpt.resolve_checkpoint_dir(root / "vqvae")
+        return ckpt.resolve_checkpoint_dir(root / TOKENIZER)
     except ckpt.CheckpointError:
         return None
 
@@ -138,10 +117,10 @@ def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
     rows: list[dict[str, Any]] = []
     code = 0
     for name in names:
-        vqvae = _vqvae_for(args, root) if name != "vqvae" else None
+        vqvae = _vqvae_for(args, root) if COMPONENTS[name].reads_vqvae != "never" else None
         if name in NEEDS_VQVAE and vqvae is None:
-            msg = (f"{name} needs a trained VQ-VAE: put vqvae earlier in --sequential, or pass --vqvae DIR "
-                   f"(no complete checkpoint under {root / 'vqvae'})")
+            msg = (f"{name} needs a trained VQ-VAE: put {TOKENIZER} earlier in --sequential, or pass --vqvae DIR "
+                   f"(no complete checkpoint under {root / TOKENIZER})")
             rows.append({"component": name, "outcome": "error", "exit_code": 2, "message": msg})
             code = 2
             break
@@ -155,7 +134,7 @@ def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
                "checkpoint": res.get("checkpoint"), "resumed_from": res.get("resumed_from"),
                "peak_rss_mb": round(max(reported, child["polled_peak_rss_mb"]), 1),
                "child_reported_peak_rss_mb": reported, "polled_peak_rss_mb": round(child["polled_peak_rss_mb"], 1),
-               "seconds": round(child["seconds"], 2), "vqvae": str(vqvae) if vqvae else None}
+               "seconds": round(child["seconds"], 2), VQVAE_REF: str(vqvae) if vqvae else None}
         if res.get("message") and row["outcome"] != "completed":
             row["message"] = res["message"]
         if not res:

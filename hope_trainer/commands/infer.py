@@ -30,6 +30,7 @@ import json
 import sys
 from typing import Any
 
+from hope_models.components import ACTOR
 from hope_models.numbers import NumberError, float_from_text
 
 NOT_ANSWERED_EXIT = 1
@@ -50,8 +51,8 @@ def _timeout_s(text: str) -> float:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--component", default="fast_loop", metavar="C",
-                        help="the component whose answer is needed (default fast_loop; every other promoted "
+    parser.add_argument("--component", default=ACTOR, metavar="C",
+                        help=f"the component whose answer is needed (default {ACTOR}; every other promoted "
                              "component with the same observation layout answers too)")
     parser.add_argument("--observation", required=True, metavar="JSON",
                         help="the observation as a JSON list of numbers, in the model's feature order "

@@ -34,7 +34,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from hope_models.train.contract import COMPONENTS
+from hope_models.components import COMPONENTS
 
 PROMOTED_EXIT, REFUSED_EXIT, USAGE_EXIT = 0, 1, 2
 log = logging.getLogger(__name__)

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hope_models.components import ACTOR
 from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
 
 
@@ -78,7 +79,7 @@ class ChainSteps:
         display = Display()
         ended: set[str] = set()
         last_plain = 0.0
-        fast_id = ids[COMPONENTS.index("fast_loop")]
+        fast_id = ids[COMPONENTS.index(ACTOR)]
         t0 = time.monotonic()
         while True:
             objs = self._runs(ids)

@@ -15,6 +15,7 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+from hope_models.components import ACTOR
 from hope_trainer.demo.shared import CLOSURE_WAIT_S, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
 
 BRAIN_TICKS = 75  # 1.5 s of 20 ms ticks: past the Mid Loop's 1 s horizon, so a surprise is due
@@ -37,7 +38,7 @@ class ClosureSteps:
         gate = self._gate(fast_id)
         if gate is None or gate["state"] != "promoted":
             return False
-        status = (self.serve.brain.status().get("fast_loop") or {})
+        status = (self.serve.brain.status().get(ACTOR) or {})
         if status.get("version") != gate["version"]:
             return False
         if display is not None:
@@ -72,7 +73,7 @@ class ClosureSteps:
             if gate is not None:
                 promoted_at = promoted_at or now
                 if now - promoted_at > SERVE_WAIT_S:
-                    status = self.serve.brain.status().get("fast_loop") or {}
+                    status = self.serve.brain.status().get(ACTOR) or {}
                     raise DemoError(f"BrainService does not serve {gate['version']} {SERVE_WAIT_S:.0f} s after its "
                                     f"promotion (serving {status.get('version')}; last error: "
                                     f"{status.get('last_error')})")
@@ -96,7 +97,7 @@ class ClosureSteps:
             self.sleep(0.2)
         answer: dict[str, Any] = {}
         for i, (obs, _expert) in enumerate(self._observations(data, BRAIN_TICKS)):
-            answer = self._post_infer({"component": "fast_loop", "observation": obs, "session": "demo-brain",
+            answer = self._post_infer({"component": ACTOR, "observation": obs, "session": "demo-brain",
                                        "reset": i == 0})
             if answer.get("error"):
                 return answer
@@ -123,7 +124,7 @@ class ClosureSteps:
 
     def infer_over_http(self) -> dict[str, Any]:
         obs, expert = self.first_observation
-        answer = self._post_infer({"component": "fast_loop", "observation": obs, "session": "demo", "reset": True})
+        answer = self._post_infer({"component": ACTOR, "observation": obs, "session": "demo", "reset": True})
         return answer if answer.get("error") else {**answer, "observation": obs, "expert_action": expert}
 
     def _post_infer(self, request: dict[str, Any]) -> dict[str, Any]:

@@ -12,9 +12,11 @@ Torch-free, and no I/O beyond those reads, so tests can feed it plain dicts.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
+
+from hope_models.components import COMPONENTS
+from hope_models.components.verdict import fmt
 
 AUTO_PROMOTE_SOURCE = "auto-promote"
 GATING_PREFIX = "auto-promote: gating"
@@ -79,53 +81,26 @@ def component_figures(run: dict[str, Any], gate: dict[str, Any] | None) -> dict[
     }
 
 
-_VQVAE_KEYS = ("recon_nmse", "perplexity", "code_usage", "psnr_db")
-_MID_KEYS = ("obs_mse", "copy_last_obs_mse", "nll", "copy_last_nll", "code_freq_nll")
-
-
 def held_out(component: str, result: dict[str, Any]) -> dict[str, Any] | None:
-    """The validation figures a component is judged by (result.json summary.val): the VQ-VAE's
-    reconstruction and codebook, the Mid Loop's per-horizon figures against its baselines."""
+    """The validation figures a component is judged by (result.json summary.val), as its spec
+    selects them (the VQ-VAE's reconstruction and codebook, the Mid Loop's per-horizon figures
+    against its baselines; None for one without)."""
     summary = result.get("summary")
     val = summary.get("val") if isinstance(summary, dict) else None
-    if not isinstance(val, dict):
+    if not isinstance(val, dict) or component not in COMPONENTS:
         return None
-    if component == "vqvae":
-        return {k: val[k] for k in _VQVAE_KEYS if k in val}
-    if component == "mid_loop":
-        labels = sorted({k[len("nll_"):] for k in val if k.startswith("nll_")}, key=lambda x: float(x.rstrip("s")))
-        return {label: {k: val.get(f"{k}_{label}") for k in _MID_KEYS} for label in labels}
-    return None
+    return COMPONENTS[component].held_out(val)
 
 
 def held_out_lines(rows: list[dict[str, Any]]) -> list[str]:
     lines = []
     for r in rows:
         h = r.get("held_out")
-        if not h:
-            continue
-        if r["component"] == "vqvae" and "recon_nmse" in h:
-            nmse = h["recon_nmse"]
-            lines.append(f"vqvae (held-out episodes): keeps {_num(100 * (1 - nmse), '.1f')} % of the variance "
-                         f"(normalised MSE {_num(nmse, '.4f')}, target <= 0.05), perplexity "
-                         f"{_num(h.get('perplexity'), '.0f')} per group, code usage {_num(100 * h.get('code_usage', math.nan), '.0f')} %")
-        elif r["component"] == "mid_loop":
-            parts = []
-            for label, f in h.items():
-                mse, copy = f.get("obs_mse"), f.get("copy_last_obs_mse")
-                gain = (1 - mse / copy) if isinstance(mse, (int, float)) and isinstance(copy, (int, float)) and copy else None
-                than = "-" if gain is None else f"{abs(100 * gain):.0f} % {'lower' if gain >= 0 else 'higher'}"
-                parts.append(f"{label}: observation error {_num(mse, '.3f')} vs copy-last {_num(copy, '.3f')} "
-                             f"({than}), nll {_num(f.get('nll'), '.2f')} "
-                             f"vs copy-last {_num(f.get('copy_last_nll'), '.2f')}, code frequency {_num(f.get('code_freq_nll'), '.2f')}")
-            lines.append("mid_loop (held-out episodes): " + "; ".join(parts))
+        spec = COMPONENTS.get(r["component"])
+        line = spec.held_out_line(h) if h and spec is not None else None
+        if line:
+            lines.append(line)
     return lines
-
-
-def _num(value: Any, fmt: str, missing: str = "-") -> str:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        return missing
-    return format(value, fmt)
 
 
 def _gate_text(gate: dict[str, Any] | None) -> str:
@@ -147,9 +122,9 @@ def format_summary(summary: dict[str, Any]) -> str:
              "-" * 96]
     for r in rows:
         steps = f"{r['steps']}/{r['total_steps']}"
-        loss = f"{_num(r['first_loss'], '.4g')} -> {_num(r['final_loss'], '.4g')}"
-        rss = f"{_num(r['peak_rss_mb'], '.0f')} MB" if r.get("peak_rss_mb") is not None else "-"
-        took = f"{_num(r['train_s'], '.0f')} s" if r.get("train_s") is not None else "-"
+        loss = f"{fmt(r['first_loss'], '.4g')} -> {fmt(r['final_loss'], '.4g')}"
+        rss = f"{fmt(r['peak_rss_mb'], '.0f')} MB" if r.get("peak_rss_mb") is not None else "-"
+        took = f"{fmt(r['train_s'], '.0f')} s" if r.get("train_s") is not None else "-"
         state = "" if r["state"] == "completed" else f"  [{r['state']}]"
         lines.append(f"{r['component']:<10} {steps:>11}  {loss:<21} {rss:>9} {took:>7}  {_gate_text(r['gate'])}{state}")
     lines.append("")
@@ -160,13 +135,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         expert = inference.get("expert_action")
         lines.append(f"inference (POST /api/brain/infer): action [{action}]"
                      + (f" (the expert: [{', '.join(f'{a:+.3f}' for a in expert)}])" if expert else "")
-                     + f", {inference.get('model_version')}, {_num(inference.get('latency_ms'), '.2f')} ms")
+                     + f", {inference.get('model_version')}, {fmt(inference.get('latency_ms'), '.2f')} ms")
     brain = summary.get("brain")
     if brain and brain.get("error"):
         lines.append(f"whole brain: {brain['error']}")
     elif brain:
         lines.append(f"whole brain (session ticked through {brain.get('ticks')} steps of a demonstration): action "
-                     f"[{', '.join(_num(a, '+.3f') for a in brain.get('action') or [])}], versions {brain.get('versions')}")
+                     f"[{', '.join(fmt(a, '+.3f') for a in brain.get('action') or [])}], versions {brain.get('versions')}")
         lines.extend(_whole_brain_lines(brain))
     elif inference:
         lines.append(f"inference: {inference.get('error')}")
@@ -174,10 +149,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     if reflex and reflex.get("mean_return") is not None:
         seeds = reflex.get("seeds") or ["?", "?"]
         lines.append(f"reflex (reach, held-out seeds {seeds[0]}-{seeds[-1]}): mean return "
-                     f"{_num(reflex['mean_return'], '.1f')}, success {_num(100 * reflex['success_rate'], '.0f')} %"
-                     f"  | expert {_num(reflex.get('expert_mean_return'), '.1f')}"
-                     f"  | random {_num(reflex.get('random_mean_return'), '.1f')}"
-                     f"  (target >= {_num(summary.get('target_return'), 'g')})")
+                     f"{fmt(reflex['mean_return'], '.1f')}, success {fmt(100 * reflex['success_rate'], '.0f')} %"
+                     f"  | expert {fmt(reflex.get('expert_mean_return'), '.1f')}"
+                     f"  | random {fmt(reflex.get('random_mean_return'), '.1f')}"
+                     f"  (target >= {fmt(summary.get('target_return'), 'g')})")
     elif reflex:
         lines.append(f"reflex: {reflex.get('error')}")
     closure = summary.get("loop_closure_s")
@@ -198,11 +173,11 @@ def _whole_brain_lines(inference: dict[str, Any]) -> list[str]:
     pred = inference.get("prediction")
     if isinstance(pred, dict):
         for label, obs in pred.items():
-            out.append(f"  prediction at +{label}: [{', '.join(_num(v, '+.3f') for v in obs)}]")
+            out.append(f"  prediction at +{label}: [{', '.join(fmt(v, '+.3f') for v in obs)}]")
     if "surprise" in inference:
         value = inference.get("surprise")
         out.append("  surprise: none yet (no prediction made one horizon ago in this session)" if value is None
-                   else f"  surprise {_num(value, '.2f')} nats")
+                   else f"  surprise {fmt(value, '.2f')} nats")
     return out
 
 

@@ -22,6 +22,7 @@ from hope_models.log_limits import rotate_if_over
 from hope_models.durable import fsync_path
 from hope_trainer.demo.chain import ChainSteps
 from hope_trainer.demo.closure import ClosureSteps
+from hope_models.components import ACTOR
 from hope_trainer.demo.shared import COMPONENTS, DEMO_SEED, DemoError, Interrupted, say
 
 
@@ -160,12 +161,12 @@ class Demo(ChainSteps, ClosureSteps):
         self.start_services()
         ids = self.queue_chain(data)
         objs = self.follow_chain(ids)
-        fast_id = ids[COMPONENTS.index("fast_loop")]
+        fast_id = ids[COMPONENTS.index(ACTOR)]
         fast_obj = next(o for o in objs if o["id"] == fast_id)
         if fast_obj["state"] == "completed" and self.inference is None:
             self.close_loop(fast_id)
         gates = self.wait_gates(ids)
-        served = (self.serve.brain.status().get("fast_loop") or {}).get("version")
+        served = (self.serve.brain.status().get(ACTOR) or {}).get("version")
         fast_gate = gates.get(fast_id)
         reflex = None
         if served:

@@ -2,7 +2,9 @@
 early (Interrupted, DemoError) and `say`, its one way to print a line."""
 from __future__ import annotations
 
-COMPONENTS = ("vqvae", "fast_loop", "mid_loop")
+from hope_models.components import COMPONENTS as TABLE
+
+COMPONENTS = tuple(TABLE)  # the chain: every component, in the table's (training) order
 DEMO_SEED = 100000  # sim-demos' default; evaluation uses seeds 0..N-1, so the two never overlap
 GATE_WAIT_S = 900.0  # a promote child: validation batches and, for the fast_loop, reflex episodes
 SERVE_WAIT_S = 60.0  # BrainService notices a pointer within a second; loading takes well under one

@@ -40,6 +40,8 @@ from typing import Any
 
 from sqlalchemy import func, or_, select
 
+from hope_models.components import COMPONENTS
+from hope_models.checkpoint_format import VQVAE_REF
 from registry.models import Model, Run
 
 log = logging.getLogger(__name__)
@@ -161,7 +163,7 @@ def _code_space(run: Run) -> tuple[int, int] | None:
         obj = read_json_object(Path(ckpt) / CONFIG_FILE)
     except (OSError, CheckpointError):
         return None
-    cfg, vq = obj.get("model_config"), obj.get("vqvae")
+    cfg, vq = obj.get("model_config"), obj.get(VQVAE_REF)
     n = cfg.get("n_codes") if isinstance(cfg, dict) else None
     vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
     groups = vq_cfg.get("groups", 1) if isinstance(vq_cfg, dict) else 1  # 1: saved before groups existed
@@ -173,7 +175,8 @@ def _code_space(run: Run) -> tuple[int, int] | None:
 def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
     """The validation cross-entropy of the newest `limit` completed mid_loop runs, oldest first:
     [{"run_id", "finished_at", "step", "surprise", "n_codes", "code_groups", "curiosity"}]."""
-    rows = s.scalars(select(Run).where(Run.component == "mid_loop", Run.state == "completed")
+    predictors = [name for name, spec in COMPONENTS.items() if spec.predicts]
+    rows = s.scalars(select(Run).where(Run.component.in_(predictors), Run.state == "completed")
                      .order_by(Run.finished_at.desc(), Run.created_at.desc()).limit(limit))
     out = []
     for run in rows:

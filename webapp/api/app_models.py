@@ -114,7 +114,7 @@ def model_json(model) -> dict[str, Any]:
 @bp.get("")
 def list_models():
     from registry import promotion
-    from hope_models.train.contract import COMPONENTS
+    from hope_models.components import COMPONENTS
 
     query_args("history")
     limit = query_int("history", default=HISTORY_DEFAULT, minimum=1, maximum=HISTORY_MAX)

@@ -66,7 +66,7 @@ def _state():
 
 
 def _components() -> tuple[str, ...]:
-    from hope_models.train.contract import COMPONENTS
+    from hope_models.components import COMPONENTS
 
     return tuple(COMPONENTS)
 

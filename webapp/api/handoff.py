@@ -23,7 +23,7 @@ from typing import Any
 
 from flask import Blueprint, current_app, jsonify
 
-from hope_models.data.inbox import HANDOFF_ORIGIN, InboxError, ingest_record
+from hope_models.intake.inbox import HANDOFF_ORIGIN, InboxError, ingest_record
 from hope_models.rlds.json_text import TextReadError, parse_json_document
 from webapp.errors import ApiError, error_response
 from webapp.uploads import large_body, received

@@ -91,7 +91,7 @@ def checkpoint_files(run_dir: Path, ckdir: Path) -> list[Path]:
 def candidates(run_dir: Path) -> list[Artifact]:
     """Every artifact the run dir seems to hold, in a fixed order, before the confinement check
     (`is_safe`): names a client may ask for, some of which may be refused."""
-    from hope_models.train.checkpoint import list_step_dirs
+    from hope_models.checkpoints import list_step_dirs
     from hope_models.train.metrics import mcap_segments
 
     if not run_dir.is_dir():

@@ -19,13 +19,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from hope_models.components import spec_of
+from hope_models.checkpoint_format import VQVAE_REF
+
 CODE_NULL = {"version": None, "git_commit": None, "git_dirty": None}
 DATASET_KEYS = ("path", "fingerprint", "episodes", "steps", "imagined_episodes", "imagined_share")
 
 
 def _checkpoint_config(run_dir: Path) -> dict[str, Any] | None:
     from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
-    from hope_models.train.checkpoint import list_step_dirs
+    from hope_models.checkpoints import list_step_dirs
 
     for _, ckdir in list_step_dirs(run_dir):
         try:
@@ -58,6 +61,9 @@ def gate_records(s, run_id: str) -> list[dict[str, Any]]:
     return out
 
 
+_UNRECORDED = object()
+
+
 def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
     """The answer for a registry Run row (read inside its session) and its gate records."""
     from hope_models.train.provenance import read_provenance
@@ -66,7 +72,8 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
     rec = read_provenance(run_dir) or {}
     request_config = run.config if isinstance(run.config, dict) else {}
     ck = None
-    if not isinstance(rec.get("config"), dict) or "vqvae" not in rec:
+    recorded_vq = rec.get(VQVAE_REF, _UNRECORDED)  # the provenance's reference to the VQ-VAE read, if it has one
+    if not isinstance(rec.get("config"), dict) or recorded_vq is _UNRECORDED:
         ck = _checkpoint_config(run_dir)
     if isinstance(rec.get("config"), dict):
         config, source = rec["config"], "provenance"
@@ -84,12 +91,12 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
     if dataset["fingerprint"] is None:
         dataset["fingerprint"] = run.dataset_fingerprint or (ck or {}).get("data_fingerprint")
 
-    if "vqvae" in rec:
-        vqvae = rec["vqvae"] if isinstance(rec["vqvae"], dict) else None
-    elif run.component == "vqvae":
+    if recorded_vq is not _UNRECORDED:
+        vqvae = recorded_vq if isinstance(recorded_vq, dict) else None
+    elif spec_of(run.component).reads_vqvae == "never":
         vqvae = None
     else:
-        ref = (ck or {}).get("vqvae")
+        ref = (ck or {}).get(VQVAE_REF)
         path = ref.get("path") if isinstance(ref, dict) else None
         path = path if isinstance(path, str) else request_config.get("vqvae_dir")
         run_ref = request_config.get("vqvae_run")
@@ -101,5 +108,5 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
 
     code = rec.get("code") if isinstance(rec.get("code"), dict) else {}
     return {"run_id": run.id, "component": run.component, "config": config, "config_source": source,
-            "dataset": dataset, "vqvae": vqvae, "code": {**CODE_NULL, **code}, "gate": gate,
+            "dataset": dataset, VQVAE_REF: vqvae, "code": {**CODE_NULL, **code}, "gate": gate,
             "recorded_at": rec.get("written_at")}

@@ -46,6 +46,8 @@ from typing import Any
 
 from flask import Blueprint, current_app, jsonify
 
+from hope_models.components import ACTOR, PREDICTOR
+
 from webapp.api.validation import get_int, get_str, json_body
 from webapp.errors import ApiError
 
@@ -157,7 +159,7 @@ class ReflexJobs:
             if isinstance(obj.get("surprise_stream"), dict):
                 header = obj["surprise_stream"]
                 records = (job["surprise"] or {}).get("records", [])
-                job["surprise"] = {k: header.get(k) for k in ("mid_loop", "reason", "horizons", "grid_step_s",
+                job["surprise"] = {k: header.get(k) for k in (PREDICTOR, "reason", "horizons", "grid_step_s",
                                                                "every_steps")}
                 job["surprise"]["records"] = records
             elif isinstance(obj.get("surprise"), dict) and job["surprise"] is not None:
@@ -241,9 +243,9 @@ def start_reflex():
     target_jump_s = _jump_seconds(body)
     state = _state()
     try:
-        pointer = read_pointer(state.settings.home, "fast_loop")
+        pointer = read_pointer(state.settings.home, ACTOR)
     except PointerError as exc:
-        raise ApiError(f"the fast_loop promotion pointer is unusable: {exc}", 409) from None
+        raise ApiError(f"the {ACTOR} promotion pointer is unusable: {exc}", 409) from None
     if pointer is None:
         raise ApiError("no fast_loop has been promoted yet: promote one first (POST /api/brain/promote or "
                        "`run_trainer.py promote RUN`)", 409)

@@ -43,7 +43,7 @@ def sequential():
     from registry import runs
     from registry.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
     from hope_models.paths import data_roots
-    from hope_models.train.sequential import SequenceError, parse_sequence
+    from hope_models.components.chain import SequenceError, parse_sequence
 
     state = current_app.extensions["hope"]
     settings = state.settings

@@ -6,15 +6,15 @@
     logits = model.forward(..., last_only=True)           # [1, H, G, n]: what serving needs
     model.prediction(logits[-1])                          # [H, obs_dim] expected observation, raw units
 
-The arithmetic is hope_models/models/mid_loop.py and SSMStack/SSMBlock/DiagonalSSM in
-models/ssm.py, float32 (tests/test_brain_whole.py checks forward against MidLoop.forward in eval
+The arithmetic is hope_models/components/mid_loop/model.py and SSMStack/SSMBlock/DiagonalSSM in
+hope_models/components/ssm.py, float32 (tests/test_brain_whole.py checks forward against MidLoop.forward in eval
 mode within 1e-4): x = code_in(rows).sum(G) + act_in(prev_act); per block u = LN1(x),
 h_t = sum_{s<=t} a^(t-s) g (B u_s) (the parallel form over the window, from a zero state),
 x += C h + D u, x += GatedMLP(LN2(x)); then ln_f and the head. Dropout is the identity at
 inference. The checkpoint's own frozen VQ-VAE (tensors vqvae.*) encodes observations and decodes
 the prediction: a Mid Loop carries the VQ-VAE it was trained with. code_counts/stay_counts (the
 baselines' statistics) and any `wm_*` tensor (a world model's action-conditioned heads) are not
-read. What is refused, and why, is mid_loop_checkpoint.py's.
+read. What is refused, and why, is hope_models/components/mid_loop/checkpoint.py's.
 
 Why the window form and not step(): the stepped SSMStack remembers everything since init_state
 (mid_loop.py), while training saw K-point windows, so each prediction is computed from the
@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.components.mid_loop.checkpoint import read_mid_loop
+from hope_models.components.numpy_layers import Linear, NormMLP, layer_norm
+from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
-from hope_models.runtime.mid_loop_checkpoint import read_mid_loop
-from hope_models.runtime.numpy_layers import Linear, NormMLP, layer_norm
-from hope_models.runtime.vqvae_numpy import Normaliser, VQVAENumpy
 
 
 class _Block:
@@ -63,6 +63,11 @@ class MidLoopNumpy:
     """One mid_loop checkpoint, runnable on windows of grid points. Immutable after load."""
 
     name = "mid_loop"
+
+    def status_fields(self) -> dict:
+        """What BrainService.status() adds for this component: the shape of its answer."""
+        return {"horizons": self.horizon_names, "grid_step_s": self.grid_step_s, "window_k": self.window_k,
+                "groups": self.groups, "n_codes": self.n_codes}
 
     def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
                  tensors: dict[str, np.ndarray], sha256: str, version: str):
@@ -198,3 +203,6 @@ class MidLoopNumpy:
 
 
 __all__ = ["MidLoopNumpy"]
+
+
+RUNTIME = MidLoopNumpy  # what BrainService serves for this component

@@ -37,9 +37,9 @@ import logging
 import torch
 from torch import nn
 
-from hope_models.models.configs import FastLoopConfig
-from hope_models.models.ssm import GatedMLP, WindowSSM, WindowState, count_params
-from hope_models.models.vqvae import VQVAE
+from hope_models.components.fast_loop.config import FastLoopConfig
+from hope_models.components.ssm import GatedMLP, WindowSSM, WindowState, count_params
+from hope_models.components.vqvae.model import VQVAE
 
 log = logging.getLogger(__name__)
 

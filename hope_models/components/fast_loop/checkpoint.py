@@ -19,15 +19,19 @@ same bytes. Torch-free.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Callable
+from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import (
-    CONFIG_FILE, CONFIG_FORMAT, MODEL_FILE, CheckpointError, read_json_object, safetensors_problem, sha256_hex,
-    version_name, weights_misfit,
+from hope_models.components.checkpoint_checks import (
+    MAX_GROUPS,
+    CheckedCheckpoint,
+    CheckpointRefused,
+    check_header,
+    check_trained,
+    check_weights,
+    read_component,
 )
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
@@ -37,28 +41,12 @@ MODEL_CONFIG_KEYS = ("obs_dim", "act_dim", "window_k", "d_model", "d_state", "ml
                      "max_timescale", "n_codes")
 
 
-class CheckpointRefused(ValueError):
-    """A checkpoint the NumPy runtime cannot run (any component); the message names the file and why."""
-
-
 class FastLoopNumpyError(CheckpointRefused):
     """This checkpoint cannot be run by the NumPy fast_loop; the message names the file and why."""
 
 
-@dataclass(frozen=True)
-class FastLoopCheckpoint:
-    """A fast_loop checkpoint the NumPy runtime can run: its config (checked), the feature spec,
-    the weights (checked), their sha256 and the version that names them."""
-    path: Path
-    config: dict[str, Any]
-    spec: FeatureSpec
-    tensors: dict[str, np.ndarray]
-    sha256: str
-    version: str
-
-
 def read_fast_loop(path: str | Path, *, expected_sha256: str | None = None,
-                   verify_manifest: bool = False) -> FastLoopCheckpoint:
+                   verify_manifest: bool = False) -> CheckedCheckpoint:
     """Read and check <path>/config.json + model.safetensors. expected_sha256: refuse weights whose
     sha256 differs (the promotion pointer's record of what was promoted). verify_manifest: a run
     dir is resolved to its newest complete checkpoint and every file is checked against the
@@ -69,56 +57,6 @@ def read_fast_loop(path: str | Path, *, expected_sha256: str | None = None,
 
     return read_component(path, check_config, tensors_ok, FastLoopNumpyError, expected_sha256=expected_sha256,
                           verify_manifest=verify_manifest)
-
-
-def read_component(path: str | Path, config_check: Callable[[Any, Path], FeatureSpec],
-                   tensors_check: Callable[[dict[str, np.ndarray], dict[str, Any], Path], None],
-                   error: type[CheckpointRefused], *, expected_sha256: str | None = None,
-                   verify_manifest: bool = False) -> FastLoopCheckpoint:
-    """read_fast_loop for any component: config_check(config, where) -> its feature spec and
-    tensors_check(tensors, config, where) raise `error` (a CheckpointRefused) naming the file; the
-    manifest, the sha256 against the pointer's and the safetensors reading are the same for all."""
-    ckpt = Path(path)
-    cfg_path, weights_path = ckpt / CONFIG_FILE, ckpt / MODEL_FILE
-    if verify_manifest:
-        from hope_models.train.checkpoint import open_checkpoint
-
-        try:
-            verified = open_checkpoint(ckpt, keep=(CONFIG_FILE, MODEL_FILE))
-            ckpt, cfg_path, weights_path = verified.path, verified.path / CONFIG_FILE, verified.path / MODEL_FILE
-            config = verified.json(CONFIG_FILE)
-        except CheckpointError as exc:
-            raise error(str(exc)) from None
-        spec = config_check(config, cfg_path)
-        data, sha = verified.data[MODEL_FILE], verified.sha256[MODEL_FILE]
-    else:
-        if not ckpt.is_dir():
-            raise error(f"{ckpt}: checkpoint dir not found")
-        config = _read_config(cfg_path, error)
-        spec = config_check(config, cfg_path)
-        try:
-            data = weights_path.read_bytes()
-        except FileNotFoundError:
-            raise error(f"{weights_path}: weights file not found") from None
-        except OSError as exc:
-            raise error(f"{weights_path}: cannot read: {exc.strerror or exc}") from None
-        sha = sha256_hex(data)
-    if expected_sha256 is not None and sha != expected_sha256:
-        raise error(f"{weights_path}: sha256 {sha[:12]}... does not match the promoted "
-                    f"{expected_sha256[:12]}... (the file changed after promotion)")
-    tensors = load_tensors(data, weights_path, error)
-    tensors_check(tensors, config, weights_path)
-    return FastLoopCheckpoint(ckpt, config, spec, tensors, sha, version_name(ckpt, sha, config))
-
-
-def _read_config(cfg_path: Path, error: type[CheckpointRefused] = FastLoopNumpyError) -> dict[str, Any]:
-    try:
-        return read_json_object(cfg_path)  # untrusted: size, depth and type bounded there
-    except FileNotFoundError:
-        raise error(f"{cfg_path}: not found (a checkpoint dir holds {MODEL_FILE} + "
-                                 f"{CONFIG_FILE})") from None
-    except CheckpointError as exc:
-        raise error(str(exc)) from None
 
 
 def _check_model_config(mc: Any, where: Path) -> None:
@@ -140,9 +78,6 @@ def _check_model_config(mc: Any, where: Path) -> None:
                                  f"{MAX_K} points")
 
 
-MAX_GROUPS = 64  # far above any useful product of codebooks; bounds what an untrusted config sizes
-
-
 def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> None:
     vq = config.get("vqvae")
     vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
@@ -159,18 +94,6 @@ def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> Non
         raise FastLoopNumpyError(f"{where}: the VQ-VAE's obs_dim/n_codes ({vq_cfg.get('obs_dim')}/"
                                  f"{vq_cfg.get('n_codes')}) do not fit the fast_loop's "
                                  f"({mc['obs_dim']}/{mc['n_codes']})")
-
-
-def check_header(config: Any, where: Path, component: str, error: type[Exception]) -> None:
-    """config.json is an object of this checkpoint format for `component`; else `error` naming the file."""
-    if not isinstance(config, dict):
-        raise error(f"{where}: must be a JSON object")
-    fmt = config.get("format")
-    if fmt != CONFIG_FORMAT:
-        raise error(f"{where}: format {fmt!r} is not {CONFIG_FORMAT!r}")
-    comp = config.get("component")
-    if comp != component:
-        raise error(f"{where}: component is {comp!r}; this runtime serves {component} checkpoints here")
 
 
 def check_config(config: Any, where: Path) -> FeatureSpec:
@@ -192,21 +115,6 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
     if mc["n_codes"]:
         _check_vqvae(config, mc, where)
     return spec
-
-
-def load_tensors(data: bytes, where: Path,
-                 error: type[CheckpointRefused] = FastLoopNumpyError) -> dict[str, np.ndarray]:
-    """The tensors of a safetensors file's bytes (pickle refused by its first bytes, never parsed)."""
-    from safetensors import SafetensorError
-    from safetensors.numpy import load
-
-    problem = safetensors_problem(data[:9])
-    if problem is not None:
-        raise error(f"{where}: {problem}")
-    try:
-        return load(data)
-    except (SafetensorError, ValueError, TypeError) as exc:
-        raise error(f"{where}: not a readable safetensors file: {exc}") from None
 
 
 def expected_shapes(mc: dict[str, Any], groups: int = 1) -> dict[str, tuple[int, ...]]:
@@ -247,26 +155,6 @@ def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any], groups: int) -> 
             "vqvae.codebook": (mc["n_codes"] * groups, code_dim // groups if code_dim % groups == 0 else -1)}
 
 
-def check_weights(t: dict[str, np.ndarray], want: dict[str, tuple[int, ...]], where: Path, what: str,
-                  error: type[Exception], ignore: Iterable[str] = ()) -> None:
-    """t holds exactly the float32 tensors `want` names with those shapes (besides the `ignore`d
-    names), every one finite; else `error` naming the file and the tensors."""
-    misfit = weights_misfit({k: f"{list(s)} float32" for k, s in want.items()},
-                            {k: f"{list(v.shape)} {v.dtype}" for k, v in t.items()}, ignore=list(ignore))
-    if misfit:
-        raise error(f"{where}: weights do not fit {what} ({misfit})")
-    bad = [k for k in want if not np.isfinite(t[k]).all()]
-    if bad:
-        raise error(f"{where}: non-finite weights (NaN/Inf) in {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}")
-
-
-def check_trained(t: dict[str, np.ndarray], prefix: str, where: Path, whose: str, error: type[Exception]) -> None:
-    """The VQ-VAE under prefix was trained (its codebook initialised)."""
-    init = t.get(f"{prefix}initialized")
-    if init is None or int(np.asarray(init).reshape(-1)[0]) != 1:
-        raise error(f"{where}: {whose} was never trained (codebook not initialised)")
-
-
 def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1) -> None:
     """The weights are exactly the float32 tensors config.json describes, finite, and a VQ-VAE
     they read codes of was trained."""
@@ -282,6 +170,5 @@ def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, gro
         check_trained(t, "vqvae.", where, "the fast_loop's VQ-VAE", FastLoopNumpyError)
 
 
-__all__ = ["CheckpointRefused", "FastLoopNumpyError", "FastLoopCheckpoint", "read_fast_loop", "read_component",
-           "check_config", "check_tensors",
-           "expected_shapes", "load_tensors", "MODEL_CONFIG_KEYS"]
+__all__ = ["FastLoopNumpyError", "MODEL_CONFIG_KEYS", "check_config", "check_tensors", "expected_shapes",
+           "read_fast_loop", "vqvae_groups"]

@@ -12,7 +12,7 @@ recurrence), so it is re-implemented here from the safetensors weights (`safeten
 config.json, and tests/test_fast_loop_numpy.py checks it equal to torch's FastLoop.step and
 FastLoop.forward within 1e-5 over thousands of ticks. This module never imports torch.
 
-The arithmetic is hope_models/models/fast_loop.py and WindowSSM in models/ssm.py (float32
+The arithmetic is hope_models/components/fast_loop/model.py and WindowSSM in hope_models/components/ssm.py (float32
 throughout, like the torch model):
 
     e = obs_in(x) [+ code_in[code(x)]] ;  x = e + GatedMLP_enc(LN_enc(e))
@@ -20,17 +20,17 @@ throughout, like the torch model):
     y = C h + D * u ;  z = x + y ;  z = z + GatedMLP_head(LN_head(z)) ;  action = out(LN_out(z))
 
 including WindowSSM's exact recompute of h from the ring each time the ring wraps (every K ticks),
-which bounds float32 drift for any run length. Constants are folded at load (numpy_layers.py): each
+which bounds float32 drift for any run length. Constants are folded at load (hope_models/components/numpy_layers.py): each
 LayerNorm's affine into the product after it, the gate and up projections into one product, the
 SSM gain into B. Two forms serve: one observation takes the flat path (tick -> _core, BrainService's
 path), whose weights are folded further (_prepare_flat: the residual stream kept centred so no
 LayerNorm computes a mean, D * u riding in the B product); batches and the window re-run (step,
-forward) take the batched path. Both agree with torch within float32 rounding. (fast_loop_act.py
+forward) take the batched path. Both agree with torch within float32 rounding. (hope_models/components/fast_loop/numpy_act.py
 adds the bench's act(), which folds the normalisation in too.)
 
 A fast_loop that reads codes of a frozen vector VQ-VAE is supported (its MLP encoder, the
 parameter-free LayerNorm and the nearest codebook row are a few more products). What this runtime
-accepts as a checkpoint, and the refusals, are fast_loop_checkpoint.py's.
+accepts as a checkpoint, and the refusals, are hope_models/components/fast_loop/checkpoint.py's.
 
 Observations are normalised exactly as the dataset cache and ReflexPolicy do (float32
 x * 1/std - mean/std) and actions denormalised (a * std + mean, float64); for the dm_control
@@ -44,10 +44,21 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.components.fast_loop.checkpoint import (
+    FastLoopNumpyError,
+    read_fast_loop,
+    vqvae_groups,
+)
+from hope_models.components.numpy_layers import (
+    LN_EPS,
+    Linear,
+    NormMLP,
+    NumpyWindowState,
+    fold_ln,
+    layer_norm,
+)
+from hope_models.components.vqvae.numpy_form import VQVAENumpy
 from hope_models.data.features import FeatureSpec
-from hope_models.runtime.fast_loop_checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_groups
-from hope_models.runtime.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
-from hope_models.runtime.vqvae_numpy import VQVAENumpy
 
 RATE_MIN = 1e-4  # WindowSSM.RATE_MIN / RATE_MAX: the clamp on the decay rate
 RATE_MAX = 20.0
@@ -55,7 +66,12 @@ RATE_MAX = 20.0
 
 def _reacher_bounds(spec: FeatureSpec) -> tuple[float, float] | None:
     """The reacher's motor bounds when the spec is the dm_control reacher's (observation and action)."""
-    from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
+    from hope_models.sim.reacher import (
+        ACTION_FIELD,
+        ACTION_HIGH,
+        ACTION_LOW,
+        OBS_FIELDS,
+    )
 
     obs = [(f.path, f.size) for f in spec.observation.fields]
     act = [(f.path, f.size) for f in spec.action.fields]
@@ -85,6 +101,10 @@ class FastLoopNumpy:
     several threads may step it at once with their own states."""
 
     name = "fast_loop"
+
+    def status_fields(self) -> dict:
+        """What BrainService.status() adds for this component: the shape of its answer."""
+        return {}
 
     def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
                  tensors: dict[str, np.ndarray], sha256: str, version: str):
@@ -116,7 +136,7 @@ class FastLoopNumpy:
         self._out = Linear(*fold_ln(t["out_ln.weight"], t["out_ln.bias"], t["out.weight"], t["out.bias"]))
         self._mean_d = np.full(self.d_model, 1.0 / self.d_model, np.float32)  # x @ this = the mean over d
         self._code_in = t.get("code_in.weight")
-        if self.n_codes:  # the frozen VQ-VAE's encoder and codebook (vqvae_numpy.py)
+        if self.n_codes:  # the frozen VQ-VAE's encoder and codebook (hope_models/components/vqvae/numpy_form.py)
             self.groups = vqvae_groups(config)
             self._vq = VQVAENumpy(t, groups=self.groups, n_codes=self.n_codes, prefix="vqvae.", decoder=False)
             self._offsets = np.arange(self.groups) * self.n_codes
@@ -359,3 +379,6 @@ class FastLoopNumpy:
 
 
 __all__ = ["FastLoopNumpy", "FastLoopNumpyError", "NumpyWindowState", "centred"]
+
+
+RUNTIME = FastLoopNumpy  # what BrainService serves for this component

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hope_models.models.configs import INPUTS, VQVAEConfig  # noqa: F401 - re-exported
+from hope_models.components.vqvae.config import INPUTS, VQVAEConfig  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
 

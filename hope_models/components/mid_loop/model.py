@@ -63,9 +63,9 @@ import logging
 import torch
 from torch import nn
 
-from hope_models.models.configs import MidLoopConfig
-from hope_models.models.ssm import SSMStack, count_params
-from hope_models.models.vqvae import VQVAE
+from hope_models.components.mid_loop.config import MidLoopConfig
+from hope_models.components.ssm import SSMStack, count_params
+from hope_models.components.vqvae.model import VQVAE
 
 log = logging.getLogger(__name__)
 

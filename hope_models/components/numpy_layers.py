@@ -1,4 +1,4 @@
-"""The fast_loop's building blocks in NumPy, their constants folded at load (see fast_loop_numpy.py).
+"""The fast_loop's building blocks in NumPy, their constants folded at load (see hope_models/components/fast_loop/numpy_form.py).
 
 A tick at batch 1 costs what its array operations cost (each ~0.5 us of NumPy dispatch), not its
 flops, so each block is as few operations as it can be: a Linear is one product and an in-place

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.runtime.fast_loop_numpy import FastLoopNumpy, centred
-from hope_models.runtime.numpy_layers import NumpyWindowState
+from hope_models.components.fast_loop.numpy_form import FastLoopNumpy, centred
+from hope_models.components.numpy_layers import NumpyWindowState
 
 
 class FastLoopNumpyAct(FastLoopNumpy):

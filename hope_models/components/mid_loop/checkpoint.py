@@ -19,13 +19,21 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.components.checkpoint_checks import (
+    CheckedCheckpoint,
+    CheckpointRefused,
+    check_header,
+    check_weights,
+    read_component,
+)
+from hope_models.components.vqvae.numpy_form import (
+    MAX_WIDTH,
+    check_vqvae_ref,
+    check_vqvae_tensors,
+)
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K
-from hope_models.runtime.fast_loop_checkpoint import (
-    CheckpointRefused, FastLoopCheckpoint, check_header, check_weights, read_component,
-)
-from hope_models.runtime.vqvae_numpy import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
 
 MAX_LAYERS = 64
 MAX_HORIZONS = 16
@@ -110,7 +118,7 @@ def check_tensors(t: dict[str, np.ndarray], config: dict[str, Any], where: Path)
 
 
 def read_mid_loop(path: str | Path, *, expected_sha256: str | None = None,
-                  verify_manifest: bool = False) -> FastLoopCheckpoint:
+                  verify_manifest: bool = False) -> CheckedCheckpoint:
     """Read and check <path>/config.json + model.safetensors (fast_loop_checkpoint.read_component:
     the manifest, the sha256 against the pointer's)."""
     return read_component(path, check_config, check_tensors, MidLoopNumpyError, expected_sha256=expected_sha256,

@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from hope_models.data.trainable import COMPONENTS, trainable
+from hope_models.intake.trainable import COMPONENTS, trainable
 from hope_models.rlds.app_record import AppRecordError, episode_from_record
 from hope_models.rlds.ingest import (IngestDiskFull, IngestError, Manifest, dataset_lock, ingest_paths,
                                      ingest_reports, load_manifest, write_manifest)

@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hope_models.models.configs import SSMConfig
+from hope_models.components.ssm_config import SSMConfig
 
 
 class DiagonalSSM(nn.Module):

@@ -8,7 +8,7 @@
     model = VQVAERuntime.from_checkpoint(ckpt, expected_sha256=..., verify_manifest=True)
     model.codes_of(raw_observation)                          # what BrainService answers as `code`
 
-The arithmetic is hope_models/models/vqvae.py for input "vector" (tests/test_brain_whole.py checks
+The arithmetic is hope_models/components/vqvae/model.py for input "vector" (tests/test_brain_whole.py checks
 it equal to torch within 1e-5, codes exactly): encoder = Linear-SiLU-Linear-SiLU-Linear then a
 LayerNorm without parameters; z cut into G slices, each the nearest row of its own codebook (rows
 g * n_codes .. of the one [G * n_codes, code_dim / G] table; ties: the lowest index); decoder =
@@ -24,12 +24,17 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.components.checkpoint_checks import (
+    CheckpointRefused,
+    check_header,
+    check_trained,
+    check_weights,
+    read_component,
+)
+from hope_models.components.fast_loop.checkpoint import MAX_GROUPS
+from hope_models.components.numpy_layers import Linear, layer_norm, silu
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
-from hope_models.runtime.fast_loop_checkpoint import (
-    MAX_GROUPS, CheckpointRefused, check_header, check_trained, check_weights, read_component,
-)
-from hope_models.runtime.numpy_layers import Linear, layer_norm, silu
 
 MAX_WIDTH = 1 << 14  # bounds what an untrusted config sizes (the reacher's VQ-VAE is 256 wide)
 
@@ -185,6 +190,10 @@ class VQVAERuntime:
 
     name = "vqvae"
 
+    def status_fields(self) -> dict:
+        """What BrainService.status() adds for this component: the shape of its answer."""
+        return {"groups": self.groups, "n_codes": self.n_codes, "sha256": self.sha256}
+
     def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
                  tensors: dict[str, np.ndarray], sha256: str, version: str):
         self.checkpoint, self.config, self.spec, self.sha256, self.version = checkpoint, config, spec, sha256, version
@@ -223,3 +232,6 @@ class VQVAERuntime:
 
 __all__ = ["VQVAENumpy", "VQVAERuntime", "VQVAENumpyError", "Normaliser", "check_vqvae_ref", "check_vqvae_tensors",
            "MAX_WIDTH"]
+
+
+RUNTIME = VQVAERuntime  # what BrainService serves for this component

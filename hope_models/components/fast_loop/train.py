@@ -1,0 +1,30 @@
+"""The Fast Loop as the training loop sees it: window fast, 100 ms, K=5; obs window (+ codes of a
+frozen VQ-VAE) -> the action; loss MSE on the normalised action. The model's window_k is the
+window's K (its stepped form computes exactly the last K points)."""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from hope_models.components.fast_loop.model import FastLoop
+from hope_models.components.training_base import TrainingComponent, as_tensor
+
+
+class FastLoopComponent(TrainingComponent):
+    name = "fast_loop"
+    clones_actions = True  # behaviour cloning: play episodes' actions are no labels (validation.anchor_sampler)
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), self._frames(batch))
+        target = as_tensor(batch.target_act)
+        loss = F.mse_loss(pred, target)
+        # baseline: always predicting the dataset's mean action (0 once normalised)
+        return loss, {"mse": loss.item(), "mean_action_mse": float((target * target).mean())}
+
+
+def build(spec: Any, r: Any, vqvae: Any, data_fingerprint: str, vqvae_ref: dict | None) -> FastLoopComponent:
+    """The component for a resolved configuration (components.resolve.Resolved) and a dataset's
+    feature spec; vqvae: the frozen VQ-VAE module it reads codes of (None: none)."""
+    return FastLoopComponent(spec, FastLoop(r.cfg, vqvae), r.cfg, r.window, data_fingerprint, vqvae_ref)

@@ -1,0 +1,44 @@
+"""The Mid Loop's configuration, apart from its model so that it imports no torch."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hope_models.components.ssm_config import SSMConfig, check_timescales
+
+
+@dataclass
+class MidLoopConfig:
+    act_dim: int = 0
+    n_codes: int = 0  # codebook size of the frozen VQ-VAE
+    horizon_steps: tuple[int, ...] = (5, 10)  # grid steps ahead, one prediction head each
+    d_model: int = 128
+    n_layers: int = 2
+    d_state: int = 64
+    mlp_ratio: int = 2
+    min_timescale: float = 1.0  # grid steps (100 ms each in the default window)
+    max_timescale: float = 64.0
+    dropout: float = 0.1  # on the SSM's input and the head's: a few dozen episodes overfit without it
+    # The action-conditioned world model (mid_loop.py, "World model"): from the context at a grid
+    # point, the exact observation there and the actions held over the next wm_horizon grid steps,
+    # the observation after each of them. 0 = none. A vector VQ-VAE only (it predicts vectors).
+    wm_horizon: int = 4
+    wm_hidden: int = 128
+    wm_weight: float = 1.0  # of its MSE (normalised units) beside the codes' NLL in the loss
+
+    def ssm_config(self) -> SSMConfig:
+        return SSMConfig(self.d_model, self.d_state, self.n_layers, self.mlp_ratio, self.min_timescale,
+                         self.max_timescale)
+
+    def validate(self) -> None:
+        if self.act_dim < 1 or self.n_codes < 2:
+            raise ValueError(f"act_dim={self.act_dim} must be >= 1 and n_codes={self.n_codes} >= 2")
+        if not self.horizon_steps or any(int(s) != s or s < 1 for s in self.horizon_steps):
+            raise ValueError(f"horizon_steps={self.horizon_steps} must be positive whole grid steps")
+        if self.d_model < 1 or self.n_layers < 1 or self.d_state < 1 or self.mlp_ratio < 1:
+            raise ValueError("d_model, n_layers, d_state and mlp_ratio must be >= 1")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout={self.dropout} must be within [0, 1)")
+        if self.wm_horizon < 0 or self.wm_hidden < 1 or not self.wm_weight >= 0:
+            raise ValueError(f"wm_horizon={self.wm_horizon} must be >= 0, wm_hidden={self.wm_hidden} >= 1 and "
+                             f"wm_weight={self.wm_weight} >= 0")
+        check_timescales(self.min_timescale, self.max_timescale)

@@ -1,0 +1,50 @@
+"""The Mid Loop as the training loop sees it: window mid, 2 s, K=20, horizons 0.5 s and 1 s; codes
+(frozen VQ-VAE, required) + past actions -> codes ahead; loss cross-entropy, + the
+action-conditioned world model (wm_*, vector VQ-VAE): obs of the next points given the actions to
+be held, + wm_weight x its MSE."""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from hope_models.components.mid_loop.metrics import mid_loop_loss, world_model_loss
+from hope_models.components.mid_loop.model import MidLoop, previous_actions
+from hope_models.components.training_base import TrainingComponent, as_tensor
+
+
+class MidLoopComponent(TrainingComponent):
+    name = "mid_loop"
+
+    def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        model: MidLoop = self._model
+        codes = model.codes(as_tensor(batch.obs), self._frames(batch))
+        future_codes = None
+        if self.wants_frames:
+            future_frames = self._frames(batch, "future_frames")  # only if the data layer provides them
+            if future_frames is not None:
+                future_codes = model.codes(None, future_frames)
+        elif batch.future_obs is not None:
+            future_codes = model.codes(as_tensor(batch.future_obs))
+        future_mask = None if future_codes is None or batch.future_mask is None else as_tensor(batch.future_mask)
+        mask = as_tensor(batch.mask)
+        act = as_tensor(batch.act)
+        y = model.context(codes, previous_actions(act), mask)
+        logits = model.heads(y)
+        vector = not self.wants_frames
+        loss, metrics = mid_loop_loss(
+            model, logits, codes, mask, obs=as_tensor(batch.obs) if vector else None,
+            future_codes=future_codes, future_mask=future_mask,
+            future_obs=as_tensor(batch.future_obs) if vector and batch.future_obs is not None else None,
+            labels=tuple(f"{h:g}s" for h in self._window.horizons_s), training=training)
+        if model.has_world_model:  # the action-conditioned world model (mid_loop.py), trained alongside
+            wm_loss, wm_metrics = world_model_loss(model, y, as_tensor(batch.obs), act, mask, self._window.grid_step_s)
+            metrics.update(wm_metrics)
+            loss = loss + model.cfg.wm_weight * wm_loss
+        return loss, metrics
+
+
+def build(spec: Any, r: Any, vqvae: Any, data_fingerprint: str, vqvae_ref: dict | None) -> MidLoopComponent:
+    """The component for a resolved configuration (components.resolve.Resolved) and a dataset's
+    feature spec; vqvae: the frozen VQ-VAE module it reads codes of (None: none)."""
+    return MidLoopComponent(spec, MidLoop(r.cfg, vqvae), r.cfg, r.window, data_fingerprint, vqvae_ref)

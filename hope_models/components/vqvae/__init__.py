@@ -1,0 +1,58 @@
+"""The VQ-VAE observation tokenizer: an observation vector or a camera frame -> one code per group
+(product quantisation); the codes the Fast Loop may and the Mid Loop must read.
+
+    config.py      VQVAEConfig (torch-free)          model.py       the torch model
+    layers.py      its layers, from a config         train.py       its loss as the loop sees it
+    numpy_form.py  the NumPy encoder BrainService runs, and what it accepts as a checkpoint
+    held_out.py    its held-out figures and the gate's baselines verdict
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from hope_models.components.config_fields import make_config
+from hope_models.components.spec import ComponentSpec, EpisodeFacts
+from hope_models.components.vqvae import held_out, layers
+from hope_models.components.vqvae.config import VQVAEConfig
+
+
+def _check_window(window: Any) -> None:
+    if window.k != 1 or window.horizons_s:
+        raise ValueError("model_config.window: the vqvae reads one frame (k=1, no horizons)")
+
+
+def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: None) -> VQVAEConfig:
+    frame = spec.frame
+    derived: dict[str, Any] = {"obs_dim": spec.obs_dim}
+    want = overrides.get("input", "frame" if frame is not None else "vector")
+    if want == "frame":
+        if frame is None:
+            raise ValueError("model_config.input='frame' but the feature spec has no frame feature")
+        derived["frame_shape"] = tuple(frame.shape)
+    return make_config(VQVAEConfig, {"input": want, **derived}, overrides, "vqvae")
+
+
+def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | None:
+    if facts.missing:
+        return facts.missing + (f"; {facts.frame_note}" if facts.frame_note and not facts.has_frame else "")
+    if not (facts.has_frame or facts.has_obs):
+        return "no frame and no numeric observation vector"
+    return None
+
+
+SPEC = ComponentSpec(
+    name="vqvae",
+    summary="observation vector or camera frame -> one code per group (the tokenizer)",
+    package=__name__,
+    config_class=VQVAEConfig,
+    window_scale="fast",
+    window_defaults={"k": 1},  # one point: the anchor's own frame / observation
+    check_window=_check_window,
+    configure=_configure,
+    layers=layers.layers,
+    cannot_train=_cannot_train,
+    tokenizer=True,
+    held_out=held_out.held_out,
+    held_out_line=held_out.held_out_line,
+    baselines=held_out.baselines,
+)
