@@ -2,7 +2,10 @@
 
 Every module of the project's packages is parsed (ast, not imported), and every import in it is
 checked: at module level or inside a function, `import a.b`, `from a.b import c`, `from . import c`
-and `from ..a import b` alike.
+and `from ..a import b` alike, and the modules a file imports by name at run time
+(`importlib.import_module` over a table of names: the CLI's COMMANDS, the webapp's BLUEPRINTS,
+the components' table). No module may import itself through others (a cycle of modules, however
+the imports hide: inside functions or by name).
 
     hope_models < registry < daemon, workers (neither imports the other) < webapp < hope_trainer < run_trainer.py
 
@@ -95,7 +98,55 @@ def imports_of(path: Path, root: Path = REPO) -> list[Import]:
             for alias in node.names:
                 sub = f"{base}.{alias.name}" if base else alias.name
                 found.append(Import(rel, node.lineno, sub if _is_project_module(sub, root) else base))
+    found += by_name_imports(path, root)
     return list(dict.fromkeys(found))  # `from a import b, c` of two names: one import of a
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    return {id(node.body[0].value) for node in ast.walk(tree)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body
+            and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+
+
+def by_name_imports(path: Path, root: Path = REPO) -> list[Import]:
+    """The project modules a file imports by name at run time: for each `import_module(x)` call,
+    x a string naming a project module, or an f-string whose constant prefix (`__name__` counts as
+    the file's own module) completes to one with a string constant of the file, or a variable, when
+    the file's string constants name project modules. A prefix that is not constant
+    (`f"{self.package}.{part}"`) cannot be read here."""
+    rel = str(path.relative_to(root))
+    tree = ast.parse(path.read_text(), filename=rel)
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and n.args and (
+        (isinstance(n.func, ast.Name) and n.func.id == "import_module")
+        or (isinstance(n.func, ast.Attribute) and n.func.attr == "import_module"))]
+    if not calls:
+        return []
+    skip = _docstrings(tree) | {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
+    strings = [n.value for n in ast.walk(tree)
+               if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in skip]
+    own = _module_name(path, root)
+    found = []
+    for call in calls:
+        arg = call.args[0]
+        if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+            names = [arg.value]
+        elif isinstance(arg, ast.JoinedStr):
+            prefix = ""
+            for part in arg.values[:-1]:
+                if isinstance(part, ast.Constant):
+                    prefix += str(part.value)
+                elif isinstance(part, ast.FormattedValue) and isinstance(part.value, ast.Name) \
+                        and part.value.id == "__name__":
+                    prefix += own
+                else:
+                    prefix = None
+                    break
+            names = [prefix + s for s in strings] if prefix else []
+        else:
+            names = strings
+        found += [Import(rel, call.lineno, n) for n in names
+                  if all(part.isidentifier() for part in n.split(".")) and _is_project_module(n, root)]
+    return found
 
 
 def _is_project_module(dotted: str, root: Path) -> bool:
@@ -205,6 +256,64 @@ def test_no_torch_in_the_service_packages():
     assert not bad, "\n".join(bad)
 
 
+def module_cycles(imports: list[Import], root: Path = REPO) -> list[list[str]]:
+    """The cycles of the project's module graph (its strongly connected parts of two or more
+    modules), each sorted."""
+    graph: dict[str, set[str]] = {}
+    for imp in imports:
+        src = _module_name(root / imp.file, root)
+        if imp.module != src and layer_of(imp.module) is not None and _is_project_module(imp.module, root):
+            graph.setdefault(src, set()).add(imp.module)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+    for start in sorted(graph):  # Tarjan's algorithm, iterative: the graph is a few hundred modules
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph.get(start, ()))))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        while work:
+            node, edges = work[-1]
+            nxt = next(edges, None)
+            if nxt is not None:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    work.append((nxt, iter(sorted(graph.get(nxt, ())))))
+                elif nxt in stack:
+                    low[node] = min(low[node], index[nxt])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                part = []
+                while True:
+                    member = stack.pop()
+                    part.append(member)
+                    if member == node:
+                        break
+                if len(part) > 1:
+                    cycles.append(sorted(part))
+    return cycles
+
+
+def test_no_module_imports_itself_through_others():
+    cycles = module_cycles(all_imports())
+    assert not cycles, ("modules that import each other (move what both need below them):\n"
+                        + "\n".join(" <-> ".join(c) for c in cycles))
+
+
+def test_the_registries_by_name_are_read():
+    seen = {(i.file, i.module) for i in all_imports()}
+    for file, module in (("hope_trainer/cli.py", "hope_models.cli.train"), ("hope_trainer/cli.py", "daemon.cli.daemon"),
+                         ("webapp/api/__init__.py", "webapp.api.health"),
+                         ("hope_models/components/__init__.py", "hope_models.components.mid_loop")):
+        assert (file, module) in seen, (file, module)
+
+
 def test_every_hope_models_part_is_placed():
     subs = {p.name for p in (REPO / "hope_models").iterdir() if (p / "__init__.py").is_file()}
     unplaced = sorted(sub for sub in subs if _tier(sub) is None)
@@ -257,3 +366,27 @@ def test_the_checker_sees_every_import_form(tmp_path):
     assert hope_models_violations(hope_models_edges(ok, tmp_path), tmp_path) == []
     local = _fake(tmp_path, "webapp/x.py", "def f():\n    import torch.nn\n")
     assert "webapp/ never loads torch" in torch_imports(imports_of(local, tmp_path))[0]
+
+
+def test_the_checker_reads_imports_by_name_and_finds_cycles(tmp_path):
+    for rel in ("webapp/__init__.py", "webapp/api/__init__.py", "webapp/api/health.py", "webapp/api/runs.py",
+                "daemon/__init__.py", "daemon/cli.py", "registry/__init__.py"):
+        _fake(tmp_path, rel, "")
+    table = _fake(tmp_path, "registry/table.py", (
+        "import importlib\n"
+        "NAMES = ('health', 'runs', 'nothing')\n"
+        "COMMANDS = {'x': 'daemon.cli'}\n"
+        "def load(name, dotted):\n"
+        "    importlib.import_module(f'webapp.api.{name}')\n"
+        "    importlib.import_module(f'{__name__}.{name}')\n"
+        "    return importlib.import_module(dotted)\n"))
+    got = sorted({(i.line, i.module) for i in by_name_imports(table, tmp_path)})
+    assert got == [(5, "webapp.api.health"), (5, "webapp.api.runs"), (7, "daemon.cli")]
+    bad = layer_violations(imports_of(table, tmp_path), tmp_path)
+    assert len(bad) == 3 and any("registry imports daemon.cli" in b for b in bad), bad
+    a = _fake(tmp_path, "webapp/a.py", "def f():\n    from webapp import b\n")
+    b = _fake(tmp_path, "webapp/b.py", "import webapp.c\n")
+    c = _fake(tmp_path, "webapp/c.py", "import importlib\nimportlib.import_module('webapp.a')\n")
+    cycle = imports_of(a, tmp_path) + imports_of(b, tmp_path) + imports_of(c, tmp_path)
+    assert module_cycles(cycle, tmp_path) == [["webapp.a", "webapp.b", "webapp.c"]]
+    assert module_cycles(imports_of(a, tmp_path) + imports_of(b, tmp_path), tmp_path) == []
