@@ -35,6 +35,7 @@ sys.path.insert(0, str(REPO))
 
 BATCH = 64
 from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB  # noqa: E402 (after the sys.path setup)
+
 MB = 1 << 20
 
 

@@ -53,6 +53,7 @@ import tempfile
 import threading
 import time
 from datetime import datetime
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, Callable
 
@@ -100,7 +101,8 @@ def train_run(data: Path, run_dir: Path, cache: Path, steps: int, every: int, mo
 def write_pointer(home: Path, ckpt: Path, model_id: int = 1, component: str = "fast_loop") -> None:
     from datetime import datetime, timezone
 
-    from hope_models.promoted import checkpoint_version, write_pointer as write
+    from hope_models.promoted import checkpoint_version
+    from hope_models.promoted import write_pointer as write
 
     version, sha = checkpoint_version(ckpt)
     write(home, component, {"component": component, "checkpoint": str(ckpt.resolve()), "version": version,
@@ -123,9 +125,9 @@ def summary_ms(lat_s: list[float]) -> dict[str, float]:
 def tick_latency(ckpt: Path, home: Path, ticks: int, block: int = 250) -> dict[str, Any]:
     import torch
 
-    from hope_models.runtime.brain_service import BrainService
-    from hope_models.components.fast_loop.numpy_act import FastLoopNumpyAct
     from hope_models.components.build import component_from_checkpoint
+    from hope_models.components.fast_loop.numpy_act import FastLoopNumpyAct
+    from hope_models.runtime.brain_service import BrainService
 
     torch.set_num_threads(1)
     model = FastLoopNumpyAct.from_checkpoint(ckpt)
@@ -249,7 +251,7 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
     for t, lat, _ in results:
         (during if any(a <= t <= b for a, b in windows) else normal).append(lat)
     versions = [v for _, _, v in results]
-    switches = sum(1 for a, b in zip(versions, versions[1:]) if a != b)
+    switches = sum(1 for a, b in pairwise(versions) if a != b)
     out = {"requests": len(results), "failures": len(failures), "swaps": swaps, "version_switches": switches,
            "normal": summary_ms(normal), "during_swaps": summary_ms(during),
            "pointer_to_swap_ms": {"median": round(statistics.median(load_ms), 1), "max": round(max(load_ms), 1)}}
@@ -260,14 +262,13 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
 # -- 3. the loop-closure time ---------------------------------------------------------------------------
 
 def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
-    from registry import promotion
-    from registry import runs
-    from registry.db import Registry
-    from registry.models import Run
-    from registry.run_request import build_request, submit
     from hope_models.runtime.brain_service import BrainError, BrainService
     from hope_models.settings import load_settings
     from hope_models.train.loop import TrainConfig, train
+    from registry import promotion, runs
+    from registry.db import Registry
+    from registry.models import Run
+    from registry.run_request import build_request, submit
 
     home = root / "home"
     env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
@@ -320,8 +321,9 @@ def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str,
             t_promoted = time.time()
             try:
                 verdict = json.loads(proc.stdout.strip().splitlines()[-1])
-            except (ValueError, IndexError):
-                raise SystemExit(f"promote {run_id}: no JSON answer (exit {proc.returncode}): {proc.stderr[-2000:]}")
+            except (ValueError, IndexError) as exc:
+                raise SystemExit(f"promote {run_id}: no JSON answer (exit {proc.returncode}): "
+                                 f"{proc.stderr[-2000:]}") from exc
             if not verdict.get("promoted"):
                 out.append({"run": run_id, "version": verdict.get("version"), "refused": verdict.get("reasons"),
                             "loop_closure_s": None})
@@ -377,8 +379,8 @@ print(json.dumps({{"python_mb": before / 2**20, "with_brain_mb": after / 2**20,
 # -- 5. the full answer -------------------------------------------------------------------------------
 
 def whole_answer(root: Path, data: Path, fast_ckpt: Path, ticks: int, block: int = 250) -> dict[str, Any]:
-    from hope_models.runtime.brain_service import BrainService
     from hope_models.components.mid_loop.numpy_form import MidLoopNumpy
+    from hope_models.runtime.brain_service import BrainService
 
     cache = root / "cache"
     vq = train_run(data, root / "runs" / "vq", cache, 20, 20, {}, component="vqvae")

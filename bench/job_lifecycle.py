@@ -39,6 +39,7 @@ import sys
 import tempfile
 import time
 from datetime import datetime
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -172,9 +173,9 @@ def job_times(registry, run_id: str) -> dict[str, Any]:
 
 
 def run_mode(mode: str, dataset: Path, args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    from hope_models.settings import load_settings
     from registry.db import Registry
     from registry.run_request import build_request, submit
-    from hope_models.settings import load_settings
 
     home = work / mode
     home.mkdir(parents=True)
@@ -257,7 +258,7 @@ def run_mode(mode: str, dataset: Path, args: argparse.Namespace, work: Path) -> 
                          "first_step": j["first_step_no"]} for j in solo]
     end_to_next = [{"total_s": s(a["finished"], b["first_step"]), "to_dispatch_s": s(a["finished"], b["dispatched"]),
                     "to_claim_s": s(a["finished"], b["claimed"]), "first_step": b["first_step_no"]}
-                   for a, b in zip(chained, chained[1:])]
+                   for a, b in pairwise(chained)]
     together = sum(idle[k]["rss_mb"] for k in ("daemon", "worker_parent", "webapp"))
     return {"mode": mode, "idle": idle, "idle_total_rss_mb": together, "enqueue_to_first_step": enqueue_to_first,
             "end_to_next_start": end_to_next, "worker_parent_rss_mb": worker_rss, "jobs": args.solo + args.chained}

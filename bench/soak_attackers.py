@@ -18,8 +18,7 @@ import json
 import threading
 import time
 
-from hostile_clients import (HostileRound, LongPollFlood, binary_attachment_bomb, http_request, log_flood,
-                             run_flood)
+from hostile_clients import HostileRound, LongPollFlood, binary_attachment_bomb, http_request, log_flood, run_flood
 
 NEIGHBOUR = {"hostile": "127.0.0.3", "longpoll": "127.0.0.2", "logflood": "127.0.0.4"}
 

@@ -38,9 +38,9 @@ BUDGET_MB = 3072.0
 # -- the memory child: one component, default sizes, its own process --------------------------------
 
 def child_rss(args) -> None:
-    from hope_models.data.cache import load_or_build
-    from hope_models.components.build import build_component
     from hope_models.checkpoints import resolve_checkpoint_dir
+    from hope_models.components.build import build_component
+    from hope_models.data.cache import load_or_build
     from hope_models.train.estimate import cache_resident_mb, estimate_memory
     from hope_models.train.loop import TrainConfig, train
 
@@ -109,13 +109,14 @@ def trainer_round(component, data, run_dir, cache_dir, vqvae_dir, steps, warm, t
 
 def bare_round(component, cache, vqvae_dir, steps, warm, threads) -> tuple[float, float]:
     """The same training math as loop.train with nothing around it: no guards, metrics or checkpoints."""
-    import numpy as np
     import random
+
+    import numpy as np
     import torch
 
+    from hope_models.components.build import build_component
     from hope_models.data.sampler import AnchorSampler
     from hope_models.data.windows import WindowLoader
-    from hope_models.components.build import build_component
     from hope_models.train.loop import TrainConfig, lr_at
 
     cfg = TrainConfig(component=component, data="", run_dir="", steps=steps, seed=0)  # the trainer's defaults
@@ -264,7 +265,7 @@ def run(args, work: Path) -> None:
         t_med, b_med = statistics.median(trainer_sps), statistics.median(bare_sps)
         # Each round's two runs are back to back, so they share the machine's load of the moment: the
         # median of the per-round ratios is steadier than the ratio of the medians.
-        ratios = [t / b for t, b in zip(trainer_sps, bare_sps)]
+        ratios = [t / b for t, b in zip(trainer_sps, bare_sps, strict=True)]
         summary[comp] = statistics.median(ratios)
         print(f"  {comp:<10} trainer {', '.join(f'{s:.1f}' for s in trainer_sps)}  (median {t_med:.1f})")
         print(f"  {'':<10} bare    {', '.join(f'{s:.1f}' for s in bare_sps)}  (median {b_med:.1f})")

@@ -45,11 +45,11 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import torch
 
+    from hope_models.components.build import component_from_checkpoint
     from hope_models.data.cache import load_or_build
     from hope_models.data.sampler import split_episodes
     from hope_models.sim.frames import png_bytes
     from hope_models.sim.recorder import record_dataset
-    from hope_models.components.build import component_from_checkpoint
     from hope_models.train.loop import TrainConfig, train
     from hope_models.train.validation import ValidationSetup, validation_metrics
 

@@ -43,8 +43,8 @@ from typing import Any, Callable, Iterable
 from sqlalchemy import select
 
 from hope_models import disk
-from hope_models.intake.inbox import InboxError
 from hope_models.components import NEEDS_VQVAE, TOKENIZER
+from hope_models.intake.inbox import InboxError
 from registry import learning, runs
 from registry.models import LearningState, Model, Run
 

@@ -37,8 +37,8 @@ from sqlalchemy import func, or_, select
 from hope_models import disk
 from hope_models.checkpoints import list_step_dirs
 from hope_models.components import spec_of
-from hope_models.train.metrics import JSONL_NAME
 from hope_models.train.config import TrainConfig
+from hope_models.train.metrics import JSONL_NAME
 from registry import runs
 from registry.models import Model, Run
 
@@ -51,9 +51,9 @@ MB = 1024 * 1024
 def _estimated_checkpoint_mb(run: Run) -> float:
     """The checkpoint size the run's configuration describes (0 when it cannot be told: the floor
     is then the margin alone, and the job's own ENOSPC handling still stands)."""
+    from hope_models.components.resolve import resolve
     from hope_models.data.dataset_spec import probe_dataset_spec
     from hope_models.train.estimate import checkpoint_mb_from_config
-    from hope_models.components.resolve import resolve
 
     cfg = run.config or {}
     try:

@@ -33,8 +33,19 @@ from sqlalchemy import select
 from registry import runs, workers
 from registry.models import Run, Worker, utcnow
 from registry.report_channel import RegistryChannel
-from registry.report_protocol import (ANSWER_TTL_S, CONTROL_TTL_S, REPORTS_KEY, BadReport, ChannelError, ControlRow,
-                                      StaleDelivery, claim_key, control_key, dumps, parse_report)
+from registry.report_protocol import (
+    ANSWER_TTL_S,
+    CONTROL_TTL_S,
+    REPORTS_KEY,
+    BadReport,
+    ChannelError,
+    ControlRow,
+    StaleDelivery,
+    claim_key,
+    control_key,
+    dumps,
+    parse_report,
+)
 
 log = logging.getLogger(__name__)
 

@@ -40,17 +40,17 @@ from typing import Any, Iterable
 
 from sqlalchemy import select
 
-from registry import runs
 from daemon.autopromote import AutoPromoter
 from daemon.continuous import ContinuousLearning
 from daemon.dispatch import Dispatcher
 from daemon.events import STATS_EVENT, THROTTLE_EVENT, EventSink, EventTailer, NullSink
-from registry.models import Run
 from daemon.monitor import SystemMonitor, ThrottleChange, ThrottlePolicy
 from daemon.reconcile import Reconciler
 from daemon.remote import RemoteReports
 from daemon.sdnotify import SdNotifier
 from daemon.system_history import SystemHistory
+from registry import runs
+from registry.models import Run
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,20 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from hope_models.checkpoint_format import (
-    CHECKPOINT_FORMAT, CONFIG_FILE, MANIFEST, MODEL_FILE, STATE_JSON, STATE_TENSORS, CheckpointError,
-    NotACheckpoint, VerifiedCheckpoint, read_json_object, read_verified, refuse_non_safetensors, sha256_hex, verify,
+    CHECKPOINT_FORMAT,
+    CONFIG_FILE,
+    MANIFEST,
+    MODEL_FILE,
+    STATE_JSON,
+    STATE_TENSORS,
+    CheckpointError,
+    NotACheckpoint,
+    VerifiedCheckpoint,
+    read_json_object,
+    read_verified,
+    refuse_non_safetensors,
+    sha256_hex,
+    verify,
 )
 from hope_models.durable import atomic_write, fsync_path
 

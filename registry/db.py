@@ -18,12 +18,16 @@ import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sqlalchemy import create_engine, event, inspect
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from hope_models.durable import fsync_path
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 DB_FILENAME = "hope.db"
 BUSY_TIMEOUT_MS = 30_000
@@ -35,7 +39,7 @@ class RegistryError(RuntimeError):
     """The registry database cannot be used as it is (not migrated, wrong path); the message names the file."""
 
 
-def db_path(settings) -> Path:
+def db_path(settings: Settings) -> Path:
     return Path(settings.home) / DB_FILENAME
 
 
@@ -172,7 +176,7 @@ class Registry:
         self._readonly_sessions = sessionmaker(bind=self._readonly_engine, expire_on_commit=False)
 
     @classmethod
-    def open(cls, settings, *, migrate: bool = True) -> "Registry":
+    def open(cls, settings: Settings, *, migrate: bool = True) -> "Registry":
         home = Path(settings.home)
         home.mkdir(parents=True, exist_ok=True)
         path = db_path(settings)

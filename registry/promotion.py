@@ -23,9 +23,9 @@ from typing import Any
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
-from registry.models import Model, Run, iso, utcnow
 from hope_models.json_finite import finite
 from hope_models.promoted import PointerError, read_pointer, write_pointer
+from registry.models import Model, Run, iso, utcnow
 
 HISTORY_LIMIT = 20
 
@@ -74,8 +74,14 @@ def pointer_obj(model: Model, sha256: str) -> dict[str, Any]:
 def _check_checkpoint(model: Model) -> str:
     """The sha256 of the model's weights, after checking the dir is still a complete checkpoint
     holding the same weights that were gated."""
-    from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, NotACheckpoint, \
-        read_verified, version_name
+    from hope_models.checkpoint_format import (
+        CONFIG_FILE,
+        MODEL_FILE,
+        CheckpointError,
+        NotACheckpoint,
+        read_verified,
+        version_name,
+    )
 
     ckpt = Path(model.checkpoint_path)
     if not ckpt.is_dir():

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from datetime import datetime
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from sqlalchemy import select
 from sqlalchemy.exc import OperationalError, SQLAlchemyError
@@ -18,6 +18,9 @@ from hope_models.components import TOKENIZER
 from registry import runs
 from registry.models import Run
 from registry.report_protocol import REQUESTS, ChannelError, ControlRow, RunSnapshot, StaleDelivery
+
+if TYPE_CHECKING:
+    from registry.db import Registry
 
 
 def resolve_vqvae_run(s, vqvae_run: str, for_run: str) -> str:
@@ -62,7 +65,7 @@ class RegistryChannel:
 
     mode = "db"
 
-    def __init__(self, registry, run_id: str, task_id: str, attempt: int, pid: int, host: str, *,
+    def __init__(self, registry: Registry, run_id: str, task_id: str, attempt: int, pid: int, host: str, *,
                  own_registry: bool = False):
         self.registry, self.run_id, self.task_id = registry, run_id, task_id
         self.attempt, self.pid, self.host = int(attempt), int(pid), host

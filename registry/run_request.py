@@ -18,14 +18,23 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from hope_models.numbers import NumberError, as_int, short
-from hope_models.paths import PathError, confine_path
-from hope_models.train.config import (DEFAULT_REQUEST_STEPS, REQUEST_FIELDS, ConfigValueError, check_value,
-                                      over_deployment_budget)
 from hope_models.components import COMPONENTS, TOKENIZER
 from hope_models.components.chain import tokenizer_missing
+from hope_models.numbers import NumberError, as_int, short
+from hope_models.paths import PathError, confine_path
+from hope_models.train.config import (
+    DEFAULT_REQUEST_STEPS,
+    REQUEST_FIELDS,
+    ConfigValueError,
+    check_value,
+    over_deployment_budget,
+)
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
+    from registry.db import Registry
 
 QUEUE_RE = re.compile(r"^[a-z0-9_-]{1,64}$")
 DEFAULT_STEPS = DEFAULT_REQUEST_STEPS
@@ -205,7 +214,7 @@ def _model_config_error(exc: Exception, chain: bool) -> RunRequestError:
     return RunRequestError(text + (" (the members of a chain share one model_config)" if chain else ""))
 
 
-def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
+def preflight(settings: Settings, req: RunRequest, components: list[str] | None = None, *,
               vqvae_run_dir: str | None = None) -> list:
     """What the disk says about a request, before a run exists: the memory budget it asks for is
     within the deployment's, `data` holds usable episodes, the model_config fits every component
@@ -215,12 +224,12 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
     again before it builds anything). It reads files: call it outside a write transaction."""
     from dataclasses import fields
 
+    from hope_models import checkpoints as ckpt
+    from hope_models.components.resolve import check_keys, read_vqvae_config, resolve
     from hope_models.data.dataset_spec import probe_dataset_spec
     from hope_models.data.features import FeatureSpecError
-    from hope_models import checkpoints as ckpt
-    from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
     from hope_models.train.config import TrainConfig
-    from hope_models.components.resolve import check_keys, read_vqvae_config, resolve
+    from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
 
     names = components or [req.component]
     chain = components is not None
@@ -265,7 +274,7 @@ def preflight(settings, req: RunRequest, components: list[str] | None = None, *,
     return estimates
 
 
-def queue_run(registry, settings, req: RunRequest, show=None):
+def queue_run(registry: Registry, settings: Settings, req: RunRequest, show=None):
     """preflight() then submit(): the one way a front door queues a run. Returns
     show(session, run) (default: Run.to_json_obj()), made while the run's session is open."""
     with registry.session(readonly=True) as s:
@@ -277,7 +286,8 @@ def queue_run(registry, settings, req: RunRequest, show=None):
         return show(s, run) if show is not None else run.to_json_obj()
 
 
-def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=None) -> tuple[str, list]:
+def queue_sequence(registry: Registry, settings: Settings, names: list[str], req: RunRequest,
+                   show=None) -> tuple[str, list]:
     """preflight() of every member, then registry.sequences.create_sequence: the chain's sequence id
     and show(session, run) of each member (default: Run.to_json_obj())."""
     from registry.sequences import create_sequence
@@ -293,7 +303,7 @@ def queue_sequence(registry, settings, names: list[str], req: RunRequest, show=N
         return members[0].sequence_id, [show(s, r) if show is not None else r.to_json_obj() for r in members]
 
 
-def check_queue_room(session, settings, queue: str, adding: int = 1) -> None:
+def check_queue_room(session, settings: Settings, queue: str, adding: int = 1) -> None:
     """QueueFullError unless `queue` has room for `adding` more runs waiting to start (queued or
     starting) under settings.max_queued_runs. Called in the write transaction that creates them
     (BEGIN IMMEDIATE), so two requests at once cannot both take the last place. The daemon's own
@@ -312,7 +322,7 @@ def check_queue_room(session, settings, queue: str, adding: int = 1) -> None:
                              "some (`hope-trainer status`), or raise max_queued_runs")
 
 
-def submit(session, settings, req: RunRequest, *, sequence_id: str | None = None,
+def submit(session, settings: Settings, req: RunRequest, *, sequence_id: str | None = None,
            sequence_index: int | None = None):
     """Write `req` as a queued run (its run dir is $HOPE_HOME/runs/<id>); returns the Run."""
     from registry import runs

@@ -25,12 +25,30 @@ from typing import Any, Iterable
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from hope_models.json_finite import finite
 from hope_models.components import COMPONENTS
+from hope_models.json_finite import finite
 from registry.models import Run, new_run_id, utcnow
-from registry.run_states import (ACTIVE, ALLOWED, CONTROL_ACTIONS, DESIRED_STATES, EVENT_KINDS, HEARTBEAT_FIELDS,
-                                 OUTCOMES, PAUSE_REASONS, SHUTDOWN_MESSAGE, STATES, TERMINAL, RunError, add_event,
-                                 events_after, json_dict, log_event, not_found, run_events, transition)
+from registry.run_states import (
+    ACTIVE,
+    ALLOWED,
+    CONTROL_ACTIONS,
+    DESIRED_STATES,
+    EVENT_KINDS,
+    HEARTBEAT_FIELDS,
+    OUTCOMES,
+    PAUSE_REASONS,
+    SHUTDOWN_MESSAGE,
+    STATES,
+    TERMINAL,
+    RunError,
+    add_event,
+    events_after,
+    json_dict,
+    log_event,
+    not_found,
+    run_events,
+    transition,
+)
 
 _QUEUE_RE = re.compile(r"[a-z0-9_-]+")
 

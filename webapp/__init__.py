@@ -20,7 +20,10 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +61,7 @@ RELOADED_EVENT = "brain.reloaded"
 MAX_BODY_BYTES = 1 << 20  # 1 MiB: an observation of 4096 floats is ~100 kB of JSON
 
 
-def create_app(settings, *, token: str, daemon: Any = None, registry: Any = None,
+def create_app(settings: Settings, *, token: str, daemon: Any = None, registry: Any = None,
                message_queue: str | None = None, brain: Any = None,
                socket_auth_timeout_s: float = 10.0):
     """(Flask app, SocketIO). `registry` defaults to Registry.open(settings) (migrated)."""

@@ -10,20 +10,24 @@ can always force. Comparisons are constant-time.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from flask import request
 
 from webapp.auth import TokenError, load_or_create_secret, tokens_match
 
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
+
 ADMIN_TOKEN_FILENAME = "admin_token"
 ADMIN_HEADER = "X-Hope-Admin"
 
 
-def admin_token_path(settings) -> Path:
+def admin_token_path(settings: Settings) -> Path:
     return Path(settings.home) / ADMIN_TOKEN_FILENAME
 
 
-def force_refusal(settings) -> str | None:
+def force_refusal(settings: Settings) -> str | None:
     """Why the current request may not force a promotion (the 403's message), or None."""
     if not settings.allow_http_force:
         return ("force: forcing a promotion past the gate over HTTP is off (setting allow_http_force); run "

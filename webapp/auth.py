@@ -13,11 +13,14 @@ import hmac
 import os
 import secrets
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from flask import Flask, current_app, jsonify, request
 
 from webapp.socket_guard import mark_authorized
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 TOKEN_FILENAME = "token"
 TOKEN_BYTES = 32  # 256 bits, urlsafe base64 (43 characters)
@@ -28,7 +31,7 @@ class TokenError(RuntimeError):
     """The token file cannot be used (unreadable, too permissive, empty); the message names the file."""
 
 
-def token_path(settings) -> Path:
+def token_path(settings: Settings) -> Path:
     return Path(settings.home) / TOKEN_FILENAME
 
 
@@ -47,7 +50,7 @@ def read_token(path: Path) -> str:
     return text
 
 
-def load_or_create_token(settings) -> str:
+def load_or_create_token(settings: Settings) -> str:
     """The deployment's token, created (0600, exclusively: two starts at once agree) if missing."""
     return load_or_create_secret(token_path(settings))
 

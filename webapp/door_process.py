@@ -183,13 +183,12 @@ def _read_ready(fd: int, proc: subprocess.Popen, timeout: float) -> dict:
 
 def child(ready_fd: int) -> int:
     from hope_models.log_format import configure_logging
+    from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError, load_settings
     from registry.db import Registry, RegistryError
     from webapp.auth import TokenError, load_or_create_token
     from webapp.inference_door import create_door_app, open_inference_door
-
-    from hope_models.malloc_arenas import limit_malloc_arenas
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     configure_logging(logging.INFO)

@@ -22,8 +22,11 @@ import ipaddress
 import json
 import logging
 import socket
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 from urllib.parse import urlsplit
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +82,7 @@ class HostPolicy:
         self.addresses = {a.lower() for a in addresses if a}
 
     @classmethod
-    def from_settings(cls, settings) -> "HostPolicy":
+    def from_settings(cls, settings: Settings) -> "HostPolicy":
         names = set(LOOPBACK_NAMES)
         hostname = socket.gethostname().lower()
         if hostname:

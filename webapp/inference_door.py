@@ -23,8 +23,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from webapp.server import ConnectionLimits, HttpServer, ServerError
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
+    from registry.db import Registry
 
 DOOR_ROUTES = {
     "/api/brain/infer": ("POST",),
@@ -64,14 +69,15 @@ def door_app(app):
     return robots_routes_only
 
 
-def create_door_app(settings, *, token: str, registry, brain):
+def create_door_app(settings: Settings, *, token: str, registry: Registry, brain):
     """The app of the door's own process (webapp/door_process.py): the robot's routes only, under the
     same rules as create_app's (the Host rule, the token, JSON errors, the body limit), without
     Socket.IO or the editor's blueprints (~17 MB less to import), wrapped by door_app()."""
     from flask import Flask
 
     from webapp import MAX_BODY_BYTES, HopeState, auth, errors, wire_brain
-    from webapp.api import brain as brain_api, health
+    from webapp.api import brain as brain_api
+    from webapp.api import health
     from webapp.hosts import HostAllowlist, HostPolicy
     from webapp.json_provider import FiniteJSONProvider
 
@@ -89,14 +95,14 @@ def create_door_app(settings, *, token: str, registry, brain):
     return app
 
 
-def door_limits(settings) -> ConnectionLimits:
+def door_limits(settings: Settings) -> ConnectionLimits:
     """The editor's caps, on separate threads; no WebSocket phase (no upgrades here)."""
     limits = ConnectionLimits.from_settings(settings)
     return ConnectionLimits(max_connections=limits.max_connections, max_per_client=limits.max_per_client,
                             websockets=False)
 
 
-def socket_path(settings) -> Path | None:
+def socket_path(settings: Settings) -> Path | None:
     """The Unix socket the door also listens on (inference_socket; relative = under $HOPE_HOME), or None."""
     name = getattr(settings, "inference_socket", "") or ""
     return Path(settings.home) / name if name else None
@@ -120,7 +126,7 @@ class InferenceDoor:
             server.stop()
 
 
-def open_inference_door(app, settings, host: str | None = None) -> InferenceDoor:
+def open_inference_door(app, settings: Settings, host: str | None = None) -> InferenceDoor:
     """Bind the door (ServerError when its port or socket cannot be had); the caller starts and stops it."""
     wsgi, limits = door_app(app), door_limits(settings)
     servers = [HttpServer(wsgi, settings.host if host is None else host, settings.inference_port, limits,

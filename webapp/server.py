@@ -38,11 +38,15 @@ import stat
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler, select_address_family
 
 from webapp.request_phases import CONN_KEY, BodyReader, bounded_drain, has_body
 from webapp.strikes import STRIKE_KEY, Strikes
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +70,7 @@ class ConnectionLimits:
     strikes_to_ban: int = 20  # webapp/strikes.py; 0 = an address is never refused for its protocol errors
 
     @classmethod
-    def from_settings(cls, settings) -> "ConnectionLimits":
+    def from_settings(cls, settings: Settings) -> "ConnectionLimits":
         return cls(max_connections=int(getattr(settings, "max_connections", cls.max_connections)),
                    max_per_client=int(getattr(settings, "max_connections_per_client", cls.max_per_client)),
                    strikes_to_ban=int(getattr(settings, "strikes_to_ban", cls.strikes_to_ban)))

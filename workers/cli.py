@@ -20,15 +20,19 @@ import os
 import re
 import sys
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 from hope_models.child_command import module_argv
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 QUEUE_RE = re.compile(r"[a-z0-9_-]+")
 LOGLEVELS = ("debug", "info", "warning", "error", "critical")
 
 
-def worker_command(settings=None, queue: str = "pi", *, hostname: str | None = None, loglevel: str = "info",
-                   python: str | None = None) -> list[str]:
+def worker_command(settings: Settings | None = None, queue: str = "pi", *, hostname: str | None = None,
+                   loglevel: str = "info", python: str | None = None) -> list[str]:
     """The worker's argv (python first). Run it with worker_env(settings) so it reads the same
     HOPE_HOME (and Redis URL) as the caller; `settings` is accepted for that symmetry."""
     if not isinstance(queue, str) or not QUEUE_RE.fullmatch(queue):
@@ -42,7 +46,7 @@ def worker_command(settings=None, queue: str = "pi", *, hostname: str | None = N
                        f"--loglevel={loglevel.lower()}", python=python)
 
 
-def worker_env(settings, base: Mapping[str, str] | None = None) -> dict[str, str]:
+def worker_env(settings: Settings, base: Mapping[str, str] | None = None) -> dict[str, str]:
     """The environment for the worker process: `base` (default os.environ) with HOPE_HOME and,
     when set, HOPE_REDIS_URL taken from `settings`, so the worker uses the caller's state dir
     and broker even when those came from code rather than the environment."""

@@ -33,10 +33,13 @@ import os
 import socket
 import threading
 from datetime import datetime
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from registry.models import utcnow
 from registry.workers import WorkerBeat
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +55,7 @@ def _hook_fork() -> None:
                             after_in_child=_fork_lock.release)
 
 
-def report_mode(settings) -> str | None:
+def report_mode(settings: Settings) -> str | None:
     """"db" when the registry is on this host, else "redis" with a Redis URL, else None."""
     from registry.db import db_path
 
@@ -87,7 +90,7 @@ def active_run_id() -> str | None:
 
 
 class WorkerHeartbeat:
-    def __init__(self, settings, name: str, queues: list[str], *, interval_s: float | None = None,
+    def __init__(self, settings: Settings, name: str, queues: list[str], *, interval_s: float | None = None,
                  pid: int | None = None, host: str | None = None, current: Callable[[], str | None] = active_run_id,
                  redis_client: Any = None):
         self.settings = settings

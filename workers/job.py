@@ -29,16 +29,25 @@ import threading
 import time
 import traceback
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-from hope_models.train.contract import ControlCommand
-from hope_models.train.config import (REQUEST_FIELDS, ConfigValueError, TrainConfig, check_value, deployment_values,
-                                      over_deployment_budget)
-from hope_models.train.loop import TrainSetupError, train
 from hope_models.disk import full_message, is_disk_full
+from hope_models.train.config import (
+    REQUEST_FIELDS,
+    ConfigValueError,
+    TrainConfig,
+    check_value,
+    deployment_values,
+    over_deployment_budget,
+)
+from hope_models.train.contract import ControlCommand
+from hope_models.train.loop import TrainSetupError, train
 from hope_models.train.run_dir_lock import wait_until_free
 from registry.report_protocol import ChannelError, RunSnapshot, StaleDelivery
 from workers.report import open_channel
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +74,7 @@ class JobConfigError(ValueError):
 
 # -- config ---------------------------------------------------------------------------------------
 
-def build_train_config(settings, run: RunSnapshot, run_dir_of: Callable[[str], str]) -> TrainConfig:
+def build_train_config(settings: Settings, run: RunSnapshot, run_dir_of: Callable[[str], str]) -> TrainConfig:
     """TrainConfig for `run`: its config overrides, run_dir and steps from the row, the memory
     budget and cache dir from settings unless the config sets them, and no thermal sources (the
     daemon watches the temperature and sets throttle_level). `run_dir_of(run_id)` resolves
@@ -341,7 +350,7 @@ def _install_sigterm(flag: threading.Event):
 
 
 class _Job:
-    def __init__(self, channel, settings, run: RunSnapshot, shutdown: threading.Event):
+    def __init__(self, channel, settings: Settings, run: RunSnapshot, shutdown: threading.Event):
         self.channel, self.settings, self.run = channel, settings, run
         self.lost = threading.Event()
         self.shutdown = shutdown
@@ -396,7 +405,7 @@ class _Job:
         return {"status": "finished", "state": final, **out}
 
 
-def run_job(settings, run_id: str, attempt: int, *, task_id: str, report: str = "db", host: str | None = None,
+def run_job(settings: Settings, run_id: str, attempt: int, *, task_id: str, report: str = "db", host: str | None = None,
             pid: int | None = None) -> dict[str, Any]:
     """Claim run `run_id` for delivery (task_id, attempt) and train it in this process, reporting
     through `report` ("db": the registry on this host; "redis": the daemon, from another

@@ -21,11 +21,25 @@ import json
 import logging
 import time
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from registry.report_channel import RegistryChannel
-from registry.report_protocol import (ANSWER_TTL_S, REPORT_MODES, REPORTS_KEY, REQUESTS, ChannelError, ControlRow,
-                                      RunSnapshot, StaleDelivery, claim_key, control_key, dumps)
+from registry.report_protocol import (
+    ANSWER_TTL_S,
+    REPORT_MODES,
+    REPORTS_KEY,
+    REQUESTS,
+    ChannelError,
+    ControlRow,
+    RunSnapshot,
+    StaleDelivery,
+    claim_key,
+    control_key,
+    dumps,
+)
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +172,7 @@ class RedisChannel:
         self.client.close()
 
 
-def open_channel(settings, report: str, run_id: str, task_id: str, attempt: int, pid: int, host: str):
+def open_channel(settings: Settings, report: str, run_id: str, task_id: str, attempt: int, pid: int, host: str):
     """The channel a task asked for: "db" opens the registry under settings.home (this host holds
     it); "redis" needs settings.redis_url and opens no registry at all."""
     if report == "db":

@@ -37,8 +37,8 @@ def make(action: str) -> tuple[Callable, Callable]:
         parser.add_argument("--json", action="store_true", help='print {"run": {...}} on stdout')
 
     def run(args: argparse.Namespace) -> int:
-        from registry import runs
         from daemon.cli.registry import open_registry, print_json, run_command
+        from registry import runs
 
         def body() -> int:
             with open_registry() as (_settings, registry):

@@ -43,10 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from registry.db import RegistryError
     from hope_models.log_format import configure_logging, journal_prefix
     from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.settings import SettingsError, load_settings
+    from registry.db import RegistryError
 
     limit_malloc_arenas()  # a long-lived service: hope_models/malloc_arenas.py
     # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp

@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hope_models.components import COMPONENTS
 from hope_models.numbers import NumberError, int_from_text
 from hope_models.train.config import DEFAULT_REQUEST_STEPS, OPTIONS, REQUEST_FIELDS, add_flag, add_flags, dest_of
-from hope_models.components import COMPONENTS
 
 
 def _int(text: str) -> int:

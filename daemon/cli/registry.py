@@ -22,8 +22,8 @@ class CommandError(Exception):
 @contextmanager
 def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
     """(settings, Registry) for the duration of a command."""
-    from registry.db import Registry, RegistryError
     from hope_models.settings import SettingsError, load_settings
+    from registry.db import Registry, RegistryError
 
     try:
         settings = load_settings()

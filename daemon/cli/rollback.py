@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from registry import promotion
     from daemon.cli.registry import USAGE_EXIT, CommandError, open_registry, print_json
+    from registry import promotion
 
     try:
         with open_registry() as (settings, registry):

@@ -25,8 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from daemon.cli.registry import CommandError, open_registry, print_json, run_command
-    from registry.run_request import build_request, queue_sequence
     from hope_models.components.chain import SequenceError, parse_sequence
+    from registry.run_request import build_request, queue_sequence
 
     def body() -> int:
         try:

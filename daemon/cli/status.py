@@ -79,7 +79,7 @@ def format_table(runs: list[dict[str, Any]]) -> str:
                      f"{r['attempt']}/{r['max_attempts']}", age_text(r.get("created_at")),
                      closure_text(r.get("loop_closure_s"))))
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
-    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows]
     for r in runs:  # why a run failed or was cancelled, or what it waits for, under the table
         if r["state"] in ("failed", "cancelled") and r.get("error"):
             lines.append(f"{r['id']}: {r['error']}")

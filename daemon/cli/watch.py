@@ -12,10 +12,13 @@ import argparse
 import math
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hope_models.numbers import NumberError, float_from_text
 from hope_models.train.contract import OUTCOME_EXIT_CODES
+
+if TYPE_CHECKING:
+    from registry.db import Registry
 
 END_EXIT_CODES = {"completed": OUTCOME_EXIT_CODES["completed"], "failed": OUTCOME_EXIT_CODES["failed"],
                   "cancelled": OUTCOME_EXIT_CODES["cancelled"]}
@@ -107,7 +110,7 @@ class Display:
             self._open = False
 
 
-def watch(registry, run_id: str, interval: float, display: Display) -> dict[str, Any]:
+def watch(registry: Registry, run_id: str, interval: float, display: Display) -> dict[str, Any]:
     """Poll until the run is in a terminal state; returns its final JSON object."""
     from registry import runs
 

@@ -56,8 +56,8 @@ import sys
 import time
 from pathlib import Path
 
-from hope_models.components import PREDICTOR
 from hope_models.cli.argtypes import non_negative_int, positive_int
+from hope_models.components import PREDICTOR
 from hope_models.numbers import NumberError, float_from_text
 
 PROMOTED = "promoted"
@@ -263,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
         "per_episode": [
             {"seed": p.seed, "return": p.ret, "success": p.success, "time_to_reach_s": p.time_to_reach_s,
              "expert_return": e.ret, "random_return": r.ret}
-            for p, e, r in zip(res.episodes, expert.episodes, rand.episodes)],
+            for p, e, r in zip(res.episodes, expert.episodes, rand.episodes, strict=True)],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
     if jump is not None:

@@ -101,11 +101,7 @@ def vqvae_config_of(obj: Any, where: str) -> VQVAEConfig:
 
 def read_vqvae_config(ckpt_dir: str | Path) -> VQVAEConfig:
     """The VQVAEConfig of a vqvae checkpoint dir, from its config.json alone (no weights, no torch)."""
-    from hope_models.checkpoint_format import (
-        CONFIG_FILE,
-        CheckpointError,
-        read_json_object,
-    )
+    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 
     path = Path(ckpt_dir) / CONFIG_FILE
     try:

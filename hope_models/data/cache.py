@@ -16,7 +16,11 @@ from pathlib import Path
 
 from hope_models.data.cache_build import build_cache
 from hope_models.data.dataset_cache import (
-    CACHE_FORMAT, DEFAULT_RESIDENT_BUDGET_MB, CacheError, DatasetCache, open_cache,
+    CACHE_FORMAT,
+    DEFAULT_RESIDENT_BUDGET_MB,
+    CacheError,
+    DatasetCache,
+    open_cache,
 )
 from hope_models.data.spec_request import SpecRequest
 

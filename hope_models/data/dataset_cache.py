@@ -170,7 +170,7 @@ class DatasetCache:
         if key not in self._block_rows:
             worst = 1
             fd = self._files["t"].fileno()
-            for s, e in zip(self.starts.tolist(), (self.ends + 1).tolist()):
+            for s, e in zip(self.starts.tolist(), (self.ends + 1).tolist(), strict=True):
                 # pread, not the mapping: this pass must not leave the whole of t resident
                 t = np.frombuffer(os.pread(fd, (e - s) * 8, s * 8), dtype="<f8")
                 i = np.arange(len(t))

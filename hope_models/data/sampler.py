@@ -75,7 +75,8 @@ class _Pool:
         total = int(lengths[keep].sum())
         # int32 halves the memory; caches beyond 2^31 steps are far past what a Pi holds
         dtype = np.int32 if int(starts.max(initial=0)) + total < 2**31 else np.int64
-        self.steps = np.concatenate([np.arange(s, s + n, dtype=dtype) for s, n in zip(starts[keep], lengths[keep])]
+        self.steps = np.concatenate([np.arange(s, s + n, dtype=dtype)
+                                     for s, n in zip(starts[keep], lengths[keep], strict=True)]
                                     or [np.empty(0, dtype=dtype)])
         self.size = total
         self.seed_key = seed_key
@@ -165,7 +166,7 @@ class AnchorSampler:
         if self.min_history_s == 0 and self.horizon_s == 0:
             return starts, ends - starts
         first, last = starts.copy(), ends.copy()
-        for i, (s, e) in enumerate(zip(starts, ends)):
+        for i, (s, e) in enumerate(zip(starts, ends, strict=True)):
             t = c.t[s:e]  # binary search only: touches a few pages, not the whole episode
             first[i] = s + np.searchsorted(t, self.min_history_s - _EPS, side="left")
             last[i] = s + np.searchsorted(t, t[-1] - self.horizon_s + _EPS, side="right")

@@ -15,8 +15,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hope_models.data.features import (
-    DEFAULT_COVERAGE, FRAME_FIELD, FRAME_SHAPE, MAX_VECTOR, FeatureField, FeatureGroup, FeatureSpec,
-    FeatureSpecError, FrameFeature, is_number,
+    DEFAULT_COVERAGE,
+    FRAME_FIELD,
+    FRAME_SHAPE,
+    MAX_VECTOR,
+    FeatureField,
+    FeatureGroup,
+    FeatureSpec,
+    FeatureSpecError,
+    FrameFeature,
+    is_number,
 )
 from hope_models.data.frames import BlobFrameError, frame_blob_refs, load_frame_blob, resolve_blob_uri
 from hope_models.data.spec_request import PartialGroup, SpecRequest

@@ -16,8 +16,17 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import (
-    DEFAULT_COVERAGE, DEFAULT_STD_FLOOR, FRAME_SHAPE, FRAME_SOURCES, SPEC_FORMAT, FeatureField, FeatureGroup,
-    FeatureSpec, FeatureSpecError, FrameFeature, is_number,
+    DEFAULT_COVERAGE,
+    DEFAULT_STD_FLOOR,
+    FRAME_SHAPE,
+    FRAME_SOURCES,
+    SPEC_FORMAT,
+    FeatureField,
+    FeatureGroup,
+    FeatureSpec,
+    FeatureSpecError,
+    FrameFeature,
+    is_number,
 )
 
 

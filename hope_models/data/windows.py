@@ -98,7 +98,7 @@ def _count_at_or_before(tb: np.ndarray, g: np.ndarray) -> np.ndarray:
     """For each row b and grid time g[b, k]: how many of the ascending tb[b, :] are <= g[b, k]."""
     if tb.shape[1] <= 64:  # one broadcast compare beats a loop for short blocks
         return (tb[:, None, :] <= g[:, :, None]).sum(axis=2)
-    return np.stack([np.searchsorted(row, gk, side="right") for row, gk in zip(tb, g)])
+    return np.stack([np.searchsorted(row, gk, side="right") for row, gk in zip(tb, g, strict=True)])
 
 
 def _normalised(cache: DatasetCache, j: np.ndarray, normalize: bool, first: np.ndarray, n: int) -> np.ndarray:

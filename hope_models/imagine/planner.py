@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from hope_models.imagine.recorded import Goal
 from hope_models.components import PREDICTOR, spec_of
 from hope_models.components.mid_loop.model import MidLoop, previous_actions
+from hope_models.imagine.recorded import Goal
 
 ACTION_BOUNDS = (-1.0, 1.0)
 
@@ -157,7 +157,7 @@ class ModelCEM:
         cfg = self.cfg
         lo, hi = ACTION_BOUNDS
         obs = torch.as_tensor(obs, dtype=torch.float32)
-        b, p = obs.shape[0], cfg.population
+        b = obs.shape[0]
         h0 = self.wm.model.wm_encode(y, obs)[:, None]  # once per state, shared by its candidates
         mu, sd = self.mean.clone(), torch.full_like(self.mean, cfg.init_std)
         best = torch.zeros(b)

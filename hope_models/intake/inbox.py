@@ -33,8 +33,16 @@ from typing import Any, Iterable, Iterator
 
 from hope_models.intake.trainable import COMPONENTS, trainable
 from hope_models.rlds.app_record import AppRecordError, episode_from_record
-from hope_models.rlds.ingest import (IngestDiskFull, IngestError, Manifest, dataset_lock, ingest_paths,
-                                     ingest_reports, load_manifest, write_manifest)
+from hope_models.rlds.ingest import (
+    IngestDiskFull,
+    IngestError,
+    Manifest,
+    dataset_lock,
+    ingest_paths,
+    ingest_reports,
+    load_manifest,
+    write_manifest,
+)
 from hope_models.rlds.read_episode_dir import read_episode_dir
 
 STAGE_PREFIX = ".stage-"

@@ -30,7 +30,6 @@ from hope_models.data.spec_inference import episode_signature
 from hope_models.rlds.episode import Episode
 
 
-
 def _usable(size: int) -> bool:
     return 0 < size <= MAX_VECTOR
 

@@ -48,8 +48,8 @@ from typing import Any
 import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
-from hope_models.json_finite import finite
 from hope_models.components import spec_of
+from hope_models.json_finite import finite
 from hope_models.promote.baselines import baselines_check
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
@@ -381,7 +381,11 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
 
 def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
     from hope_models.promote.reflex_policy import (
-        SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec,
+        SIM_ACTION,
+        SIM_OBSERVATION,
+        ReflexPolicy,
+        ReflexPolicyError,
+        check_spec,
     )
     from hope_models.sim.evaluate import evaluate_policy
 

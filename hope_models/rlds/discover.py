@@ -16,9 +16,15 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from .episode import ERROR, WARNING, Problem, SourceReport
-from .json_text import (DEFAULT_MAX_FILE_BYTES, DEFAULT_MAX_LINE_BYTES, ReadLimits, TextReadError, decode_text,
-                        read_bytes)
 from .inflate import Budget, BudgetError, InflateError
+from .json_text import (
+    DEFAULT_MAX_FILE_BYTES,
+    DEFAULT_MAX_LINE_BYTES,
+    ReadLimits,
+    TextReadError,
+    decode_text,
+    read_bytes,
+)
 from .read_episode_dir import LEGACY_STEPS_FILE, METADATA_FILE, read_episode_dir, step_files
 from .read_mcap import read_mcap
 from .read_npz import NPZ_SUFFIX, SIDECAR_SUFFIX, read_npz

@@ -143,7 +143,7 @@ def export_each(paths: Iterable[str | os.PathLike], profile: str, allow_invalid:
                 results.extend(dict(e, action="skipped" if e["status"] == "skipped" else "refused",
                                     **unwritten) for e in entries)
                 continue
-            for ep, entry in zip(report.episodes, entries):
+            for ep, entry in zip(report.episodes, entries, strict=True):
                 if not entry["ok"] and not allow_invalid:
                     results.append(dict(entry, action="refused", **unwritten))
                     continue

@@ -38,8 +38,14 @@ from .episode import Episode, SourceReport
 from .inflate import BudgetError
 from .json_text import json_dumps
 from .validation_report import exception_entry, read_reports, report_entries, unique_paths
-from .write_episode_dir import (PreparedEpisode, confine_blobs, prepare_episode, remove_stale_tmp_dirs,
-                                safe_episode_id, write_prepared)
+from .write_episode_dir import (
+    PreparedEpisode,
+    confine_blobs,
+    prepare_episode,
+    remove_stale_tmp_dirs,
+    safe_episode_id,
+    write_prepared,
+)
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "hope-rlds-dataset"
@@ -267,7 +273,7 @@ def _ingest_each(reports: Iterable[SourceReport], dataset: Path, manifest: Manif
         if not report.episodes:
             results.extend(_record_unwritten(entry, manifest) for entry in entries)
             continue
-        for ep, entry in zip(report.episodes, entries):
+        for ep, entry in zip(report.episodes, entries, strict=True):
             if entry["status"] == "rejected":
                 results.append(_record_unwritten(entry, manifest))
                 continue

@@ -69,7 +69,7 @@ def snake_keys(obj: Any) -> Any:
         if not any(type(x) in (dict, list) for x in obj):
             return obj
         new = [snake_keys(x) for x in obj]
-        return new if any(a is not b for a, b in zip(new, obj)) else obj
+        return new if any(a is not b for a, b in zip(new, obj, strict=True)) else obj
     return obj
 
 

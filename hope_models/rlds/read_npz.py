@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from .episode import ERROR, Episode, Problem, SourceReport, Step
 from ..durable import file_sha256
+from .episode import ERROR, Episode, Problem, SourceReport, Step
 from .inflate import InflateError, inflate_cap
 from .json_text import ReadLimits, TextReadError, parse_json_document, read_text
 from .normalize import normalize_metadata

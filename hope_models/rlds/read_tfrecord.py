@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import os
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +27,8 @@ from hope_models.numbers import huge_integer_error
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
 from .json_text import ReadLimits, TextReadError, read_bytes
 from .normalize import id_from_name, normalize_metadata, step_from_obj
-from .tfrecord_framing import GZIP_MAGIC, masked_crc, scan_records, unwrap_gzip, valid_record_at
 from .tf_example import BYTES, FLOAT, ExampleDecodeError, Feature, decode_example, float32_value
+from .tfrecord_framing import GZIP_MAGIC, masked_crc, scan_records, unwrap_gzip, valid_record_at
 from .timestamps import assign_timestamps
 
 __all__ = ["GZIP_MAGIC", "LAYOUT", "masked_crc", "read_tfrecord", "scan_records", "unwrap_gzip", "valid_record_at"]
@@ -98,7 +98,7 @@ def _same_float32(a: list, b: list) -> bool:
     if len(a) != len(b):
         return False
     try:
-        return all(struct.pack("<f", float(x)) == struct.pack("<f", float(y)) for x, y in zip(a, b))
+        return all(struct.pack("<f", float(x)) == struct.pack("<f", float(y)) for x, y in zip(a, b, strict=True))
     except (TypeError, ValueError, OverflowError):
         return False
 

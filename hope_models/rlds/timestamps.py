@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from decimal import Decimal, InvalidOperation, ROUND_HALF_EVEN
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+from itertools import pairwise
 from typing import Any, Callable
 
 from .episode import Episode, Step
@@ -104,7 +105,7 @@ def _epoch_unit(first: float) -> str | None:
 
 def _median_period(values: list[int | Decimal]) -> float | None:
     """Median of the positive differences between consecutive values, in the values' unit."""
-    diffs = sorted(float(b - a) for a, b in zip(values, values[1:]) if b != a)
+    diffs = sorted(float(b - a) for a, b in pairwise(values) if b != a)
     if not diffs:
         return None
     return diffs[len(diffs) // 2]
@@ -241,7 +242,7 @@ def assign_timestamps(ep: Episode, *, canonical: bool = False) -> str | None:
 
     clock, values = chosen
     unit, note = detect_unit(clock, values)
-    for s, v in zip(steps, values):
+    for s, v in zip(steps, values, strict=True):
         s.timestamp_ns = _to_ns(v, unit)
         s.extras.pop("timestamp_ns", None)
     return clock.path

@@ -15,6 +15,7 @@ import math
 import statistics
 from collections import Counter
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import Any
 
 from .episode import ERROR, WARNING, Episode, Problem
@@ -207,7 +208,7 @@ def _check_timestamps(ep: Episode, found: _Findings) -> None:
         found.add(WARNING, "timestamp_missing", f"{len(missing)} of {len(ep.steps)} steps have no "
                   "timestamp", missing[0], "timestamp_ns")
     periods: list[tuple[int, int]] = []  # (step index, ns since the previous stamped step)
-    for (prev_i, prev), (i, ts) in zip(stamps, stamps[1:]):
+    for (prev_i, prev), (i, ts) in pairwise(stamps):
         if ts < prev:
             found.add(ERROR, "timestamp_backwards", f"timestamp goes backwards: {ts} ns is "
                       f"{(prev - ts) / 1e6:.3f} ms before step {prev_i} ({prev} ns)", i, "timestamp_ns")

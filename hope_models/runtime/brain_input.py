@@ -52,5 +52,11 @@ def observation_values(observation: Any) -> list[float]:
     return values
 
 
+def check_session(session: Any) -> None:
+    """BrainError(400) unless `session` is None (no session) or a string of 1 to MAX_SESSION_CHARS characters."""
+    if session is not None and (not isinstance(session, str) or not 0 < len(session) <= MAX_SESSION_CHARS):
+        raise BrainError(f"session must be a string of 1 to {MAX_SESSION_CHARS} characters (or omitted)")
+
+
 __all__ = ["BrainError", "MAX_ABS_OBSERVATION", "MAX_OBSERVATION", "MAX_SESSIONS", "MAX_SESSION_CHARS",
-           "observation_values"]
+           "check_session", "observation_values"]

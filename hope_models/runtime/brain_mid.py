@@ -119,7 +119,7 @@ def _grid_point(mid: Any, sess: MidSession, values: np.ndarray, prev: np.ndarray
     sess.window.append((mid.rows(codes), act_n))
     groups = np.arange(mid.groups)
     by_h: dict[str, float | None] = {}
-    for h, (name, s) in enumerate(zip(mid.horizon_names, mid.horizon_steps)):
+    for h, (name, s) in enumerate(zip(mid.horizon_names, mid.horizon_steps, strict=True)):
         past = sess.logp[-s] if len(sess.logp) >= s else None  # predicted at grid point k - s
         by_h[name] = None if past is None else float(-past[h, groups, codes].sum())
     rows = np.stack([r for r, _ in sess.window])
@@ -166,7 +166,8 @@ def answer(slot: Any, served: Any, x: np.ndarray, session: str | None, reset: bo
 def _fields(mid: Any, pred: np.ndarray | None, by_h: dict[str, float | None], tick_no: int,
             point: int) -> dict[str, Any]:
     shortest = mid.horizon_names[int(np.argmin(mid.horizon_steps))]
-    return {"prediction": None if pred is None else {n: [float(v) for v in p] for n, p in zip(mid.horizon_names, pred)},
+    return {"prediction": None if pred is None else {n: [float(v) for v in p]
+                                                     for n, p in zip(mid.horizon_names, pred, strict=False)},
             "surprise": by_h[shortest], "surprise_by_horizon": by_h, "mid_tick": tick_no, "mid_grid_point": point}
 
 

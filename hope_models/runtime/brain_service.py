@@ -69,9 +69,8 @@ from hope_models.components import ACTOR, COMPONENTS, PREDICTOR, TOKENIZER
 from hope_models.components.checkpoint_checks import CheckpointRefused
 from hope_models.components.numpy_layers import NumpyWindowState
 from hope_models.promoted import PointerError, pointer_path, read_pointer
-from hope_models.runtime import brain_mid
-from hope_models.runtime.brain_input import (MAX_ABS_OBSERVATION, MAX_SESSION_CHARS, MAX_SESSIONS, BrainError,
-                                             observation_values)
+from hope_models.runtime import brain_input, brain_mid
+from hope_models.runtime.brain_input import MAX_ABS_OBSERVATION, MAX_SESSIONS, BrainError, observation_values
 from hope_models.runtime.hook_thread import HookThread
 
 log = logging.getLogger(__name__)
@@ -299,8 +298,7 @@ class BrainService:
         if slot is None:
             raise BrainError(f"unknown component {component!r}; BrainService serves {', '.join(self._slots)}", 404)
         values = observation_values(observation)
-        if session is not None and (not isinstance(session, str) or not 0 < len(session) <= MAX_SESSION_CHARS):
-            raise BrainError(f"session must be a string of 1 to {MAX_SESSION_CHARS} characters (or omitted)")
+        brain_input.check_session(session)
         if not isinstance(reset, bool):
             raise BrainError(f"reset must be true or false, got {reset!r}")
         served = slot.served  # read once: this request finishes on this object, whatever swaps meanwhile

@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from hope_models.components import PREDICTOR
-from hope_models.promoted import PointerError, read_pointer
-from hope_models.runtime import brain_mid
 from hope_models.components.checkpoint_checks import CheckpointRefused
 from hope_models.components.mid_loop.numpy_form import MidLoopNumpy
+from hope_models.promoted import PointerError, read_pointer
+from hope_models.runtime import brain_mid
 
 NO_MID_LOOP = "no mid_loop promoted"
 

@@ -27,7 +27,13 @@ from typing import Any
 import numpy as np
 
 from hope_models.sim.reacher import (
-    ACT_DIM, ACTION_HIGH, ACTION_LOW, CONTROL_PERIOD_S, LINK_LENGTHS_M, OBS_DIM, observation_vector,
+    ACT_DIM,
+    ACTION_HIGH,
+    ACTION_LOW,
+    CONTROL_PERIOD_S,
+    LINK_LENGTHS_M,
+    OBS_DIM,
+    observation_vector,
 )
 
 KP = 300.0

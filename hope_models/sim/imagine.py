@@ -57,7 +57,14 @@ from hope_models.rlds.episode import Episode
 from hope_models.rlds.validation_report import episode_report
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
 from hope_models.sim.reacher import (
-    ACT_DIM, ACTION_HIGH, ACTION_LOW, CONTROL_PERIOD_S, EPISODE_STEPS, LINK_LENGTHS_M, TASKS, make_env,
+    ACT_DIM,
+    ACTION_HIGH,
+    ACTION_LOW,
+    CONTROL_PERIOD_S,
+    EPISODE_STEPS,
+    LINK_LENGTHS_M,
+    TASKS,
+    make_env,
 )
 from hope_models.sim.recorder import rollout, sim_metadata, software_versions
 from hope_models.sim.seed_ranges import DEFAULT_SEED_BASE, check_seeds

@@ -49,9 +49,7 @@ import numpy as np
 from hope_models.rlds.episode import Episode, Step
 from hope_models.rlds.validate import validate_episode
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
-from hope_models.sim.reacher import (
-    CONTROL_PERIOD_S, EPISODE_STEPS, FRAME_SIZE, ROBOT_MODEL, TASKS, make_env,
-)
+from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, FRAME_SIZE, ROBOT_MODEL, TASKS, make_env
 
 DEFAULT_SEED_BASE = 100_000  # demos start here; evaluation defaults to seeds 0..N-1 (held out)
 DEFAULT_ORIGIN = "sim:dm_control"

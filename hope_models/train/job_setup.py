@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 from typing import Callable
 
-from hope_models.disk import is_disk_full
 from hope_models import checkpoints as ckpt
 from hope_models.components import spec_of
+from hope_models.disk import is_disk_full
 from hope_models.train.config import TrainConfig
 from hope_models.train.contract import TrainSetupError
 from hope_models.train.dataset_dir import dataset_dir_for
@@ -80,8 +80,8 @@ def check_resume_matches(cfg: TrainConfig, loaded: ckpt.LoadedCheckpoint, run_di
 def estimate_from_config(cfg: TrainConfig, cache, vqvae_dir: Path | None):
     """The memory estimate of the component cfg describes, from its configuration: nothing is
     built, so a model too big for the budget is refused before it can take the memory."""
-    from hope_models.train import estimate
     from hope_models.components.resolve import read_vqvae_config, resolve
+    from hope_models.train import estimate
 
     try:
         vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and spec_of(cfg.component).reads_vqvae != "never" \

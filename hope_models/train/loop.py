@@ -29,18 +29,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from hope_models import disk
-from hope_models.durable import atomic_write
 from hope_models import checkpoints as ckpt
-from hope_models.train import job_setup, rng_state
-from hope_models.train.job_setup import LOADER_CHUNK
-from hope_models.train.config import ConfigValueError, TrainConfig
+from hope_models import disk
 from hope_models.components import COMPONENTS
+from hope_models.durable import atomic_write
+from hope_models.train import job_setup, rng_state
+from hope_models.train.config import ConfigValueError, TrainConfig
 from hope_models.train.contract import Control, ControlCommand, NoControl, TrainSetupError
+from hope_models.train.job_setup import LOADER_CHUNK
 from hope_models.train.loss_history import LossHistory
 from hope_models.train.result import TrainResult
-from hope_models.train.schedule import lr_at
 from hope_models.train.run_dir_lock import RunDirBusy, RunDirLock
+from hope_models.train.schedule import lr_at
 
 Emit = Callable[[str, dict], None]
 

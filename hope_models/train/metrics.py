@@ -47,7 +47,14 @@ from hope_models.durable import fsync_path
 from hope_models.train.mcap_index import clean_merged, index_segments, merged_names
 from hope_models.train.metric_series import write_columns
 from hope_models.train.metrics_files import (  # noqa: F401 - the names every reader of a run's metrics uses
-    EVENTS_TOPIC, JSONL_NAME, MCAP_STEM, METRICS_TOPIC, PROFILE, RESERVED, mcap_segments, segment_number,
+    EVENTS_TOPIC,
+    JSONL_NAME,
+    MCAP_STEM,
+    METRICS_TOPIC,
+    PROFILE,
+    RESERVED,
+    mcap_segments,
+    segment_number,
 )
 
 log = logging.getLogger(__name__)

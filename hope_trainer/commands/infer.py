@@ -28,10 +28,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
 from hope_models.numbers import NumberError, float_from_text
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 NOT_ANSWERED_EXIT = 1
 USAGE_EXIT = 2
@@ -82,7 +85,7 @@ def _observation(text: str, flag: str = "--observation") -> list[float]:
         raise InferFailure(f"{flag}: {exc}", USAGE_EXIT) from None
 
 
-def _base_url(settings) -> str:
+def _base_url(settings: Settings) -> str:
     port = settings.inference_port or settings.port
     host = settings.host
     if host in ("", "0.0.0.0", "::"):  # bound to every interface: this machine answers on loopback
@@ -92,7 +95,7 @@ def _base_url(settings) -> str:
     return f"http://{host}:{port}"
 
 
-def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+def _via_http(settings: Settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
     import urllib.error
     import urllib.request
 
@@ -134,7 +137,7 @@ def _via_http(settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
         raise InferFailure(f"{base}: the answer is not JSON ({exc})", NOT_ANSWERED_EXIT) from None
 
 
-def _record_first_inference(settings):
+def _record_first_inference(settings: Settings):
     """on_first_inference for --local: the loop-closure time goes into the registry as with serve."""
     def record(component: str, version: str, checkpoint: str, when) -> None:
         from registry import promotion
@@ -146,7 +149,7 @@ def _record_first_inference(settings):
     return record
 
 
-def _via_local(settings, body: dict[str, Any]) -> dict[str, Any]:
+def _via_local(settings: Settings, body: dict[str, Any]) -> dict[str, Any]:
     from hope_models.runtime.brain_service import BrainError, BrainService
 
     try:

@@ -199,10 +199,10 @@ class Serve:
         self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
 
     def start(self) -> str:
-        from registry.db import Registry
         from daemon.events import SocketIOSink
         from daemon.service import Daemon
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
+        from registry.db import Registry
         from webapp import create_app
         from webapp.auth import load_or_create_token
         from webapp.door_process import DoorProcess
@@ -352,11 +352,11 @@ def setup_logging(home: Path, console_level: int = logging.INFO, settings: Any =
 
 
 def run(args: argparse.Namespace) -> int:
-    from registry.db import RegistryError
+    from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.settings import SettingsError
+    from registry.db import RegistryError
     from webapp.auth import TokenError
     from webapp.server import ServerError
-    from hope_models.malloc_arenas import limit_malloc_arenas
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     try:

@@ -22,8 +22,12 @@ import logging
 import signal
 import sys
 import threading
+from typing import TYPE_CHECKING
 
 from hope_trainer.commands.serve import add_listen_arguments, brain_summary, door_line, listen_settings
+
+if TYPE_CHECKING:
+    from registry.db import Registry
 
 log = logging.getLogger("hope.webapp")
 
@@ -47,7 +51,7 @@ def health_ok(host: str, port: int, timeout: float = 5.0) -> bool:
         return False
 
 
-def _tail_events(registry, socketio, stop: threading.Event) -> None:
+def _tail_events(registry: Registry, socketio, stop: threading.Event) -> None:
     """No Redis: push run events from the registry to this process's browsers."""
     from daemon.events import EventTailer, SocketIOSink
 
@@ -70,16 +74,16 @@ def _start_logging(level: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from registry.db import Registry, RegistryError
     from daemon.sdnotify import SdNotifier
     from hope_models.log_format import journal_prefix
+    from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
     from hope_models.settings import SettingsError
+    from registry.db import Registry, RegistryError
     from webapp import create_app
     from webapp.auth import TokenError, load_or_create_token, token_path
     from webapp.door_process import DoorProcess
     from webapp.server import ConnectionLimits, HttpServer, ServerError
-    from hope_models.malloc_arenas import limit_malloc_arenas
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     _start_logging(args.log_level)

@@ -17,8 +17,8 @@ from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
 
 class ChainSteps:
     def queue_chain(self, data: Path) -> list[str]:
-        from registry.sequences import create_sequence
         from registry.run_request import build_request
+        from registry.sequences import create_sequence
 
         a = self.args
         req = build_request(component=COMPONENTS[0], data=str(data), steps=a.steps, queue=a.queue,
@@ -27,7 +27,7 @@ class ChainSteps:
         if left:
             self.serve.daemon.wake()
             say("3. training: resuming the chain an interrupted demo left (its runs resume from their "
-                "checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left)))
+                "checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left, strict=False)))
             return left
         with self.serve.registry.session() as s:
             members = create_sequence(s, COMPONENTS, req.config(), total_steps=req.steps,
@@ -36,7 +36,7 @@ class ChainSteps:
             seq = members[0].sequence_id
         self.serve.daemon.wake()
         say(f"3. training: queued the chain {','.join(COMPONENTS)} ({seq}), {a.steps} steps each: "
-            + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, ids)))
+            + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, ids, strict=False)))
         return ids
 
     def _unfinished_chain(self, config: dict[str, Any]) -> list[str] | None:

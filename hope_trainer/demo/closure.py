@@ -87,7 +87,7 @@ class ClosureSteps:
         made one horizon ago is then due), and its last answer: action, code, prediction, surprise."""
         from hope_trainer.demo.shared import COMPONENTS
 
-        wanted = {c: (gates.get(i) or {}) for c, i in zip(COMPONENTS, ids)}
+        wanted = {c: (gates.get(i) or {}) for c, i in zip(COMPONENTS, ids, strict=False)}
         if any(g.get("state") != "promoted" for g in wanted.values()):
             return None  # the summary already says which one the gate refused
         deadline = time.monotonic() + SERVE_WAIT_S

@@ -17,6 +17,7 @@ from typing import Any
 from hope_trainer.doctor import children, host, state
 from hope_trainer.doctor.check import FAIL, OK, SKIP, STATUSES, WARN, Check, CheckFn
 
+
 def all_checks() -> list[tuple[str, CheckFn]]:
     """(name, function) in the order they are printed; a function returns one Check or several."""
     return [("architecture", host.check_architecture), ("python", host.check_python),

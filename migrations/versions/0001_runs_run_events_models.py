@@ -10,9 +10,8 @@ a migration is a frozen snapshot of the schema at its revision.
 """
 from __future__ import annotations
 
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0001'
 down_revision = None

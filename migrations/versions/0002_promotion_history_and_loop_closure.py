@@ -16,9 +16,8 @@ does not carry its WHERE clause over. Times are naive UTC DateTime text, as in 0
 """
 from __future__ import annotations
 
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0002'
 down_revision = '0001'

@@ -17,9 +17,8 @@ run_events row (ON DELETE CASCADE); SQLite adds and (>= 3.35) drops a nullable c
 """
 from __future__ import annotations
 
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0003'
 down_revision = '0002'

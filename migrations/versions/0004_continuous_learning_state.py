@@ -12,9 +12,8 @@ changes and nothing is copied; the downgrade drops it. Times are naive UTC DateT
 """
 from __future__ import annotations
 
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0004'
 down_revision = '0003'

@@ -12,9 +12,8 @@ nothing is copied; the downgrade drops them. Times are naive UTC DateTime text, 
 """
 from __future__ import annotations
 
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0005'
 down_revision = '0004'

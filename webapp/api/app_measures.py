@@ -40,8 +40,8 @@ from typing import Any
 
 from sqlalchemy import func, or_, select
 
-from hope_models.components import COMPONENTS
 from hope_models.checkpoint_format import VQVAE_REF
+from hope_models.components import COMPONENTS
 from registry.models import Model, Run
 
 log = logging.getLogger(__name__)

@@ -44,7 +44,6 @@ from flask import Blueprint, current_app, jsonify
 from sqlalchemy import select
 
 from hope_models.components import COMPONENTS
-
 from webapp.api import app_measures as measures
 from webapp.api.validation import query_args, query_int
 

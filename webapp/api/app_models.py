@@ -113,8 +113,8 @@ def model_json(model) -> dict[str, Any]:
 
 @bp.get("")
 def list_models():
-    from registry import promotion
     from hope_models.components import COMPONENTS
+    from registry import promotion
 
     query_args("history")
     limit = query_int("history", default=HISTORY_DEFAULT, minimum=1, maximum=HISTORY_MAX)

@@ -99,8 +99,8 @@ def wait_serving(brain, component: str, version: str | None, timeout_s: float = 
 
 @bp.get("")
 def status():
-    from registry import promotion
     from hope_models.promoted import PointerError, read_pointer
+    from registry import promotion
 
     limit = query_int("history", default=10, minimum=0, maximum=100)
     state = _state()
@@ -146,8 +146,8 @@ def infer():
 
 
 def _checkpoint_arg(value: str) -> str:
-    from registry.run_request import RunRequestError, resolve_path
     from hope_models.paths import data_roots
+    from registry.run_request import RunRequestError, resolve_path
 
     settings = _state().settings
     try:

@@ -44,10 +44,15 @@ from typing import Any, Iterator
 
 from flask import Blueprint, current_app, jsonify, request
 
-from hope_models.intake.inbox import (
-    MAX_TAGS_PER_REQUEST, InboxError, check_tag, ingest_into_inbox, list_inbox, tag_episode,
-)
 from hope_models.durable import file_sha256
+from hope_models.intake.inbox import (
+    MAX_TAGS_PER_REQUEST,
+    InboxError,
+    check_tag,
+    ingest_into_inbox,
+    list_inbox,
+    tag_episode,
+)
 from hope_models.rlds.inflate import Budget, InflateError, ratio_limit
 from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
 from webapp.api.validation import get_str, json_body, query_args

@@ -42,7 +42,8 @@ bp = Blueprint("run_artifacts", __name__, url_prefix="/api")
 
 @bp.get("/runs/<run_id>/provenance")
 def provenance(run_id: str):
-    from webapp.api.run_provenance import gate_records, provenance as assemble
+    from webapp.api.run_provenance import gate_records
+    from webapp.api.run_provenance import provenance as assemble
 
     query_args()
     with current_app.extensions["hope"].registry.session(readonly=True) as s:

@@ -19,8 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from hope_models.components import spec_of
 from hope_models.checkpoint_format import VQVAE_REF
+from hope_models.components import spec_of
 
 CODE_NULL = {"version": None, "git_commit": None, "git_dirty": None}
 DATASET_KEYS = ("path", "fingerprint", "episodes", "steps", "imagined_episodes", "imagined_share")

@@ -84,8 +84,8 @@ def list_runs():
 
 @bp.post("")
 def create_run():
-    from registry.run_request import RunRequestError, queue_run, request_from_json
     from hope_models.paths import data_roots
+    from registry.run_request import RunRequestError, queue_run, request_from_json
 
     state = _state()
     settings = state.settings
@@ -104,7 +104,6 @@ def create_run():
 @bp.get("/<run_id>")
 def get_run(run_id: str):
     from registry import runs
-
     from webapp.api.app_measures import held_out_figures
 
     query_args()

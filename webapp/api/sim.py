@@ -47,7 +47,6 @@ from typing import Any
 from flask import Blueprint, current_app, jsonify
 
 from hope_models.components import ACTOR, PREDICTOR
-
 from webapp.api.validation import get_int, get_str, json_body
 from webapp.errors import ApiError
 

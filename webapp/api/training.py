@@ -40,10 +40,10 @@ def _components(value) -> str:
 
 @bp.post("/sequential")
 def sequential():
+    from hope_models.components.chain import SequenceError, parse_sequence
+    from hope_models.paths import data_roots
     from registry import runs
     from registry.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
-    from hope_models.paths import data_roots
-    from hope_models.components.chain import SequenceError, parse_sequence
 
     state = current_app.extensions["hope"]
     settings = state.settings

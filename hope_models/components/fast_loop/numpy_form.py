@@ -44,19 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.components.fast_loop.checkpoint import (
-    FastLoopNumpyError,
-    read_fast_loop,
-    vqvae_groups,
-)
-from hope_models.components.numpy_layers import (
-    LN_EPS,
-    Linear,
-    NormMLP,
-    NumpyWindowState,
-    fold_ln,
-    layer_norm,
-)
+from hope_models.components.fast_loop.checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_groups
+from hope_models.components.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import VQVAENumpy
 from hope_models.data.features import FeatureSpec
 
@@ -66,12 +55,7 @@ RATE_MAX = 20.0
 
 def _reacher_bounds(spec: FeatureSpec) -> tuple[float, float] | None:
     """The reacher's motor bounds when the spec is the dm_control reacher's (observation and action)."""
-    from hope_models.sim.reacher import (
-        ACTION_FIELD,
-        ACTION_HIGH,
-        ACTION_LOW,
-        OBS_FIELDS,
-    )
+    from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
     obs = [(f.path, f.size) for f in spec.observation.fields]
     act = [(f.path, f.size) for f in spec.action.fields]

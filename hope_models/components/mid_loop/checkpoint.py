@@ -26,11 +26,7 @@ from hope_models.components.checkpoint_checks import (
     check_weights,
     read_component,
 )
-from hope_models.components.vqvae.numpy_form import (
-    MAX_WIDTH,
-    check_vqvae_ref,
-    check_vqvae_tensors,
-)
+from hope_models.components.vqvae.numpy_form import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K

@@ -117,7 +117,7 @@ def mid_loop_loss(model, logits, codes, mask, *, obs=None, future_codes=None, fu
     metrics: dict[str, float] = {}
     overall: dict[str, list[torch.Tensor]] = {}  # per-target values of every horizon: the overall means
     total_n, window_n, nll_all = 0, 0, []
-    for h, (t, label) in enumerate(zip(targets, labels)):
+    for h, (t, label) in enumerate(zip(targets, labels, strict=False)):
         if not t.target:
             continue
         lg, target, now, obs_target, obs_now = t.cat()
