@@ -9,13 +9,27 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
 from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
 
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
+
 
 class ChainSteps:
+    # what Demo (session.py) provides; annotations only, nothing is set here
+    serve: Any
+    args: Any
+    settings: Settings
+    timings: dict[str, float]
+    inference: dict[str, Any] | None
+
+    if TYPE_CHECKING:
+        def sleep(self, seconds: float) -> None: ...
+        def _try_close_loop(self, fast_id: str, display: Any = None) -> bool: ...
+
     def queue_chain(self, data: Path) -> list[str]:
         from registry.run_request import build_request
         from registry.sequences import create_sequence

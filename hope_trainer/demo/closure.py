@@ -13,15 +13,30 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
 from hope_trainer.demo.shared import CLOSURE_WAIT_S, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
+
+if TYPE_CHECKING:
+    from hope_models.settings import Settings
 
 BRAIN_TICKS = 75  # 1.5 s of 20 ms ticks: past the Mid Loop's 1 s horizon, so a surprise is due
 
 
 class ClosureSteps:
+    # what Demo (session.py) provides; annotations only, nothing is set here
+    serve: Any
+    settings: Settings
+    inference_url: str | None
+    token: str | None
+    first_observation: tuple[list[float], list[float]] | None
+    inference: dict[str, Any] | None
+
+    if TYPE_CHECKING:
+        def sleep(self, seconds: float) -> None: ...
+        def _runs(self, ids: list[str]) -> list[dict[str, Any]]: ...
+
     def _gating_idle(self) -> bool:
         """Auto-promotion has nothing running and nothing left to gate: waiting longer is useless."""
         promoter = getattr(self.serve.daemon, "autopromoter", None)
@@ -123,12 +138,14 @@ class ClosureSteps:
         return self._observations(data, 1)[0]
 
     def infer_over_http(self) -> dict[str, Any]:
+        assert self.first_observation is not None, "the demo reads its first observation before it infers"
         obs, expert = self.first_observation
         answer = self._post_infer({"component": ACTOR, "observation": obs, "session": "demo", "reset": True})
         return answer if answer.get("error") else {**answer, "observation": obs, "expert_action": expert}
 
     def _post_infer(self, request: dict[str, Any]) -> dict[str, Any]:
         body = json.dumps(request).encode()
+        assert self.inference_url is not None, "the demo starts the server before it infers"
         req = urllib.request.Request(self.inference_url.rstrip("/") + "/api/brain/infer", data=body, method="POST",
                                      headers={"Content-Type": "application/json",
                                               "Authorization": f"Bearer {self.token}"})
