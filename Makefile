@@ -13,11 +13,18 @@ PYTEST_ARGS ?=
 PYTEST_WORKERS ?= 2
 PYTEST_XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --dist worksteal)
 
-.PHONY: setup test demo bench clean system-deps gl-deps assets install lock
+.PHONY: setup lint test demo bench clean system-deps gl-deps assets install lock
 
 ASSETS := webapp/static/vendor/.stamp
 
 setup: $(STAMP) $(ASSETS)
+
+# ruff (pyflakes, import order, bugbear) on the packages, bench/ and run_trainer.py (not tests/), then
+# mypy on the service packages ([tool.mypy] in pyproject.toml); `make test` runs it first.
+LINT_PATHS := daemon workers hope_models webapp registry hope_trainer migrations run_trainer.py bench
+lint: $(STAMP)
+	$(VENV)/bin/ruff check $(LINT_PATHS)
+	$(VENV)/bin/mypy
 
 # The daemon tests start a real redis-server on a loopback port (the production broker); the browser
 # tests drive Debian's chromium (never `playwright install`: no browser downloads); npm installs the
@@ -58,7 +65,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,sim]'
 	@touch $@
 
-test: setup system-deps
+test: setup system-deps lint
 	$(PY) -m pytest -q $(PYTEST_XDIST) --durations=15 $(PYTEST_ARGS)
 
 demo: setup
