@@ -5,9 +5,10 @@
     promoter.close()     # at shutdown: stops a gate still running
 
 Each tick: if a promote child is running, nothing else happens (one gate at a time; the tick never
-waits for it). When it has exited, its outcome (the JSON it printed) becomes a `log` event on the
+waits for it). When it has exited, its outcome (the JSON object it wrote to its --result-file,
+hope_models/child_result.py) becomes a `log` event on the
 run ("auto-promote: promoted ...", "auto-promote: the gate refused ...: <reasons>") and a line in
-$HOPE_HOME/logs/promote.log, which also collects the child's stderr. Then, when
+$HOPE_HOME/logs/promote.log, which also collects the child's stdout and stderr. Then, when
 settings.auto_promote is on, the next run to gate is chosen and
 `run_trainer.py promote RUN --auto --json` is started for it.
 
@@ -32,12 +33,12 @@ from typing import Any, Callable
 
 from sqlalchemy import exists, func, select
 
-from registry import runs
-from registry.models import Model, Run, utcnow
 from hope_models.child_command import end_child, trainer_argv
-from hope_models.child_result import last_json_object
+from hope_models.child_result import ChildResultError, read_result, result_argv
 from hope_models.log_limits import rotate_if_over
 from hope_models.settings import GATE_ENV
+from registry import runs
+from registry.models import Model, Run, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,8 @@ class AutoPromoter:
         self.logs_dir = Path(settings.home) / "logs"
         self._proc: subprocess.Popen | None = None
         self._run_id: str | None = None
-        self._out_path: Path | None = None
+        self._out_path: Path | None = None  # the child's --result-file
+        self._argv: list[str] = []
         self._attempted: set[str] = set()
         self._failures = 0
         self.last_outcome: dict[str, Any] | None = None  # what the last child said (tests, status)
@@ -123,6 +125,7 @@ class AutoPromoter:
         self._attempted.add(run_id)
         self.logs_dir.mkdir(parents=True, exist_ok=True)
         out_path = self.logs_dir / f".promote-{run_id}.json"
+        out_path.unlink(missing_ok=True)  # a stale one from a daemon that died meanwhile is not this gate's result
         cmd = trainer_argv("promote", run_id, "--auto", "--json", *self.extra_args, python=self.python)
         # The child loads its settings from HOPE_HOME like any command; the gate's own settings are
         # passed explicitly so it gates with exactly what this daemon was configured with.
@@ -130,11 +133,12 @@ class AutoPromoter:
                **{var: str(getattr(self.settings, name)) for var, name in GATE_ENV.items()}}
         rotate_if_over(self.logs_dir / LOG_FILE, self.settings)  # a gate per completed run: it would only grow
         self._log_line(f"run {run_id}: gating ({' '.join(cmd[1:])})")
-        with open(out_path, "wb") as out, open(self.logs_dir / LOG_FILE, "ab") as err:
+        argv = [*cmd, *result_argv(out_path)]
+        with open(self.logs_dir / LOG_FILE, "ab") as log_file:
             # A session of its own: Ctrl-C on `serve` reaches the daemon, which stops the child in close().
-            self._proc = subprocess.Popen(cmd, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
+            self._proc = subprocess.Popen(argv, stdout=log_file, stderr=log_file, stdin=subprocess.DEVNULL,
                                           env=env, start_new_session=True)
-        self._run_id, self._out_path = run_id, out_path
+        self._run_id, self._out_path, self._argv = run_id, out_path, argv
         self._event(run_id, "info", "auto-promote: gating this run's checkpoint against the promoted model "
                                     f"(pid {self._proc.pid}; log: {self.logs_dir / LOG_FILE})")
         log.info("auto-promote: gating run %s (pid %d)", run_id, self._proc.pid)
@@ -144,9 +148,12 @@ class AutoPromoter:
         self._proc = self._run_id = self._out_path = None
         assert proc is not None and run_id is not None and out_path is not None
         code = proc.returncode
-        outcome = _read_outcome(out_path)
+        try:
+            outcome, problem = read_result(out_path, self._argv, code), None
+        except ChildResultError as exc:
+            outcome, problem = None, str(exc)
         out_path.unlink(missing_ok=True)
-        level, message = describe(code, outcome)
+        level, message = describe(code, outcome, problem)
         self.last_outcome = {"run_id": run_id, "exit_code": code, **(outcome or {})}
         self._log_line(f"run {run_id}: {message}")
         self._event(run_id, level, message)
@@ -171,18 +178,12 @@ class AutoPromoter:
         self._proc = self._run_id = self._out_path = None
 
 
-def _read_outcome(path: Path) -> dict[str, Any] | None:
-    try:
-        return last_json_object(path.read_text(encoding="utf-8", errors="replace"))
-    except OSError:
-        return None
-
-
-def describe(code: int | None, outcome: dict[str, Any] | None) -> tuple[str, str]:
-    """(level, message) of a finished promote child for the run's log."""
+def describe(code: int | None, outcome: dict[str, Any] | None, problem: str | None = None) -> tuple[str, str]:
+    """(level, message) of a finished promote child for the run's log; `problem` says why there is no
+    outcome (child_result.ChildResultError's message: the command and its exit code)."""
     if outcome is None:
-        return "error", (f"auto-promote: the promote process exited with code {code} without a result; "
-                         f"see $HOPE_HOME/logs/{LOG_FILE}")
+        what = problem or f"the promote process exited with code {code} without a result"
+        return "error", f"auto-promote: {what}; see $HOPE_HOME/logs/{LOG_FILE}"
     what = f"{outcome.get('component')} {outcome.get('version')}"
     if outcome.get("skipped"):
         return "info", f"auto-promote: skipped: {outcome['skipped']}"

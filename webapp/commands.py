@@ -3,8 +3,9 @@
 The webapp never imports torch (it shares a process with the daemon under `serve`, and the idle
 budget is 400 MB; torch alone is ~250 MB). The promotion gate (`promote`, validation loss) and the
 sim reflex (`eval-reflex`) therefore run as `python -m hope_trainer ... --json` children: the
-same code path as the shell, their memory goes back to the OS when they exit, and their last
-stdout line that is a JSON object is their answer.
+same code path as the shell, their memory goes back to the OS when they exit, and their answer is
+the JSON object they write to the `--result-file` this module gives them (hope_models/child_result.py);
+their stdout is only passed to a caller's line consumer (eval-reflex's frames), never parsed for it.
 
 Children get HOPE_HOME from the app's settings (tests build settings without touching os.environ),
 one torch thread, and their own session, so the terminal's Ctrl-C reaches `serve` only, which then
@@ -19,10 +20,11 @@ import subprocess
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 from hope_models.child_command import trainer_argv
-from hope_models.child_result import last_json_object
+from hope_models.child_result import ChildResultError, read_result, result_argv, result_file
 
 log = logging.getLogger(__name__)
 
@@ -49,15 +51,19 @@ def error_line(stderr: str) -> str:
 class ChildResult:
     argv: list[str]
     code: int | None  # None: killed (timeout, shutdown)
-    output: dict[str, Any] | None  # the last JSON object on stdout
+    output: dict[str, Any] | None  # the JSON object the child wrote to its --result-file; None: see result_error
     stderr: str
     elapsed_s: float
     timed_out: bool = False
+    result_error: str | None = None  # why there is no output: the command and how it exited
 
     def error(self) -> str:
         if isinstance(self.output, dict) and isinstance(self.output.get("error"), str):
             return self.output["error"]
-        return error_line(self.stderr) or f"exit code {self.code}"
+        line = error_line(self.stderr)
+        if self.output is None and self.result_error:
+            return f"{self.result_error}: {line}" if line else self.result_error
+        return line or f"exit code {self.code}"
 
 
 class ChildProcesses:
@@ -72,12 +78,18 @@ class ChildProcesses:
     def run(self, args: list[str], *, timeout_s: float,
             on_line: Callable[[str], bool] | None = None) -> ChildResult:
         """Run `hope-trainer <args>` to the end (blocking the calling thread). With `on_line`,
-        stdout is read line by line while the child runs and each line is passed to it; a line it
-        returns True for is consumed (not kept for `output`), e.g. eval-reflex's frame lines."""
+        stdout is read line by line while the child runs and each line is passed to it (e.g.
+        eval-reflex's frame lines; its True/False return is no longer needed). `output` is what the child
+        wrote to its --result-file, never a stdout line."""
         return self._run_streaming(args, timeout_s, on_line or (lambda _line: False))
 
     def _run_streaming(self, args: list[str], timeout_s: float, on_line: Callable[[str], bool]) -> ChildResult:
-        argv = trainer_argv(*args)
+        with result_file("hope-child-") as path:
+            return self._run_with_result(args, timeout_s, on_line, path)
+
+    def _run_with_result(self, args: list[str], timeout_s: float, on_line: Callable[[str], bool],
+                         result_path: Path) -> ChildResult:
+        argv = trainer_argv(*args, *result_argv(result_path))
         started = time.monotonic()
         with self._lock:
             if self._closed:
@@ -86,21 +98,19 @@ class ChildProcesses:
                                     text=True, bufsize=1, env=child_env(self.settings), start_new_session=True)
             self._live.add(proc)
         log.info("started %s (pid %d)", " ".join(args), proc.pid)
-        kept: list[str] = []
+        stdout, stderr = proc.stdout, proc.stderr
+        assert stdout is not None and stderr is not None  # both PIPE
         err: list[str] = []
 
-        def read_stdout() -> None:
-            for line in proc.stdout:
+        def read_stdout() -> None:  # drained to the end: a child must never block on a full pipe
+            for line in stdout:
                 try:
-                    consumed = on_line(line)
+                    on_line(line)
                 except Exception:  # noqa: BLE001 - a bad consumer must not stall the child on a full pipe
                     log.exception("%s: the stdout consumer failed on a line", " ".join(args))
-                    consumed = False
-                if not consumed:
-                    kept.append(line)
 
         def read_stderr() -> None:
-            err.extend(proc.stderr)
+            err.extend(stderr)
 
         readers = [threading.Thread(target=read_stdout, name=f"child-{proc.pid}-out", daemon=True),
                    threading.Thread(target=read_stderr, name=f"child-{proc.pid}-err", daemon=True)]
@@ -119,14 +129,18 @@ class ChildProcesses:
         finally:
             with self._lock:
                 self._live.discard(proc)
-            for stream in (proc.stdout, proc.stderr):
+            for stream in (stdout, stderr):
                 try:
                     stream.close()
                 except OSError:
                     pass
         code = None if timed_out or proc.returncode < 0 else proc.returncode
-        result = ChildResult(argv, code, last_json_object("".join(kept)), "".join(err),
-                             round(time.monotonic() - started, 3), timed_out)
+        try:
+            output, problem = read_result(result_path, argv, proc.returncode), None
+        except ChildResultError as exc:
+            output, problem = None, str(exc)
+        result = ChildResult(argv, code, output, "".join(err), round(time.monotonic() - started, 3), timed_out,
+                             problem)
         log.info("%s finished: exit %s in %.1f s", " ".join(args), proc.returncode, result.elapsed_s)
         return result
 
@@ -155,4 +169,4 @@ class ChildProcesses:
                 self._kill(proc)
 
 
-__all__ = ["ChildProcesses", "ChildResult", "child_env", "last_json_object", "trainer_argv"]
+__all__ = ["ChildProcesses", "ChildResult", "child_env", "trainer_argv"]

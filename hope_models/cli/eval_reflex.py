@@ -56,6 +56,7 @@ import sys
 import time
 from pathlib import Path
 
+from hope_models.child_result import add_result_argument, write_result
 from hope_models.cli.argtypes import non_negative_int, positive_int
 from hope_models.components import PREDICTOR
 from hope_models.numbers import NumberError, float_from_text
@@ -76,6 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", choices=TASKS, default="reach", help="reach or track (default reach)")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1: one tick is tiny)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_result_argument(parser)
     parser.add_argument("--stream-frames", type=_fps, default=None, metavar="FPS",
                         help="stream the first episode's frames as JSON lines on stdout, FPS per simulated second")
     parser.add_argument("--stream-size", type=positive_int, default=128, metavar="PX",
@@ -196,6 +198,7 @@ def resolve_promoted(home: Path) -> Path:
 
 
 def _fail(args, message: str) -> int:
+    write_result(args.result_file, {"ok": False, "error": message})
     if args.json:
         print(json.dumps({"ok": False, "error": message}))
     print(f"error: {message}", file=sys.stderr)
@@ -272,6 +275,7 @@ def run(args: argparse.Namespace) -> int:
         out["frames"] = stream.summary()
     if surprise is not None:
         out["surprise"] = surprise
+    write_result(args.result_file, out)
     if args.json:
         print(json.dumps(out))
     else:

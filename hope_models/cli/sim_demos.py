@@ -20,6 +20,7 @@ import json
 import sys
 import time
 
+from hope_models.child_result import add_result_argument, write_result
 from hope_models.cli.argtypes import non_negative_float, non_negative_int, positive_int
 
 
@@ -42,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="steps per episode (default and maximum 1000 = 20 s; fewer for a quick look)")
     parser.add_argument("--frames", action="store_true", help="also store a 64x64 RGB frame per step (MUJOCO_GL=egl)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_result_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if play and args.noise:
         msg = (f"--noise {args.noise:g} with --policy play: play has no expert label for DART noise to keep, "
                "its executed command already is the exploration; drop --noise")
+        write_result(args.result_file, {"ok": False, "error": msg})
         if args.json:
             print(json.dumps({"ok": False, "error": msg}))
         print(f"error: {msg}", file=sys.stderr)
@@ -67,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
                                 noise=args.noise or None, progress=progress, policy="play" if play else None,
                                 **({} if args.steps is None else {"steps": args.steps}))
     except (FileExistsError, NotADirectoryError, ValueError, RuntimeError) as exc:
+        write_result(args.result_file, {"ok": False, "error": str(exc)})
         if args.json:
             print(json.dumps({"ok": False, "error": str(exc)}))
         print(f"error: {exc}", file=sys.stderr)
@@ -84,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
                       "steps": e.steps} for e in result.episodes],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
+    write_result(args.result_file, out)
     if args.json:
         print(json.dumps(out))
     else:

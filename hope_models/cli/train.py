@@ -19,8 +19,9 @@ import sys
 import time
 from typing import Any
 
-from hope_models.train.config import OPTIONS, add_flag, add_flags
+from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
+from hope_models.train.config import OPTIONS, add_flag, add_flags
 from hope_models.train.contract import ControlCommand
 
 
@@ -36,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flag(parser, "steps", required=True)
     add_flags(parser, "train", skip=("run_dir",))
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_result_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -160,13 +162,16 @@ def _run_one(args: argparse.Namespace, settings) -> int:
         result = train(cfg, control, events)
     except TrainSetupError as exc:
         events.finish()
+        failed = {"component": args.component, "outcome": "error", "message": str(exc)}
+        write_result(args.result_file, failed)
         if args.json:
-            print(json.dumps({"component": args.component, "outcome": "error", "message": str(exc)}))
+            print(json.dumps(failed))
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:
         control.restore()
     events.finish()
+    write_result(args.result_file, result.cli_json())
     if args.json:
         print(json.dumps(result.cli_json()))
         if result.outcome != "completed":

@@ -7,7 +7,8 @@ process, so its memory goes back to the OS when it exits and the parent stays sm
 imports torch: see tests/test_train_sequential.py). fast_loop and mid_loop get `--vqvae` = the
 newest complete checkpoint of R/vqvae (trained earlier in the sequence, or before), unless
 --vqvae names another one. The parent polls each child's RSS with psutil; the peak per component
-is the larger of that and the child's own report. The sequence stops at the first component that
+is the larger of that and the child's own report, which is the JSON object the child writes to
+the `--result-file` the parent gives it (hope_models/child_result.py; its stdout is not read). The sequence stops at the first component that
 does not complete, with its exit code and message. Re-running the same command resumes: finished
 components return at once, an interrupted one continues from its last checkpoint.
 """
@@ -18,20 +19,19 @@ import json
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import psutil
 
-from hope_models.child_command import trainer_argv
-from hope_models.child_result import last_json_object
 from hope_models import checkpoints as ckpt
 from hope_models.checkpoint_format import VQVAE_REF
-from hope_models.train.config import flag_of, values_from_args
+from hope_models.child_command import trainer_argv
+from hope_models.child_result import ChildResultError, read_result, result_argv, result_file, write_result
 from hope_models.components import COMPONENTS, NEEDS_VQVAE, TOKENIZER
 from hope_models.components.chain import SequenceError, parse_sequence
+from hope_models.train.config import flag_of, values_from_args
 
 POLL_S = 0.2
 
@@ -57,32 +57,37 @@ def _vqvae_for(args: argparse.Namespace, root: Path) -> Path | None:
 
 
 def run_child(cmd: list[str]) -> dict[str, Any]:
-    """Run one child to the end: its exit code, parsed JSON result, polled peak RSS and wall time.
-    Its stderr (progress, warnings) goes straight to ours.
+    """Run one child to the end: its exit code, the result it wrote to its --result-file (or
+    `result_error` saying why there is none), polled peak RSS and wall time. Its stderr (progress,
+    warnings) goes straight to ours; its stdout (the same result for people) is not read.
 
     Signals: Ctrl-C in a terminal reaches the child itself (same process group), which checkpoints
     and exits paused, so the parent ignores SIGINT meanwhile (forwarding it would be a second
     Ctrl-C, which aborts); a SIGTERM to the parent (a service stop) is forwarded to the child."""
-    started = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    with result_file("hope-train-") as path:
+        argv = [*cmd, *result_argv(path)]
+        started = time.monotonic()
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
 
-    def forward_term(signum, frame):
-        if proc.poll() is None:
-            proc.terminate()
+        def forward_term(signum, frame):
+            if proc.poll() is None:
+                proc.terminate()
 
-    previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.SIG_IGN),
-                signal.SIGTERM: signal.signal(signal.SIGTERM, forward_term)}
-    try:
-        return _watch(proc, started)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.SIG_IGN),
+                    signal.SIGTERM: signal.signal(signal.SIGTERM, forward_term)}
+        try:
+            child = _watch(proc, started)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        try:
+            child["result"], child["result_error"] = read_result(path, argv, proc.returncode), None
+        except ChildResultError as exc:
+            child["result"], child["result_error"] = {}, str(exc)
+        return child
 
 
 def _watch(proc: subprocess.Popen, started: float) -> dict[str, Any]:
-    out: list[str] = []
-    reader = threading.Thread(target=lambda: out.extend(proc.stdout), daemon=True)
-    reader.start()
     peak = 0.0
     try:
         ps = psutil.Process(proc.pid)
@@ -98,10 +103,7 @@ def _watch(proc: subprocess.Popen, started: float) -> dict[str, Any]:
             proc.wait(timeout=POLL_S)
         except subprocess.TimeoutExpired:
             pass
-    reader.join(timeout=10)
-    result = last_json_object("".join(out)) or {}
-    return {"exit_code": proc.returncode, "result": result, "polled_peak_rss_mb": peak,
-            "seconds": time.monotonic() - started}
+    return {"exit_code": proc.returncode, "polled_peak_rss_mb": peak, "seconds": time.monotonic() - started}
 
 
 def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
@@ -137,12 +139,13 @@ def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
                "seconds": round(child["seconds"], 2), VQVAE_REF: str(vqvae) if vqvae else None}
         if res.get("message") and row["outcome"] != "completed":
             row["message"] = res["message"]
-        if not res:
-            row["message"] = f"the {name} process exited with code {child['exit_code']} without a result"
+        if child["result_error"] is not None:
+            row["message"] = child["result_error"]
         rows.append(row)
         if child["exit_code"] != 0:
             code = child["exit_code"] or 1
             break
+    write_result(getattr(args, "result_file", None), {"exit_code": code, "components": rows})
     if getattr(args, "json", False):
         print(json.dumps(rows))
     else:

@@ -34,6 +34,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
 
 PROMOTED_EXIT, REFUSED_EXIT, USAGE_EXIT = 0, 1, 2
@@ -57,6 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="called by the daemon's auto-promotion: skip a run that already has a candidate record")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the gate (default 1)")
     parser.add_argument("--json", action="store_true", help="print the outcome as one JSON object on stdout")
+    add_result_argument(parser)
 
 
 @contextmanager
@@ -71,6 +73,7 @@ def _promote_lock(home: Path) -> Iterator[None]:
 
 
 def _emit(args: argparse.Namespace, out: dict[str, Any]) -> None:
+    write_result(args.result_file, out)
     if args.json:
         print(json.dumps(out, allow_nan=False), flush=True)
         return
@@ -92,6 +95,7 @@ def _emit(args: argparse.Namespace, out: dict[str, Any]) -> None:
 
 
 def _usage(args: argparse.Namespace, message: str) -> int:
+    write_result(args.result_file, {"promoted": False, "error": message})
     if args.json:
         print(json.dumps({"promoted": False, "error": message}), flush=True)
     print(f"error: {message}", file=sys.stderr)
@@ -108,9 +112,9 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | Non
     """(checkpoint dir, run id or None, the run's dataset or None) of the request."""
     from sqlalchemy import select
 
+    from hope_models.promote.gate import GateError, resolve_candidate
     from registry import runs
     from registry.models import Run
-    from hope_models.promote.gate import GateError, resolve_candidate
 
     if args.run:
         run = runs.get_run(s, args.run)
@@ -139,7 +143,7 @@ def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
         component = read_json_object(ckpt / CONFIG_FILE).get("component")
     except (OSError, CheckpointError) as exc:
         raise UsageError(f"{ckpt / CONFIG_FILE}: not readable: {exc}") from None
-    if component not in COMPONENTS:
+    if not isinstance(component, str) or component not in COMPONENTS:
         raise UsageError(f"{ckpt / CONFIG_FILE}: component {component!r} is not one of {', '.join(COMPONENTS)}")
     if expected and expected != component:
         raise UsageError(f"{ckpt} holds a {component} checkpoint, not a {expected}")
@@ -168,10 +172,10 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
     """The whole command minus printing: (exit code, output object). UsageError for exit 2."""
     from sqlalchemy import select
 
+    from hope_models.promote.gate import GateError, gate_candidate
     from registry import promotion
     from registry.models import Model
     from registry.runs import RunError
-    from hope_models.promote.gate import GateError, gate_candidate
 
     with registry.session(readonly=True) as s:
         try:

@@ -17,12 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.child_command import trainer_argv
-from hope_models.child_result import last_json_object
-from hope_models.log_limits import rotate_if_over
+from hope_models.child_result import ChildResultError, read_result, result_argv, result_file
+from hope_models.components import ACTOR
 from hope_models.durable import fsync_path
+from hope_models.log_limits import rotate_if_over
 from hope_trainer.demo.chain import ChainSteps
 from hope_trainer.demo.closure import ClosureSteps
-from hope_models.components import ACTOR
 from hope_trainer.demo.shared import COMPONENTS, DEMO_SEED, DemoError, Interrupted, say
 
 
@@ -53,21 +53,24 @@ class Demo(ChainSteps, ClosureSteps):
         if self.shutdown.wait(seconds):
             raise Interrupted()
 
-    def run_child(self, argv: list[str], timeout_s: float) -> tuple[int, str, str]:
-        """A `hope-trainer` child in its own session (Ctrl-C reaches us, and we stop it), its
-        stdout captured, its stderr to a log file. Returns (exit code, stdout, stderr tail)."""
+    def run_child(self, argv: list[str], timeout_s: float) -> tuple[int, dict[str, Any], str]:
+        """A `hope-trainer` child in its own session (Ctrl-C reaches us, and we stop it), its stdout
+        and stderr to a log file. Returns (exit code, the result it wrote to its --result-file,
+        stderr tail); ChildResultError (naming the command and its exit code) when it wrote none."""
+        with result_file("hope-demo-") as path:
+            full = trainer_argv(*argv, *result_argv(path))
+            code, tail = self._run(argv, full, timeout_s)
+            return code, read_result(path, full, code), tail
+
+    def _run(self, argv: list[str], full: list[str], timeout_s: float) -> tuple[int, str]:
         env = {**os.environ, "HOPE_HOME": str(self.settings.home)}
         logs = Path(self.settings.home) / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         err_path = logs / "demo-child.log"
         rotate_if_over(err_path, self.settings)
         with open(err_path, "ab") as err, subprocess.Popen(
-                trainer_argv(*argv), stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL,
-                env=env, start_new_session=True) as proc:
+                full, stdout=err, stderr=err, stdin=subprocess.DEVNULL, env=env, start_new_session=True) as proc:
             self.child = proc
-            out: list[bytes] = []
-            reader = threading.Thread(target=lambda: out.append(proc.stdout.read()), daemon=True)
-            reader.start()
             deadline = time.monotonic() + timeout_s
             try:
                 while proc.poll() is None:
@@ -82,9 +85,8 @@ class Demo(ChainSteps, ClosureSteps):
                     except subprocess.TimeoutExpired:
                         proc.kill()
                 self.child = None
-            reader.join(5)
         tail = "\n".join(err_path.read_text(encoding="utf-8", errors="replace").splitlines()[-5:])
-        return proc.returncode, b"".join(out).decode("utf-8", "replace"), tail
+        return proc.returncode, tail
 
     # -- 1. demonstrations ----------------------------------------------------------------------
 
@@ -101,13 +103,14 @@ class Demo(ChainSteps, ClosureSteps):
         # and renamed when complete (the rename made durable), so a reuse never sees half a set.
         partial = out.with_name(out.name + ".partial")
         shutil.rmtree(partial, ignore_errors=True)
-        code, stdout, tail = self.run_child(
-            ["sim-demos", "--episodes", str(a.episodes), "--out", str(partial), "--task", "reach",
-             "--noise", str(a.noise), "--seed", str(DEMO_SEED), "--json"], timeout_s=1800)
-        result = last_json_object(stdout)
-        if code != 0 or not result or not result.get("ok"):
-            raise DemoError(f"recording the demonstrations failed (exit {code}): "
-                            f"{(result or {}).get('error') or tail}")
+        try:
+            code, result, tail = self.run_child(
+                ["sim-demos", "--episodes", str(a.episodes), "--out", str(partial), "--task", "reach",
+                 "--noise", str(a.noise), "--seed", str(DEMO_SEED), "--json"], timeout_s=1800)
+        except ChildResultError as exc:
+            raise DemoError(f"recording the demonstrations failed: {exc}") from None
+        if code != 0 or not result.get("ok"):
+            raise DemoError(f"recording the demonstrations failed (exit {code}): {result.get('error') or tail}")
         partial.rename(out)
         fsync_path(out.parent)
         self.timings["demos"] = time.monotonic() - t0
@@ -140,12 +143,15 @@ class Demo(ChainSteps, ClosureSteps):
         say(f"5. reflex: the promoted fast_loop in closed loop on held-out seeds 0-{n - 1}, with the expert "
             "and a random policy on the same seeds ...")
         t0 = time.monotonic()
-        code, stdout, tail = self.run_child(["eval-reflex", "--checkpoint", "promoted", "--episodes", str(n),
-                                             "--seed", "0", "--task", "reach", "--json"], timeout_s=1800)
-        self.timings["reflex"] = time.monotonic() - t0
-        result = last_json_object(stdout)
-        if code != 0 or not result or result.get("ok") is False:
-            return {"error": f"eval-reflex exited {code}: {(result or {}).get('error') or tail}"}
+        try:
+            code, result, tail = self.run_child(["eval-reflex", "--checkpoint", "promoted", "--episodes", str(n),
+                                                 "--seed", "0", "--task", "reach", "--json"], timeout_s=1800)
+        except ChildResultError as exc:
+            return {"error": str(exc)}
+        finally:
+            self.timings["reflex"] = time.monotonic() - t0
+        if code != 0 or result.get("ok") is False:
+            return {"error": f"eval-reflex exited {code}: {result.get('error') or tail}"}
         keep = ("mean_return", "success_rate", "time_to_reach_s", "expert_mean_return", "random_mean_return",
                 "episodes", "seeds", "version", "checkpoint", "elapsed_s")
         return {k: result.get(k) for k in keep}
