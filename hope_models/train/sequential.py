@@ -30,7 +30,7 @@ from hope_models.checkpoint_format import VQVAE_REF
 from hope_models.child_command import trainer_argv
 from hope_models.child_result import ChildResultError, read_result, result_argv, result_file, write_result
 from hope_models.components import COMPONENTS, NEEDS_VQVAE, TOKENIZER
-from hope_models.components.chain import SequenceError, parse_sequence
+from hope_models.components.chain import VQVAE_NONE, ChainStep, SequenceError, parse_sequence, plan_chain
 from hope_models.train.config import flag_of, values_from_args
 
 POLL_S = 0.2
@@ -48,12 +48,20 @@ def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae
 
 
 def _vqvae_for(args: argparse.Namespace, root: Path) -> Path | None:
+    """--vqvae, else the newest complete checkpoint of R/<tokenizer> (trained earlier in the chain, or before)."""
     if args.vqvae:
         return Path(args.vqvae)
     try:
         return ckpt.resolve_checkpoint_dir(root / TOKENIZER)
     except ckpt.CheckpointError:
         return None
+
+
+def _plan(args: argparse.Namespace, names: list[str], root: Path) -> list[ChainStep]:
+    """The chain's plan (components/chain.py): --vqvae is given and wins over the chain's tokenizer; a
+    tokenizer trained before under R/<tokenizer> counts as given when the chain does not train one."""
+    given = bool(args.vqvae) or (TOKENIZER not in names and _vqvae_for(args, root) is not None)
+    return plan_chain(names, given=given, given_first=bool(args.vqvae))
 
 
 def run_child(cmd: list[str]) -> dict[str, Any]:
@@ -118,9 +126,11 @@ def run_sequential(args: argparse.Namespace, settings: Any = None) -> int:
         return 2
     rows: list[dict[str, Any]] = []
     code = 0
-    for name in names:
-        vqvae = _vqvae_for(args, root) if COMPONENTS[name].reads_vqvae != "never" else None
-        if name in NEEDS_VQVAE and vqvae is None:
+    for step in _plan(args, names, root):
+        name = step.name
+        # Resolved at the member's turn: the chain's tokenizer has just written its checkpoint.
+        vqvae = _vqvae_for(args, root) if step.vqvae != VQVAE_NONE else None
+        if step.missing or (name in NEEDS_VQVAE and vqvae is None):
             msg = (f"{name} needs a trained VQ-VAE: put {TOKENIZER} earlier in --sequential, or pass --vqvae DIR "
                    f"(no complete checkpoint under {root / TOKENIZER})")
             rows.append({"component": name, "outcome": "error", "exit_code": 2, "message": msg})
