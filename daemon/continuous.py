@@ -44,9 +44,11 @@ from sqlalchemy import select
 
 from hope_models import disk
 from hope_models.components import NEEDS_VQVAE, TOKENIZER
-from hope_models.intake.inbox import InboxError
+from hope_models.intake.inbox import InboxError, list_inbox
 from registry import learning, runs
 from registry.models import LearningState, Model, Run
+from registry.run_request import RunRequestError, build_request, check_vqvae_run, preflight
+from registry.sequences import create_sequence
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +70,6 @@ def read_inbox(inbox_dir: Path) -> dict[str, set[str]]:
     """{episode_id: the components it can train} from the inbox's manifest ({} when there is none;
     a rejected episode trains nothing). hope_models/data/inbox.py raises InboxError for a manifest
     that is not ours."""
-    from hope_models.intake.inbox import list_inbox
-
     return {e["episode_id"]: set(e["trainable"]) for e in list_inbox(inbox_dir)
             if e.get("status") != "rejected" and e.get("episode_id")}
 
@@ -268,9 +268,6 @@ class ContinuousLearning:
         return kept, None, f"; {needing} left out: no VQ-VAE is served and none can be trained"
 
     def _start(self, ready, new, trainable, sample, data, stamp) -> Decision:
-        from registry.run_request import RunRequestError, build_request, check_vqvae_run, preflight
-        from registry.sequences import create_sequence
-
         chain, vqvae_run, note = self._chain(ready, trainable)
         if not chain:
             return Decision("idle", note.lstrip("; "), data)

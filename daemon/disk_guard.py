@@ -35,7 +35,7 @@ from typing import Any
 from sqlalchemy import func, or_, select
 
 from hope_models import disk
-from hope_models.checkpoints import list_step_dirs
+from hope_models.checkpoints import list_step_dirs, resolve_checkpoint_dir
 from hope_models.components import spec_of
 from hope_models.train.config import TrainConfig
 from hope_models.train.metrics import JSONL_NAME
@@ -51,9 +51,9 @@ MB = 1024 * 1024
 def _estimated_checkpoint_mb(run: Run) -> float:
     """The checkpoint size the run's configuration describes (0 when it cannot be told: the floor
     is then the margin alone, and the job's own ENOSPC handling still stands)."""
-    from hope_models.components.resolve import resolve
-    from hope_models.data.dataset_spec import probe_dataset_spec
-    from hope_models.train.estimate import checkpoint_mb_from_config
+    from hope_models.components.resolve import resolve  # lazy: loads numpy
+    from hope_models.data.dataset_spec import probe_dataset_spec  # lazy: loads numpy
+    from hope_models.train.estimate import checkpoint_mb_from_config  # lazy: loads psutil
 
     cfg = run.config or {}
     try:
@@ -63,8 +63,7 @@ def _estimated_checkpoint_mb(run: Run) -> float:
             return 0.0  # too large to probe here, or codes from a VQ-VAE not trained yet
         vq = None
         if reads and cfg.get("vqvae_dir"):
-            from hope_models.checkpoints import resolve_checkpoint_dir
-            from hope_models.components.resolve import read_vqvae_config
+            from hope_models.components.resolve import read_vqvae_config  # lazy: loads numpy
             vq = read_vqvae_config(resolve_checkpoint_dir(cfg["vqvae_dir"]))
         resolved = resolve(run.component, spec, dict(cfg.get("model_config") or {}), vq)
         return checkpoint_mb_from_config(resolved, spec.obs_dim, spec.act_dim)

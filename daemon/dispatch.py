@@ -45,6 +45,7 @@ from sqlalchemy import select
 
 from daemon.disk_guard import DiskGuard
 from registry import learning, runs
+from registry.broker import TASK_TRAIN_RUN, celery_app
 from registry.models import Run, utcnow
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,6 @@ class Dispatcher:
     @property
     def app(self) -> Any:
         if self._app is None:
-            from registry.broker import celery_app
 
             self._app = celery_app(self.settings)
         return self._app
@@ -90,7 +90,6 @@ class Dispatcher:
         if self._send is not None:
             self._send(run_id, attempt, queue, task_id)
             return
-        from registry.broker import TASK_TRAIN_RUN
 
         self.app.send_task(TASK_TRAIN_RUN, args=[run_id, attempt], kwargs={"report": self.report_mode(queue)},
                            queue=queue, task_id=task_id)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any, Protocol
 
 log = logging.getLogger(__name__)
@@ -83,7 +84,7 @@ class RedisEmitterSink:
     same message_queue) relays to its browsers. Production mode."""
 
     def __init__(self, redis_url: str, namespace: str = "/", channel: str = "flask-socketio"):
-        import socketio as python_socketio
+        import socketio as python_socketio  # lazy: loads socketio
         from flask_socketio import SocketIO  # no app: an external-process emitter
 
         if not redis_url or not redis_url.startswith(("redis://", "rediss://")):
@@ -111,8 +112,6 @@ class _OncePerInterval(logging.Filter):
         self._held: dict[str, int] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
-        import time
-
         key = str(record.msg)[:60]
         now = time.monotonic()
         last = self._last.get(key)
@@ -162,9 +161,9 @@ class EventTailer:
         self._sink_failed = False
 
     def _newest_id(self) -> int:
-        from sqlalchemy import func, select
+        from sqlalchemy import func, select  # lazy: loads sqlalchemy
 
-        from registry.models import RunEvent
+        from registry.models import RunEvent  # lazy: loads sqlalchemy
 
         with self.registry.session(readonly=True) as s:
             return int(s.scalar(select(func.max(RunEvent.id))) or 0)
@@ -185,7 +184,7 @@ class EventTailer:
 
     def poll(self) -> int:
         """Push every new row (in batches); returns how many were pushed."""
-        from registry import runs
+        from registry import runs  # lazy: loads sqlalchemy
 
         count = 0
         while True:

@@ -50,6 +50,7 @@ from daemon.remote import RemoteReports
 from daemon.sdnotify import SdNotifier
 from daemon.system_history import SystemHistory
 from registry import runs
+from registry.db import Registry
 from registry.models import Run
 
 log = logging.getLogger(__name__)
@@ -110,7 +111,6 @@ class Daemon:
 
     def start(self) -> None:
         if self.registry is None:
-            from registry.db import Registry
 
             self.registry = Registry.open(self.settings, migrate=True)  # the daemon migrates once, here
         self.dispatcher = Dispatcher(self.registry, self.settings, celery_app=self._celery_app,
@@ -127,7 +127,7 @@ class Daemon:
         if self.remote_reports:
             client = self._redis_client
             if client is None:
-                import redis
+                import redis  # lazy: loads redis
 
                 client = redis.Redis.from_url(self.settings.redis_url, socket_timeout=10, socket_connect_timeout=10)
             self.remote = RemoteReports(self.registry, client, local_queues=self.local_queues)
@@ -236,7 +236,7 @@ class Daemon:
     def remote_step(self, step) -> None:
         """Redis being away must not stop the rest of the tick (local runs, monitors, events):
         the reports wait in Redis, and the remote runs' heartbeats judge them meanwhile."""
-        import redis
+        import redis  # lazy: loads redis
 
         try:
             step()

@@ -87,8 +87,8 @@ def _json_bytes(obj: Any) -> bytes:
 
 
 def _safetensors_bytes(tensors: dict[str, Any], metadata: dict[str, str] | None = None) -> bytes:
-    import torch
-    from safetensors.torch import save
+    import torch  # lazy: loads torch
+    from safetensors.torch import save  # lazy: loads safetensors
 
     # safetensors refuses tensors that share storage (tied weights, views): give each its own copy
     seen: set[tuple[int, int]] = set()
@@ -224,8 +224,8 @@ def _warn(warn: Callable[[str], None] | None, message: str) -> None:
 
 
 def load_tensors(path: Path) -> dict[str, Any]:
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
+    from safetensors import SafetensorError  # lazy: loads safetensors
+    from safetensors.torch import load_file  # lazy: loads safetensors
 
     refuse_non_safetensors(path)
     try:
@@ -291,7 +291,7 @@ def resolve_checkpoint_dir(path: str | Path) -> Path:
 
 def flatten_optimizer(opt_state: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """torch optimizer.state_dict() -> (tensors "optim.<param index>.<key>", JSON of the rest)."""
-    import torch
+    import torch  # lazy: loads torch
 
     tensors: dict[str, Any] = {}
     scalars: dict[str, dict[str, Any]] = {}

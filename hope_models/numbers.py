@@ -18,9 +18,11 @@ So `--steps 2000`, `HOPE_PORT=8765` and `{"steps": 2000.0}` are accepted, and `-
 """
 from __future__ import annotations
 
+import json
 import math
 import re
 import reprlib
+import sys
 from typing import Any
 
 _repr = reprlib.Repr()
@@ -136,9 +138,6 @@ def huge_integer_error(text: str | bytes) -> str | None:
     integer of more digits than Python converts (sys.get_int_max_str_digits(), 4300 by default;
     no field takes one), as "<field path>: an integer of N digits ...", or None when that is not
     it. Parses the text a second time, so call it only after json.loads failed."""
-    import json
-    import sys
-
     limit = sys.get_int_max_str_digits()
     found: list[int] = []
     marker = _Huge()

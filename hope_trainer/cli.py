@@ -12,6 +12,9 @@ import argparse
 import importlib
 import sys
 
+from hope_models.settings import use_private_umask
+from hope_trainer import __version__
+
 PROG = "hope-trainer"
 
 # command name -> (module, one-line help)
@@ -51,8 +54,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The full parser, or (when `command` is known) one whose only detailed sub-command is that
     one, so running `status` never imports what `train` needs."""
-    from hope_trainer import __version__
-
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -66,7 +67,6 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from hope_models.settings import use_private_umask
 
     # Before anything is written: $HOPE_HOME (registry, broker, token, runs, logs) is for this user
     # only, and the processes this one starts (worker, job children, gate) inherit the umask.

@@ -9,6 +9,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Connection
 
+from registry.db import make_engine
 from registry.models import Base
 
 target_metadata = Base.metadata
@@ -34,7 +35,6 @@ def run_migrations_online() -> None:
     url = context.config.get_main_option("sqlalchemy.url")
     if not url:
         raise RuntimeError("migrations/env.py: pass a connection (registry.db.migrate) or set sqlalchemy.url")
-    from registry.db import make_engine
 
     engine = make_engine(url.removeprefix("sqlite:///"))
     try:

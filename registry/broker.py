@@ -76,7 +76,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
 def celery_app(settings: Settings, **conf: Any):
     """A Celery app on the broker of `settings` with celery_config(settings) updated by `conf`
     (the worker adds how it runs tasks). `app.hope_settings` is `settings`."""
-    from celery import Celery
+    from celery import Celery  # lazy: loads celery
 
     include = conf.pop("include", ())
     app = Celery("hope", include=list(include), set_as_current=False)

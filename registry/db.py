@@ -24,6 +24,7 @@ from sqlalchemy import create_engine, event, inspect
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+import migrations
 from hope_models.durable import fsync_path
 
 if TYPE_CHECKING:
@@ -79,9 +80,8 @@ def _engine_path(engine: Engine) -> Path:
 
 
 def _alembic_config(connection):
-    from alembic.config import Config
+    from alembic.config import Config  # lazy: loads alembic
 
-    import migrations
 
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(migrations.__file__).resolve().parent))
@@ -102,7 +102,7 @@ def _migrate_lock(db_file: Path) -> Iterator[None]:
 
 
 def _run_alembic(engine_or_path: Engine | Path | str, action: str, revision: str) -> None:
-    from alembic import command
+    from alembic import command  # lazy: loads alembic
 
     own = not isinstance(engine_or_path, Engine)
     engine = make_engine(engine_or_path) if own else engine_or_path
@@ -123,7 +123,7 @@ def backup_before_upgrade(engine: Engine, revision: str = "head") -> Path | None
     """Copy an existing registry that `revision` would change to `hope.db.before-<to>-from-<from>`
     (SQLite's online backup: consistent even with a reader open) before it is migrated, so an
     upgrade that goes wrong can be undone by hand. Nothing for a new registry or one already there."""
-    from alembic.script import ScriptDirectory
+    from alembic.script import ScriptDirectory  # lazy: loads alembic
 
     current = current_revision(engine)
     if current is None:
@@ -159,7 +159,7 @@ def downgrade(engine_or_path: Engine | Path | str, revision: str = "base") -> No
 
 
 def current_revision(engine: Engine) -> str | None:
-    from alembic.runtime.migration import MigrationContext
+    from alembic.runtime.migration import MigrationContext  # lazy: loads alembic
 
     with engine.connect() as connection:
         return MigrationContext.configure(connection).get_current_revision()

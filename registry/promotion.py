@@ -23,8 +23,17 @@ from typing import Any
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
+from hope_models.checkpoint_format import (
+    CONFIG_FILE,
+    MODEL_FILE,
+    CheckpointError,
+    NotACheckpoint,
+    read_verified,
+    version_name,
+)
 from hope_models.json_finite import finite
 from hope_models.promoted import PointerError, read_pointer, write_pointer
+from registry import runs
 from registry.models import Model, Run, iso, utcnow
 
 HISTORY_LIMIT = 20
@@ -74,15 +83,6 @@ def pointer_obj(model: Model, sha256: str) -> dict[str, Any]:
 def _check_checkpoint(model: Model) -> str:
     """The sha256 of the model's weights, after checking the dir is still a complete checkpoint
     holding the same weights that were gated."""
-    from hope_models.checkpoint_format import (
-        CONFIG_FILE,
-        MODEL_FILE,
-        CheckpointError,
-        NotACheckpoint,
-        read_verified,
-        version_name,
-    )
-
     ckpt = Path(model.checkpoint_path)
     if not ckpt.is_dir():
         raise PromotionError(f"model {model.id} ({model.version}): checkpoint {ckpt} no longer exists")
@@ -203,8 +203,6 @@ def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
 
     Returns the run of the matching model (newest matching row), or None when no model matches
     or the model has no run (a checkpoint promoted by path from outside any run)."""
-    from registry import runs
-
     at = _aware(when)
     key = str(checkpoint_path_or_version)
     paths = {key}

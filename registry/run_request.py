@@ -16,10 +16,11 @@ at the time the job starts.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hope_models import checkpoints as ckpt
 from hope_models.components import COMPONENTS, TOKENIZER
 from hope_models.components.chain import tokenizer_missing
 from hope_models.numbers import NumberError, as_int, short
@@ -28,6 +29,7 @@ from hope_models.train.config import (
     DEFAULT_REQUEST_STEPS,
     REQUEST_FIELDS,
     ConfigValueError,
+    TrainConfig,
     check_value,
     over_deployment_budget,
 )
@@ -180,7 +182,7 @@ def check_vqvae_run(session, run_id: str | None) -> str | None:
     """A vqvae_run must name a completed vqvae run of the registry: the worker reads its run dir
     when the job starts, and nothing orders two separate runs (a chain does: `sequential`).
     Returns that run dir."""
-    from registry import runs
+    from registry import runs  # lazy: loads sqlalchemy
 
     if run_id is None:
         return None
@@ -222,14 +224,10 @@ def preflight(settings: Settings, req: RunRequest, components: list[str] | None 
     budget (estimate.estimate_from_config: no model is built, torch is not imported). Returns
     the estimates (none when the dataset's files are too large to probe here: the job checks
     again before it builds anything). It reads files: call it outside a write transaction."""
-    from dataclasses import fields
-
-    from hope_models import checkpoints as ckpt
-    from hope_models.components.resolve import check_keys, read_vqvae_config, resolve
-    from hope_models.data.dataset_spec import probe_dataset_spec
-    from hope_models.data.features import FeatureSpecError
-    from hope_models.train.config import TrainConfig
-    from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config
+    from hope_models.components.resolve import check_keys, read_vqvae_config, resolve  # lazy: loads numpy
+    from hope_models.data.dataset_spec import probe_dataset_spec  # lazy: loads mcap, numpy
+    from hope_models.data.features import FeatureSpecError  # lazy: loads numpy
+    from hope_models.train.estimate import MemoryBudgetError, check_fits, estimate_from_config  # lazy: loads psutil
 
     names = components or [req.component]
     chain = components is not None
@@ -290,7 +288,7 @@ def queue_sequence(registry: Registry, settings: Settings, names: list[str], req
                    show=None) -> tuple[str, list]:
     """preflight() of every member, then registry.sequences.create_sequence: the chain's sequence id
     and show(session, run) of each member (default: Run.to_json_obj())."""
-    from registry.sequences import create_sequence
+    from registry.sequences import create_sequence  # lazy: loads sqlalchemy
 
     with registry.session(readonly=True) as s:
         vqvae_run_dir = check_vqvae_run(s, req.vqvae_run)
@@ -308,9 +306,9 @@ def check_queue_room(session, settings: Settings, queue: str, adding: int = 1) -
     starting) under settings.max_queued_runs. Called in the write transaction that creates them
     (BEGIN IMMEDIATE), so two requests at once cannot both take the last place. The daemon's own
     auto chain does not come through here: it queues only on a queue with nothing waiting."""
-    from sqlalchemy import func, select
+    from sqlalchemy import func, select  # lazy: loads sqlalchemy
 
-    from registry.models import Run
+    from registry.models import Run  # lazy: loads sqlalchemy
 
     cap = int(settings.max_queued_runs)
     waiting = session.scalar(select(func.count()).select_from(Run).where(
@@ -325,8 +323,8 @@ def check_queue_room(session, settings: Settings, queue: str, adding: int = 1) -
 def submit(session, settings: Settings, req: RunRequest, *, sequence_id: str | None = None,
            sequence_index: int | None = None):
     """Write `req` as a queued run (its run dir is $HOPE_HOME/runs/<id>); returns the Run."""
-    from registry import runs
-    from registry.models import new_run_id
+    from registry import runs  # lazy: loads sqlalchemy
+    from registry.models import new_run_id  # lazy: loads sqlalchemy
 
     check_vqvae_run(session, req.vqvae_run)
     if sequence_id is None:  # refused here rather than failing in the worker minutes later

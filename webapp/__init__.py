@@ -22,6 +22,10 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from webapp.commands import ChildProcesses
+from webapp.hosts import HostAllowlist, HostPolicy
+from webapp.socket_guard import SocketGuard
+
 if TYPE_CHECKING:
     from hope_models.settings import Settings
 
@@ -65,21 +69,18 @@ def create_app(settings: Settings, *, token: str, daemon: Any = None, registry: 
                message_queue: str | None = None, brain: Any = None,
                socket_auth_timeout_s: float = 10.0):
     """(Flask app, SocketIO). `registry` defaults to Registry.open(settings) (migrated)."""
-    from flask import Flask
-    from flask_socketio import SocketIO
+    from flask import Flask  # lazy: loads flask
+    from flask_socketio import SocketIO  # lazy: loads flask_socketio
 
-    from webapp import auth, errors, socket_packets
-    from webapp.api import register
-    from webapp.api.sim import ReflexJobs
-    from webapp.commands import ChildProcesses
-    from webapp.hosts import HostAllowlist, HostPolicy
-    from webapp.json_provider import FiniteJSONProvider
-    from webapp.socket_guard import SocketGuard
+    from webapp import auth, errors, socket_packets  # lazy: loads flask, socketio
+    from webapp.api import register  # lazy: loads flask
+    from webapp.api.sim import ReflexJobs  # lazy: loads flask
+    from webapp.json_provider import FiniteJSONProvider  # lazy: loads flask
 
     if not isinstance(token, str) or len(token) < auth.MIN_TOKEN_CHARS:
         raise ValueError(f"create_app: the token must be a string of at least {auth.MIN_TOKEN_CHARS} characters")
     if registry is None:
-        from registry.db import Registry
+        from registry.db import Registry  # lazy: loads sqlalchemy
 
         registry = Registry.open(settings)
     app = Flask("webapp")
@@ -108,7 +109,7 @@ def create_app(settings: Settings, *, token: str, daemon: Any = None, registry: 
     if brain is not None:
         wire_brain(brain, socketio, registry)
 
-    from webapp.pages import bp as pages_bp
+    from webapp.pages import bp as pages_bp  # lazy: loads flask
 
     app.register_blueprint(pages_bp)  # the Robot Editor: "/" and its pages (webapp/pages.py)
     # Outermost, around Socket.IO's middleware too: no route or handshake answers a foreign Host.
@@ -132,7 +133,7 @@ def _chain(previous: Any, fn):
 def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
     """BrainService callbacks -> Socket.IO and the registry. They run on BrainService's threads;
     a failure is logged, never raised into a request or the watcher."""
-    from registry.models import iso
+    from registry.models import iso  # lazy: loads sqlalchemy
 
     def on_swap(component, version, checkpoint=None, *_rest):
         try:
@@ -144,7 +145,7 @@ def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
         log.info("brain: %s now serves %s", component, version)
 
     def record(component, version, checkpoint, when):
-        from registry.promotion import record_first_inference
+        from registry.promotion import record_first_inference  # lazy: loads sqlalchemy
 
         try:
             with registry.session() as s:

@@ -35,6 +35,11 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.child_command import dies_with_parent, end_child, module_argv
+from hope_models.log_format import configure_logging
+from hope_models.log_limits import PipeToLog
+from hope_models.malloc_arenas import limit_malloc_arenas
+from hope_models.settings import SettingsError, load_settings
+from webapp.inference_door import create_door_app, open_inference_door
 from webapp.server import ServerError, http_url
 
 log = logging.getLogger(__name__)
@@ -93,8 +98,6 @@ class DoorProcess:
         return self
 
     def _spawn(self, port: int) -> tuple[subprocess.Popen, dict]:
-        from hope_models.log_limits import PipeToLog
-
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         read_fd, write_fd = os.pipe()
         try:
@@ -182,13 +185,9 @@ def _read_ready(fd: int, proc: subprocess.Popen, timeout: float) -> dict:
 
 
 def child(ready_fd: int) -> int:
-    from hope_models.log_format import configure_logging
-    from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
-    from hope_models.settings import SettingsError, load_settings
-    from registry.db import Registry, RegistryError
-    from webapp.auth import TokenError, load_or_create_token
-    from webapp.inference_door import create_door_app, open_inference_door
+    from registry.db import Registry, RegistryError  # lazy: loads sqlalchemy
+    from webapp.auth import TokenError, load_or_create_token  # lazy: loads flask
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     configure_logging(logging.INFO)

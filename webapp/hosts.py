@@ -65,7 +65,7 @@ def _ip(name: str):
 def _own_addresses() -> set[str]:
     """The addresses of this machine's interfaces (psutil; empty if it cannot tell)."""
     try:
-        import psutil
+        import psutil  # lazy: loads psutil
 
         return {a.address.split("%", 1)[0].lower() for addrs in psutil.net_if_addrs().values() for a in addrs
                 if a.family in (socket.AF_INET, socket.AF_INET6)}

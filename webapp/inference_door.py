@@ -25,6 +25,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from webapp.hosts import HostAllowlist, HostPolicy
 from webapp.server import ConnectionLimits, HttpServer, ServerError
 
 if TYPE_CHECKING:
@@ -49,7 +50,6 @@ def _answer(start_response, status: str, message: str, extra: tuple = ()):
 
 def door_app(app):
     """WSGI: only the robot's routes of `app` (the Flask app of create_app), everything else 404."""
-
     def robots_routes_only(environ, start_response):
         path = environ.get("PATH_INFO", "")
         methods = DOOR_ROUTES.get(path)
@@ -73,13 +73,12 @@ def create_door_app(settings: Settings, *, token: str, registry: Registry, brain
     """The app of the door's own process (webapp/door_process.py): the robot's routes only, under the
     same rules as create_app's (the Host rule, the token, JSON errors, the body limit), without
     Socket.IO or the editor's blueprints (~17 MB less to import), wrapped by door_app()."""
-    from flask import Flask
+    from flask import Flask  # lazy: loads flask
 
-    from webapp import MAX_BODY_BYTES, HopeState, auth, errors, wire_brain
-    from webapp.api import brain as brain_api
-    from webapp.api import health
-    from webapp.hosts import HostAllowlist, HostPolicy
-    from webapp.json_provider import FiniteJSONProvider
+    from webapp import MAX_BODY_BYTES, HopeState, auth, errors, wire_brain  # lazy: loads flask
+    from webapp.api import brain as brain_api  # lazy: loads flask
+    from webapp.api import health  # lazy: loads flask, sqlalchemy
+    from webapp.json_provider import FiniteJSONProvider  # lazy: loads flask
 
     app = Flask("webapp-door")
     app.config.update(JSON_SORT_KEYS=False, MAX_CONTENT_LENGTH=MAX_BODY_BYTES)

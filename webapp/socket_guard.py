@@ -60,7 +60,7 @@ POLL_DEADLINE_S = 15.0  # well under Engine.IO's 45 s; a browser polls again at 
 
 
 def _bounded_poll_socket_class(base: type, guard: "SocketGuard") -> type:
-    from engineio import packet
+    from engineio import packet  # lazy: loads engineio
 
     class BoundedPollSocket(base):
         def poll(self):
@@ -159,7 +159,7 @@ class SocketGuard:
     def __init__(self, socketio: Any, auth_timeout_s: float = DEFAULT_AUTH_TIMEOUT_S, *,
                  max_pending: int = MAX_PENDING, sessions_per_s: float = SESSIONS_PER_S,
                  sessions_burst: int = SESSIONS_BURST, poll_deadline_s: float = POLL_DEADLINE_S):
-        import engineio
+        import engineio  # lazy: loads engineio
 
         eio = socketio.server.eio
         if type(eio) is not engineio.Server:  # a new python-socketio may build it differently: look again
@@ -167,7 +167,7 @@ class SocketGuard:
                                "webapp/socket_guard.py must be revisited")
         eio.__class__ = _non_waiting_engineio_class(engineio.Server)
         self.eio = eio
-        from engineio.socket import Socket
+        from engineio.socket import Socket  # lazy: loads engineio
 
         self.poll_deadline_s = float(poll_deadline_s)
         self._socket_class = _bounded_poll_socket_class(Socket, self)
@@ -220,7 +220,6 @@ class SocketGuard:
 
     def middleware(self, app):
         """WSGI: remember which TCP connection carries each session's WebSocket while it is open."""
-
         def remember_websockets(environ, start_response):
             polling_sid = _polling_get_sid(environ)
             if polling_sid is not None:

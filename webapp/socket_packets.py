@@ -32,6 +32,7 @@ import threading
 from typing import Any
 from urllib.parse import parse_qs
 
+import simple_websocket
 from socketio import packet as sio_packet
 
 from webapp.socket_guard import SocketGuard, cut_websocket
@@ -154,7 +155,7 @@ def quiet_loggers() -> dict[str, logging.Logger]:
 
 def install(socketio: Any, guard: SocketGuard) -> None:
     """Refuse binary data and malformed packets on this Flask-SocketIO server, log each as one line."""
-    from engineio.async_drivers._websocket_wsgi import SimpleWebSocketWSGI
+    from engineio.async_drivers._websocket_wsgi import SimpleWebSocketWSGI  # lazy: loads engineio
 
     sio = socketio.server
     eio = sio.eio
@@ -174,8 +175,6 @@ WAIT_STEP_S = 1.0
 
 
 def _bounded_websocket_class(base: type) -> type:
-    import simple_websocket
-
     class BoundedWebSocket(base):
         def __init__(self, handler, server, **kwargs):
             # simple-websocket stops reading a message past this size (and closes) instead of

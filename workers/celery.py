@@ -25,10 +25,13 @@ nothing else: no connection, no files (the embedded broker's dir is made on firs
 """
 from __future__ import annotations
 
+import logging
 import os
 import signal
 
 from celery.signals import setup_logging, worker_init, worker_ready, worker_shutdown, worker_shutting_down
+from celery.utils.log import get_multiprocessing_logger
+from celery.worker import state as worker_state
 
 from hope_models.log_format import configure_logging
 from hope_models.settings import Settings, load_settings, use_private_umask
@@ -86,10 +89,6 @@ def _log_like_the_other_services(loglevel=None, **_kw) -> None:
     logger gets the daemon's and the webapp's format instead (hope_models/log_format.py: under
     systemd, `<N>` priority prefixes and no timestamp), at --loglevel. The job runs in a forked pool
     child, which inherits this handler, so its lines are formatted the same way."""
-    import logging
-
-    from celery.utils.log import get_multiprocessing_logger
-
     handler = configure_logging(loglevel or "INFO")
     mp_logger = get_multiprocessing_logger()  # billiard's pool logger does not propagate
     if handler is not None and mp_logger is not None and not mp_logger.handlers:
@@ -106,8 +105,6 @@ def _stop_the_running_job(**_kw) -> None:
     warm shutdown completes. Idle children are left to the pool (a SIGTERM would make it log them
     as crashed). Under systemd with KillMode=control-group the child gets SIGTERM anyway; a second
     one changes nothing. Runs in the parent's signal handler: reads and kill() only."""
-    from celery.worker import state as worker_state
-
     for request in list(worker_state.active_requests):
         pid = getattr(request, "worker_pid", None)
         if pid:
@@ -125,7 +122,7 @@ def _start_heartbeat(sender=None, **_kw) -> None:
     """The worker consumes now: beat from a daemon thread of this (parent) process. `sender` is
     Celery's consumer: its node name and the queues it consumes."""
     global _heartbeat
-    from workers.heartbeat import WorkerHeartbeat
+    from workers.heartbeat import WorkerHeartbeat  # lazy: loads sqlalchemy
 
     settings = getattr(sender.app, "hope_settings", None) or load_settings()
     queues = sorted(sender.app.amqp.queues.consume_from or sender.app.amqp.queues)

@@ -23,6 +23,8 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from hope_models.child_command import module_argv
+from hope_models.log_format import journal_prefix
+from hope_models.settings import SettingsError, load_settings
 
 if TYPE_CHECKING:
     from hope_models.settings import Settings
@@ -68,9 +70,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.log_format import journal_prefix
-    from hope_models.settings import SettingsError, load_settings
-
     try:
         settings = load_settings()
         cmd = worker_command(settings, args.queue, hostname=args.hostname, loglevel=args.loglevel)

@@ -35,7 +35,11 @@ import threading
 from datetime import datetime
 from typing import TYPE_CHECKING, Any, Callable
 
+from registry import workers
+from registry.broker import TASK_TRAIN_RUN
+from registry.db import Registry, db_path
 from registry.models import utcnow
+from registry.report_protocol import REPORTS_KEY, worker_report
 from registry.workers import WorkerBeat
 
 if TYPE_CHECKING:
@@ -57,8 +61,6 @@ def _hook_fork() -> None:
 
 def report_mode(settings: Settings) -> str | None:
     """"db" when the registry is on this host, else "redis" with a Redis URL, else None."""
-    from registry.db import db_path
-
     if db_path(settings).exists():
         return "db"
     return "redis" if settings.redis_url else None
@@ -66,9 +68,8 @@ def report_mode(settings: Settings) -> str | None:
 
 def active_run_id() -> str | None:
     """The run id of the hope.train_run request this worker's pool executes now, if any."""
-    from celery.worker import state
+    from celery.worker import state  # lazy: loads celery
 
-    from registry.broker import TASK_TRAIN_RUN
 
     for _ in range(3):  # the main thread may change the set while we copy it
         try:
@@ -165,9 +166,6 @@ class WorkerHeartbeat:
         return mode
 
     def _beat_db(self, event: str) -> None:
-        from registry import workers
-        from registry.db import Registry
-
         with _fork_lock:
             registry = Registry.open(self.settings, migrate=False)
             try:
@@ -182,10 +180,8 @@ class WorkerHeartbeat:
                 registry.close()
 
     def _beat_redis(self, event: str) -> None:
-        from registry.report_protocol import REPORTS_KEY, worker_report
-
         if self._redis is None:
-            import redis
+            import redis  # lazy: loads redis
 
             self._redis = redis.Redis.from_url(self.settings.redis_url, socket_timeout=5, socket_connect_timeout=5)
         self._redis.rpush(REPORTS_KEY, worker_report(self.snapshot("redis"), event))

@@ -23,6 +23,7 @@ import time
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
+from registry.db import Registry
 from registry.report_channel import RegistryChannel
 from registry.report_protocol import (
     ANSWER_TTL_S,
@@ -66,14 +67,14 @@ class RedisChannel:
 
     @classmethod
     def from_url(cls, url: str, *args: Any, **kw: Any) -> "RedisChannel":
-        import redis
+        import redis  # lazy: loads redis
 
         client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=10, health_check_interval=30)
         return cls(client, *args, **kw)
 
     @contextmanager
     def _redis_errors(self, what: str) -> Iterator[None]:
-        import redis
+        import redis  # lazy: loads redis
 
         try:
             yield
@@ -176,7 +177,6 @@ def open_channel(settings: Settings, report: str, run_id: str, task_id: str, att
     """The channel a task asked for: "db" opens the registry under settings.home (this host holds
     it); "redis" needs settings.redis_url and opens no registry at all."""
     if report == "db":
-        from registry.db import Registry
 
         registry = Registry.open(settings, migrate=False)
         return RegistryChannel(registry, run_id, task_id, attempt, pid, host, own_registry=True)

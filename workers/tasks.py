@@ -14,13 +14,13 @@ from __future__ import annotations
 
 from celery import shared_task
 
+from hope_models.settings import load_settings
 from registry.broker import TASK_TRAIN_RUN
 
 
 @shared_task(name=TASK_TRAIN_RUN, bind=True, acks_late=True, ignore_result=True)
 def train_run(self, run_id: str, attempt: int, report: str = "db") -> dict:
-    from hope_models.settings import load_settings
-    from workers.job import run_job
+    from workers.job import run_job  # lazy: loads sqlalchemy
 
     settings = getattr(self.app, "hope_settings", None) or load_settings()
     return run_job(settings, run_id, int(attempt), task_id=self.request.id, report=report)

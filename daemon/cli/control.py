@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Callable
 
+from daemon.cli.registry import open_registry, print_json, run_command
+
 WHAT = {
     "cancel": "stop the run for good (a running job checkpoints first; checkpoints are kept)",
     "pause": "pause the run (a running job checkpoints and stops; `resume` queues it again)",
@@ -30,15 +32,13 @@ def describe(action: str, run: dict) -> str:
 
 def make(action: str) -> tuple[Callable, Callable]:
     """(add_arguments, run) of the command for one action."""
-
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.description = f"{action}: {WHAT[action]}"
         parser.add_argument("run", metavar="RUN", help="the run id (see `run_trainer.py status`)")
         parser.add_argument("--json", action="store_true", help='print {"run": {...}} on stdout')
 
     def run(args: argparse.Namespace) -> int:
-        from daemon.cli.registry import open_registry, print_json, run_command
-        from registry import runs
+        from registry import runs  # lazy: loads sqlalchemy
 
         def body() -> int:
             with open_registry() as (_settings, registry):

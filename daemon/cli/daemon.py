@@ -23,7 +23,12 @@ import signal
 import sys
 import threading
 
+from daemon.events import NullSink, RedisEmitterSink
+from daemon.sdnotify import SdNotifier
 from hope_models.cli.argtypes import positive_float
+from hope_models.log_format import configure_logging, journal_prefix
+from hope_models.malloc_arenas import limit_malloc_arenas
+from hope_models.settings import SettingsError, load_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,10 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.log_format import configure_logging, journal_prefix
-    from hope_models.malloc_arenas import limit_malloc_arenas
-    from hope_models.settings import SettingsError, load_settings
-    from registry.db import RegistryError
+    from registry.db import RegistryError  # lazy: loads sqlalchemy
 
     limit_malloc_arenas()  # a long-lived service: hope_models/malloc_arenas.py
     # under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp
@@ -58,9 +60,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{journal_prefix()}error: {exc}", file=sys.stderr)
         return 2
 
-    from daemon.events import NullSink, RedisEmitterSink
-    from daemon.sdnotify import SdNotifier
-    from daemon.service import Daemon
+    from daemon.service import Daemon  # lazy: loads mcap, numpy, psutil, sqlalchemy
 
     if settings.redis_url:
         sink = RedisEmitterSink(settings.redis_url)

@@ -13,9 +13,11 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from daemon.cli.registry import open_registry, print_json, run_command
 from hope_models.components import COMPONENTS
 from hope_models.numbers import NumberError, int_from_text
 from hope_models.train.config import DEFAULT_REQUEST_STEPS, OPTIONS, REQUEST_FIELDS, add_flag, add_flags, dest_of
+from registry.run_request import build_request, queue_run
 
 
 def _int(text: str) -> int:
@@ -60,9 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import open_registry, print_json, run_command
-    from registry.run_request import build_request, queue_run
-
     def body() -> int:
         req = build_request(component=args.component, data=args.data, steps=args.steps, queue=args.queue,
                             priority=args.priority, max_attempts=args.max_attempts, vqvae_dir=args.vqvae,

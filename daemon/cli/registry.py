@@ -12,6 +12,9 @@ import sys
 from contextlib import contextmanager
 from typing import Any, Iterator
 
+from hope_models.settings import SettingsError, load_settings
+from registry.run_request import RunRequestError
+
 USAGE_EXIT = 2
 
 
@@ -22,8 +25,7 @@ class CommandError(Exception):
 @contextmanager
 def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
     """(settings, Registry) for the duration of a command."""
-    from hope_models.settings import SettingsError, load_settings
-    from registry.db import Registry, RegistryError
+    from registry.db import Registry, RegistryError  # lazy: loads sqlalchemy
 
     try:
         settings = load_settings()
@@ -39,8 +41,7 @@ def open_registry(*, migrate: bool = True) -> Iterator[tuple[Any, Any]]:
 def run_command(body) -> int:
     """Call `body()` and turn the errors users cause into a message and exit code 2 (75 for a full
     queue: nothing wrong with the request, try again later)."""
-    from registry.run_request import RunRequestError
-    from registry.runs import RunError
+    from registry.runs import RunError  # lazy: loads sqlalchemy
 
     try:
         return int(body() or 0)

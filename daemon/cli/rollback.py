@@ -14,6 +14,7 @@ import argparse
 import json
 import sys
 
+from daemon.cli.registry import USAGE_EXIT, CommandError, open_registry, print_json
 from hope_models.components import COMPONENTS
 
 
@@ -24,8 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import USAGE_EXIT, CommandError, open_registry, print_json
-    from registry import promotion
+    from registry import promotion  # lazy: loads sqlalchemy
 
     try:
         with open_registry() as (settings, registry):

@@ -11,7 +11,10 @@ from __future__ import annotations
 import argparse
 
 from daemon.cli.enqueue import add_job_options, overrides_from_args
+from daemon.cli.registry import CommandError, open_registry, print_json, run_command
+from hope_models.components.chain import SequenceError, parse_sequence
 from hope_models.train.config import add_flag
+from registry.run_request import build_request, queue_sequence
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,10 +27,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import CommandError, open_registry, print_json, run_command
-    from hope_models.components.chain import SequenceError, parse_sequence
-    from registry.run_request import build_request, queue_sequence
-
     def body() -> int:
         try:
             names = parse_sequence(args.components)

@@ -19,6 +19,8 @@ import math
 from datetime import datetime
 from typing import Any
 
+from daemon.cli.registry import open_registry, print_json, run_command
+
 RECENT = 20  # ended runs shown without --all
 
 
@@ -89,7 +91,7 @@ def format_table(runs: list[dict[str, Any]]) -> str:
 
 
 def collect(session, run_id: str | None, all_runs: bool) -> list[dict[str, Any]]:
-    from registry import runs
+    from registry import runs  # lazy: loads sqlalchemy
 
     if run_id:
         return runs.to_json(session, [runs.get_run(session, run_id)])
@@ -104,8 +106,6 @@ def collect(session, run_id: str | None, all_runs: bool) -> list[dict[str, Any]]
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import open_registry, print_json, run_command
-
     def body() -> int:
         with open_registry() as (_settings, registry):
             with registry.session(readonly=True) as s:

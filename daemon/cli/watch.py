@@ -14,6 +14,8 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any
 
+from daemon.cli.registry import open_registry, print_json, run_command
+from daemon.cli.status import state_text
 from hope_models.numbers import NumberError, float_from_text
 from hope_models.train.contract import OUTCOME_EXIT_CODES
 
@@ -47,8 +49,6 @@ def _duration(seconds: float | None) -> str:
 
 
 def progress_line(run: dict[str, Any]) -> str:
-    from daemon.cli.status import state_text
-
     step, total = int(run["step"]), max(1, int(run["total_steps"]))
     filled = min(BAR_WIDTH, BAR_WIDTH * step // total)
     bar = "#" * filled + "-" * (BAR_WIDTH - filled)
@@ -112,7 +112,7 @@ class Display:
 
 def watch(registry: Registry, run_id: str, interval: float, display: Display) -> dict[str, Any]:
     """Poll until the run is in a terminal state; returns its final JSON object."""
-    from registry import runs
+    from registry import runs  # lazy: loads sqlalchemy
 
     while True:
         with registry.session(readonly=True) as s:
@@ -124,8 +124,6 @@ def watch(registry: Registry, run_id: str, interval: float, display: Display) ->
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import open_registry, print_json, run_command
-
     def body() -> int:
         display = Display(quiet=args.json)
         with open_registry() as (_settings, registry):

@@ -5,6 +5,8 @@ import argparse
 import json
 import sys
 
+from hope_models.settings import SettingsError, load_settings
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset_dir", help="a dataset dir of canonical episodes (as written by ingest)")
@@ -14,10 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.data.cache import CacheError
-    from hope_models.data.features import FeatureSpecError
-    from hope_models.data.summary import format_summary, summarise_dataset
-    from hope_models.settings import SettingsError, load_settings
+    from hope_models.data.cache import CacheError  # lazy: loads mcap, numpy
+    from hope_models.data.features import FeatureSpecError  # lazy: loads numpy
+    from hope_models.data.summary import format_summary, summarise_dataset  # lazy: loads mcap, numpy
 
     try:
         cache_dir = args.cache_dir or load_settings().cache_dir

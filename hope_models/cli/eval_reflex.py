@@ -60,6 +60,7 @@ from hope_models.child_result import add_result_argument, write_result
 from hope_models.cli.argtypes import non_negative_int, positive_int
 from hope_models.components import PREDICTOR
 from hope_models.numbers import NumberError, float_from_text
+from hope_models.settings import SettingsError, load_settings
 
 PROMOTED = "promoted"
 POINTER_DIR = "promoted"
@@ -67,7 +68,7 @@ POINTER_FILE = "fast_loop.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hope_models.sim.reacher import TASKS
+    from hope_models.sim.reacher import TASKS  # lazy: loads numpy
 
     parser.add_argument("--checkpoint", required=True, metavar="PATH|promoted",
                         help="a fast_loop run dir or checkpoints/<step> dir, or 'promoted' for the promoted one")
@@ -93,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _fps(text: str) -> float:
-    from hope_models.sim.frames import MAX_FPS
+    from hope_models.sim.frames import MAX_FPS  # lazy: loads numpy
 
     try:  # the one rule for numbers (hope_models/numbers.py)
         return float_from_text("--fps", text, above=0.0, maximum=MAX_FPS)
@@ -109,7 +110,7 @@ def _speed(text: str) -> float:
 
 
 def _jump(text: str) -> float:
-    from hope_models.sim.reacher import jump_step
+    from hope_models.sim.reacher import jump_step  # lazy: loads numpy
 
     try:
         value = float_from_text("--target-jump-at", text)
@@ -124,9 +125,8 @@ def _jump(text: str) -> float:
 def _surprise_tick(args, out):
     """(on_tick for the streamed episode, the result's "surprise" summary) for the promoted mid_loop;
     the header line is written at once, so a reader knows whether records will follow."""
-    from hope_models.runtime.surprise_stream import SurpriseStream
-    from hope_models.settings import SettingsError, load_settings
-    from hope_models.sim.reacher import CONTROL_PERIOD_S
+    from hope_models.runtime.surprise_stream import SurpriseStream  # lazy: loads numpy
+    from hope_models.sim.reacher import CONTROL_PERIOD_S  # lazy: loads numpy
 
     try:
         stream, reason = SurpriseStream.promoted(load_settings().home, CONTROL_PERIOD_S)
@@ -170,7 +170,7 @@ def _prepare_gl() -> str | None:
     if "dm_control" not in sys.modules and os.environ.get("MUJOCO_GL", "").strip().lower() in ("", "disabled"):
         os.environ["MUJOCO_GL"] = "egl"
     try:
-        from hope_models.sim.reacher import _dm_control
+        from hope_models.sim.reacher import _dm_control  # lazy: loads numpy
 
         _dm_control(frames=True)
     except Exception as exc:  # noqa: BLE001 - ImportError, RuntimeError, OpenGL errors: all mean "no frames"
@@ -209,14 +209,13 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     ckpt_arg = args.checkpoint
     if ckpt_arg == PROMOTED:
-        from hope_models.settings import SettingsError, load_settings
         try:
             ckpt_arg = str(resolve_promoted(load_settings().home))
         except (FileNotFoundError, ValueError, SettingsError) as exc:
             return _fail(args, str(exc))
 
     if args.stream_frames is not None:
-        from hope_models.sim.frames import MAX_SIZE, MIN_SIZE
+        from hope_models.sim.frames import MAX_SIZE, MIN_SIZE  # lazy: loads numpy
 
         if not MIN_SIZE <= args.stream_size <= MAX_SIZE:
             return _fail(args, f"--stream-size {args.stream_size} must be within {MIN_SIZE}-{MAX_SIZE}")
@@ -224,9 +223,11 @@ def run(args: argparse.Namespace) -> int:
         if problem is not None:
             return _fail(args, problem)
 
-    import torch
+    import torch  # lazy: loads torch
 
-    from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError
+    from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError  # lazy: loads numpy
+
+    # lazy: loads numpy
     from hope_models.sim.evaluate import evaluate_policy, expert_factory, json_number, random_factory
 
     torch.set_num_threads(args.threads)
@@ -237,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = list(range(args.seed, args.seed + args.episodes))
     stream = on_tick = surprise = None
     if args.stream_frames is not None:
-        from hope_models.sim.frames import FrameStream
+        from hope_models.sim.frames import FrameStream  # lazy: loads numpy
 
         stream = FrameStream(sys.stdout, fps=args.stream_frames, size=args.stream_size, speed=args.stream_speed)
     if args.stream_surprise:

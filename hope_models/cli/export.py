@@ -24,6 +24,10 @@ import sys
 from typing import Any
 
 from hope_models.cli.validate import missing_paths, print_entry, reader_options
+from hope_models.data.export_npz import export_npz_paths
+from hope_models.data.features import FeatureSpecError
+from hope_models.data.spec_request import SpecRequest
+from hope_models.rlds.export_cloud import export_paths
 
 FORMATS = ("package", "npz")
 
@@ -55,11 +59,7 @@ def _usage_error(args: argparse.Namespace) -> str | None:
 
 def _export(args: argparse.Namespace, options: dict[str, int]) -> dict[str, Any] | None:
     if args.format == "package":
-        from hope_models.rlds.export_cloud import export_paths
         return export_paths(args.episodes, args.out, allow_invalid=args.allow_invalid, **options)
-    from hope_models.data.export_npz import export_npz_paths
-    from hope_models.data.features import FeatureSpecError
-    from hope_models.data.spec_request import SpecRequest
     request = None
     if args.spec is not None:
         try:

@@ -71,8 +71,8 @@ def _error(args: argparse.Namespace, exc: Exception) -> int:
 
 def run_model(args: argparse.Namespace) -> int:
     """--method model: nothing of the simulator is imported on this path (tests/test_imagine_model.py)."""
-    from hope_models.imagine.model_imagine import DEFAULT_NOISE, imagine_model_dataset
-    from hope_models.imagine.planner import PlanConfig
+    from hope_models.imagine.model_imagine import DEFAULT_NOISE, imagine_model_dataset  # lazy: loads mcap, numpy, torch
+    from hope_models.imagine.planner import PlanConfig  # lazy: loads mcap, numpy, torch
 
     if args.model is None:
         return _error(args, ValueError("--method model needs --model RUN_DIR (a trained mid_loop)"))
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         return run_model(args)
     if args.model is not None or args.play:
         return _error(args, ValueError("--model and --play are for --method model"))
-    from hope_models.sim import reacher
+    from hope_models.sim import reacher  # lazy: loads numpy
 
     args.steps = args.steps or reacher.EPISODE_STEPS
 
@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         except RuntimeError as exc:
             print(f"imagine: {exc}", file=sys.stderr)
             return 2
-    from hope_models.sim.imagine import CEMConfig, imagine_dataset
+    from hope_models.sim.imagine import CEMConfig, imagine_dataset  # lazy: loads mcap, numpy
 
     if args.steps > reacher.EPISODE_STEPS:
         print(f"imagine: --steps {args.steps} must be at most {reacher.EPISODE_STEPS}", file=sys.stderr)

@@ -25,7 +25,7 @@ from hope_models.cli.argtypes import non_negative_float, non_negative_int, posit
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hope_models.sim.reacher import TASKS
+    from hope_models.sim.reacher import TASKS  # lazy: loads numpy
 
     parser.add_argument("--episodes", type=positive_int, required=True, help="episodes to record")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset dir the episode dirs are written into")
@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.sim.recorder import DEFAULT_SEED_BASE, record_dataset
+    from hope_models.sim.recorder import DEFAULT_SEED_BASE, record_dataset  # lazy: loads numpy
 
     seed = DEFAULT_SEED_BASE if args.seed is None else args.seed
     play = args.policy == "play"

@@ -21,8 +21,18 @@ from typing import Any
 
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
-from hope_models.train.config import OPTIONS, add_flag, add_flags
+from hope_models.settings import SettingsError, load_settings
+from hope_models.train.config import (
+    OPTIONS,
+    TrainConfig,
+    add_flag,
+    add_flags,
+    deployment_values,
+    over_deployment_budget,
+    values_from_args,
+)
 from hope_models.train.contract import ControlCommand
+from hope_models.train.loop import TrainSetupError, train
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,8 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.settings import SettingsError, load_settings
-
     try:
         settings = load_settings()
     except SettingsError as exc:
@@ -140,9 +148,6 @@ def _duration(seconds: Any) -> str:
 def config_from_args(args: argparse.Namespace, settings, component: str, run_dir: str):
     """The TrainConfig of the flags given, the deployment's values from `settings` for the rest
     of what the deployment decides, TrainConfig's defaults for everything else."""
-    from hope_models.train.config import TrainConfig, deployment_values, over_deployment_budget, values_from_args
-    from hope_models.train.loop import TrainSetupError
-
     given = values_from_args(args, "train")
     given.pop("run_dir", None)  # a sequence gives each component its own
     too_much = over_deployment_budget(given.get("memory_budget_mb", 0.0), settings)
@@ -153,8 +158,6 @@ def config_from_args(args: argparse.Namespace, settings, component: str, run_dir
 
 
 def _run_one(args: argparse.Namespace, settings) -> int:
-    from hope_models.train.loop import TrainSetupError, train
-
     events = ConsoleEvents(args.component)
     control = SignalControl()
     try:

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file
 
 from hope_models.checkpoint_format import (
@@ -110,8 +111,6 @@ def _from_config_checked(obj: dict, cfg_path: Path) -> TrainingComponent:
 def _check_header_fits(model: torch.nn.Module, path: Path) -> None:
     """The shapes of model's state_dict against those model.safetensors's header lists (the
     header only: no tensor is read)."""
-    from safetensors import safe_open
-
     if not path.is_file():
         raise CheckpointError(f"{path}: weights file not found")
     try:

@@ -23,6 +23,7 @@ from hope_models.checkpoint_format import (
     version_name,
     weights_misfit,
 )
+from hope_models.checkpoints import open_checkpoint
 from hope_models.data.features import FeatureSpec
 
 
@@ -50,7 +51,6 @@ def read_component(path: str | Path, config_check: Callable[[Any, Path], Feature
     ckpt = Path(path)
     cfg_path, weights_path = ckpt / CONFIG_FILE, ckpt / MODEL_FILE
     if verify_manifest:
-        from hope_models.checkpoints import open_checkpoint
 
         try:
             verified = open_checkpoint(ckpt, keep=(CONFIG_FILE, MODEL_FILE))
@@ -105,8 +105,8 @@ def check_header(config: Any, where: Path, component: str, error: type[Exception
 def load_tensors(data: bytes, where: Path,
                  error: type[CheckpointRefused]) -> dict[str, np.ndarray]:
     """The tensors of a safetensors file's bytes (pickle refused by its first bytes, never parsed)."""
-    from safetensors import SafetensorError
-    from safetensors.numpy import load
+    from safetensors import SafetensorError  # lazy: loads safetensors
+    from safetensors.numpy import load  # lazy: loads safetensors
 
     problem = safetensors_problem(data[:9])
     if problem is not None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 from hope_models.components import TOKENIZER, spec_of
 from hope_models.components.config_fields import MAX_TUPLE, make_config, refuse_unknown
 from hope_models.components.vqvae.config import VQVAEConfig
@@ -101,8 +102,6 @@ def vqvae_config_of(obj: Any, where: str) -> VQVAEConfig:
 
 def read_vqvae_config(ckpt_dir: str | Path) -> VQVAEConfig:
     """The VQVAEConfig of a vqvae checkpoint dir, from its config.json alone (no weights, no torch)."""
-    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
-
     path = Path(ckpt_dir) / CONFIG_FILE
     try:
         obj = read_json_object(path)  # untrusted: a FIFO, a huge or deeply nested file is refused

@@ -24,8 +24,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, read_json_object
+from hope_models.checkpoints import latest_complete
 from hope_models.components import PREDICTOR, spec_of
 from hope_models.components.mid_loop.model import MidLoop, previous_actions
+from hope_models.durable import file_sha256
 from hope_models.imagine.recorded import Goal
 
 ACTION_BOUNDS = (-1.0, 1.0)
@@ -57,8 +60,6 @@ class PlanConfig:
 def find_mid_loop_checkpoint(path: str | Path) -> Path:
     """A checkpoint dir, a mid_loop run dir, or a `train --sequential` run dir holding mid_loop/ ->
     the newest complete mid_loop checkpoint dir."""
-    from hope_models.checkpoints import latest_complete
-
     p = Path(path)
     if (p / "config.json").is_file():
         return p
@@ -87,23 +88,18 @@ class WorldModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "WorldModel":
-        from hope_models.components.build import component_from_checkpoint
+        from hope_models.components.build import component_from_checkpoint  # lazy: loads safetensors
 
         ckpt = find_mid_loop_checkpoint(path)
         return cls(component_from_checkpoint(ckpt), ckpt)
 
     def training_data(self) -> Path | None:
         """The dataset the mid_loop was trained on (its config.json's train.data), if it is still there."""
-        from hope_models.checkpoint_format import CONFIG_FILE, read_json_object
-
         train = read_json_object(self.checkpoint / CONFIG_FILE).get("train")
         data = train.get("data") if isinstance(train, dict) else None
         return Path(data) if isinstance(data, str) and Path(data).is_dir() else None
 
     def version(self) -> str:
-        from hope_models.checkpoint_format import MODEL_FILE
-        from hope_models.durable import file_sha256
-
         return f"{self.checkpoint.parent.parent.name}@{self.checkpoint.name}:{file_sha256(self.checkpoint / MODEL_FILE)[:12]}"
 
     def norm_act(self, u: np.ndarray | torch.Tensor):

@@ -48,9 +48,18 @@ from typing import Any
 import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
+from hope_models.checkpoints import load_tensors, resolve_checkpoint_dir
 from hope_models.components import spec_of
+from hope_models.data.features import FeatureSpecError
 from hope_models.json_finite import finite
+from hope_models.paths import PathError, confine_path, data_roots
 from hope_models.promote.baselines import baselines_check
+from hope_models.promote.reflex_policy import SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec
+from hope_models.sim.evaluate import evaluate_policy
+from hope_models.sim.reacher import ROBOT_MODEL, TASKS
+from hope_models.train.contract import TrainSetupError
+from hope_models.train.dataset_dir import dataset_dir_for
+from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
 # The first episodes' metadata read to decide the sim task (metadata.environment_id).
@@ -102,8 +111,6 @@ def _read_config(ckpt: Path) -> dict[str, Any]:
 
 def resolve_candidate(path: str | Path) -> Path:
     """A complete checkpoint dir from a checkpoint dir or a run dir; GateError otherwise."""
-    from hope_models.checkpoints import resolve_checkpoint_dir
-
     p = Path(path)
     if not p.exists():
         raise GateError(f"{p}: no such checkpoint or run dir")
@@ -115,9 +122,8 @@ def resolve_candidate(path: str | Path) -> Path:
 
 def non_finite_tensors(ckpt: Path) -> list[str]:
     """Names of the floating tensors of model.safetensors holding NaN or Inf (safetensors only)."""
-    import torch
+    import torch  # lazy: loads torch
 
-    from hope_models.checkpoints import load_tensors
 
     try:
         tensors = load_tensors(ckpt / MODEL_FILE)
@@ -128,7 +134,7 @@ def non_finite_tensors(ckpt: Path) -> list[str]:
 
 
 def _load_component(ckpt: Path):
-    from hope_models.components.build import component_from_checkpoint
+    from hope_models.components.build import component_from_checkpoint  # lazy: loads safetensors, torch
 
     try:
         return component_from_checkpoint(ckpt)
@@ -156,8 +162,6 @@ def train_source(cand_cfg: dict[str, Any], where: Path, data: str | Path | None,
     each must lie inside the data roots (hope_models/paths.py, the rule POST /api/runs applies),
     because the gate reads the spec, walks the dataset and creates the cache dir. ValueError names
     the field and the file; None when config.json names no dataset."""
-    from hope_models.paths import PathError, confine_path, data_roots
-
     if data is not None:
         return TrainSource(str(data), Path(settings.cache_dir), None)
     train = cand_cfg.get("train", {})
@@ -183,10 +187,7 @@ def train_source(cand_cfg: dict[str, Any], where: Path, data: str | Path | None,
 
 def _open_data(source: TrainSource):
     """The candidate run's dataset cache (built like the trainer builds it); ValueError with the reason."""
-    from hope_models.data.cache import CacheError, load_or_build
-    from hope_models.data.features import FeatureSpecError
-    from hope_models.train.contract import TrainSetupError
-    from hope_models.train.dataset_dir import dataset_dir_for
+    from hope_models.data.cache import CacheError, load_or_build  # lazy: loads mcap
 
     data, cache_root = source.data, source.cache_root
     try:
@@ -244,8 +245,6 @@ def _vqvae_weights(component) -> str | None:
 def sim_task(cache) -> str | None:
     """The reacher task ("reach", "track") the dataset was recorded on, from its episodes'
     metadata (robot_model dmc-reacher, environment_id dm_control/reacher-<task>); None if not sim."""
-    from hope_models.sim.reacher import ROBOT_MODEL, TASKS
-
     for ep in cache.episodes[:_TASK_PROBE_EPISODES]:
         src = Path(str(ep.get("source", "")))
         meta_file = src / "metadata.json" if src.is_dir() else src.parent / "metadata.json"
@@ -308,8 +307,6 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
 def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_problem: str | None,
                cand_cfg: dict[str, Any], data: str | Path | None):
     """The val_loss check; returns the candidate's dataset cache (None when it cannot be opened)."""
-    from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
-
     tol = float(gate.settings.gate_val_tolerance)
     where = cand_dir / CONFIG_FILE
     try:
@@ -380,15 +377,6 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
 
 
 def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
-    from hope_models.promote.reflex_policy import (
-        SIM_ACTION,
-        SIM_OBSERVATION,
-        ReflexPolicy,
-        ReflexPolicyError,
-        check_spec,
-    )
-    from hope_models.sim.evaluate import evaluate_policy
-
     if not spec_of(cand.name).acts:
         return
     try:

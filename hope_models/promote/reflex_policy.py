@@ -33,6 +33,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
+from hope_models.checkpoints import open_checkpoint
 from hope_models.components import ACTOR, spec_of
 from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
@@ -89,7 +91,7 @@ class ReflexPolicy:
 
     def __init__(self, model, spec, version: str, action_bounds: tuple[float, float] | None = SIM_BOUNDS,
                  checkpoint_dir: Path | None = None):
-        import torch
+        import torch  # lazy: loads torch
 
         self._torch = torch
         self.model = model.eval()
@@ -114,9 +116,7 @@ class ReflexPolicy:
                         expect_observation: Sequence[tuple[str, int]] | None = SIM_OBSERVATION,
                         expect_action: Sequence[tuple[str, int]] | None = SIM_ACTION,
                         action_bounds: tuple[float, float] | None = SIM_BOUNDS) -> "ReflexPolicy":
-        from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
-        from hope_models.checkpoints import open_checkpoint
-        from hope_models.components.build import component_from_checkpoint
+        from hope_models.components.build import component_from_checkpoint  # lazy: loads safetensors, torch
 
         p = Path(path)
         if not p.exists():

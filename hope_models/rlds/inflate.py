@@ -23,6 +23,9 @@ import time
 import zlib
 from typing import Any
 
+import lz4.frame
+import zstandard
+
 MAX_RATIO = 200  # JSON of floats inflates ~5-10x, an image array less; zeros far more
 RATIO_FLOOR = 1 << 20  # below this many bytes a high ratio is harmless
 CHUNK = 1 << 20
@@ -111,11 +114,9 @@ def inflate_zlib(data: bytes | memoryview, wbits: int, cap: int, where: str, wha
 def open_inflated(compression: str, data: bytes) -> Any:
     """A file-like reader of `data` inflated as it is read: MCAP's compressions ("" = stored)."""
     if compression == "zstd":
-        import zstandard
 
         return zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True)
     if compression == "lz4":
-        import lz4.frame
 
         return lz4.frame.open(io.BytesIO(data), "rb")
     if compression == "":

@@ -28,6 +28,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from hope_models.sim.expert import ExpertController, RandomPolicy
 from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, TASKS, make_env
 
 REACH_DEADLINE_S = 2.0
@@ -170,12 +171,10 @@ def evaluate_policy(policy_factory: PolicyFactory | Any, seeds: Iterable[int], t
 
 
 def expert_factory(seed: int):
-    from hope_models.sim.expert import ExpertController
     return ExpertController()
 
 
 def random_factory(seed: int):
-    from hope_models.sim.expert import RandomPolicy
     return RandomPolicy(seed)
 
 

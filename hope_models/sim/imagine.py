@@ -56,6 +56,7 @@ import numpy as np
 from hope_models.rlds.episode import Episode
 from hope_models.rlds.validation_report import episode_report
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
+from hope_models.sim.expert import ExpertController
 from hope_models.sim.reacher import (
     ACT_DIM,
     ACTION_HIGH,
@@ -142,8 +143,6 @@ class DartSearch:
     method = "dart"
 
     def __init__(self, env, seed: int, noise: float = DART_NOISE_STD):
-        from hope_models.sim.expert import ExpertController
-
         self.env = env
         self.inject = _NoiseInjection(seed, noise, 1)
         self.expert = ExpertController()
@@ -165,8 +164,8 @@ class CEMPlanner:
     method = "cem"
 
     def __init__(self, env, seed: int, cfg: CEMConfig | None = None, noise: float = 0.0):
-        import mujoco
-        from mujoco import rollout
+        import mujoco  # lazy: loads mujoco
+        from mujoco import rollout  # lazy: loads mujoco
 
         self.cfg = cfg or CEMConfig()
         self.cfg.validate()

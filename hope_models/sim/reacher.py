@@ -109,8 +109,8 @@ def _gl_backend(frames: bool) -> str:
 
 def _dm_control(frames: bool = False):
     _gl_backend(frames)
-    from dm_control.rl import control
-    from dm_control.suite import reacher
+    from dm_control.rl import control  # lazy: loads dm_control
+    from dm_control.suite import reacher  # lazy: loads dm_control
 
     return control, reacher
 

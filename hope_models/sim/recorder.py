@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import tempfile
 from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -49,6 +50,7 @@ import numpy as np
 from hope_models.rlds.episode import Episode, Step
 from hope_models.rlds.validate import validate_episode
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
+from hope_models.sim.expert import ExpertController, PlayPolicy
 from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, FRAME_SIZE, ROBOT_MODEL, TASKS, make_env
 
 DEFAULT_SEED_BASE = 100_000  # demos start here; evaluation defaults to seeds 0..N-1 (held out)
@@ -84,8 +86,6 @@ class RecordResult:
 def software_versions(key: str, module: str) -> dict[str, str]:
     """metadata.software of a sim episode: the module that wrote it (under `key`) and the
     simulator's versions."""
-    from importlib.metadata import PackageNotFoundError, version
-
     out = {key: module}
     for pkg in ("dm-control", "mujoco"):
         try:
@@ -156,8 +156,6 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
                    frame_dir: str | Path | None = None, steps: int = EPISODE_STEPS) -> tuple[Episode, float]:
     """One episode as an in-memory canonical Episode (frames saved under frame_dir/blobs/), and its
     return (the sum of the rewards of the executed actions). policy="play" records play."""
-    from hope_models.sim.expert import ExpertController, PlayPolicy
-
     if noise is not None and (not np.isfinite(noise) or noise < 0):
         raise ValueError(f"noise={noise} must be a non-negative standard deviation (action units)")
     if frames and frame_dir is None:

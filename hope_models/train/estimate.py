@@ -160,7 +160,7 @@ def activation_floats_per_sample(layers: list[Layer], window_k: int, frames: boo
 def cache_resident_mb(cache: Any) -> float:
     """What an open DatasetCache's mapped arrays can add to RSS (nothing for arrays read with
     pread), capped at the cache's resident budget: the `cache` part of an estimate."""
-    from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB
+    from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB  # lazy: loads mcap, numpy
     resident = (cache.x.nbytes + cache.t.nbytes) if cache.mode == "mmap" else 0
     if getattr(cache, "frames", None) is not None and getattr(cache, "frames_mode", "read") == "mmap":
         resident += cache.frames.nbytes
@@ -202,7 +202,7 @@ def _estimate(component_name: str, layers: list[Layer], batch_size: int, window_
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} = {value!r} must be a positive integer")
     if cache_mb is None:
-        from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB
+        from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB  # lazy: loads mcap, numpy
         cache_mb = float(DEFAULT_RESIDENT_BUDGET_MB)
     n_params = sum(layer.repeat * math.prod(shape) for layer in layers for shape in layer.params)
     n_train = sum(layer.repeat * math.prod(shape) for layer in layers if layer.trainable for shape in layer.params)

@@ -10,6 +10,7 @@ from typing import Callable
 from hope_models import checkpoints as ckpt
 from hope_models.components import spec_of
 from hope_models.disk import is_disk_full
+from hope_models.settings import load_settings
 from hope_models.train.config import TrainConfig
 from hope_models.train.contract import TrainSetupError
 from hope_models.train.dataset_dir import dataset_dir_for
@@ -20,13 +21,12 @@ LOADER_CHUNK = 8  # window batches built per vectorised call (the pre-flight est
 def open_dataset(cfg: TrainConfig, log: Callable[[str, str], None]):
     """The compiled cache of cfg.data (built on first use) and its build info; TrainSetupError
     names the path when it holds nothing to train on."""
-    from hope_models.data.cache import CacheError, load_or_build
-    from hope_models.data.features import FeatureSpecError
+    from hope_models.data.cache import CacheError, load_or_build  # lazy: loads mcap, numpy
+    from hope_models.data.features import FeatureSpecError  # lazy: loads numpy
 
     if cfg.cache_dir:
         cache_root = Path(cfg.cache_dir)
     else:
-        from hope_models.settings import load_settings
         cache_root = load_settings().cache_dir
     data_dir = dataset_dir_for(cfg.data, cache_root)
     try:
@@ -80,8 +80,8 @@ def check_resume_matches(cfg: TrainConfig, loaded: ckpt.LoadedCheckpoint, run_di
 def estimate_from_config(cfg: TrainConfig, cache, vqvae_dir: Path | None):
     """The memory estimate of the component cfg describes, from its configuration: nothing is
     built, so a model too big for the budget is refused before it can take the memory."""
-    from hope_models.components.resolve import read_vqvae_config, resolve
-    from hope_models.train import estimate
+    from hope_models.components.resolve import read_vqvae_config, resolve  # lazy: loads numpy
+    from hope_models.train import estimate  # lazy: loads psutil
 
     try:
         vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and spec_of(cfg.component).reads_vqvae != "never" \
@@ -95,7 +95,7 @@ def estimate_from_config(cfg: TrainConfig, cache, vqvae_dir: Path | None):
 
 def estimate_built(cfg: TrainConfig, component, cache):
     """A stand-in factory's component is known only once built: its estimate from the model."""
-    from hope_models.train.estimate import cache_resident_mb, estimate_memory
+    from hope_models.train.estimate import cache_resident_mb, estimate_memory  # lazy: loads psutil
 
     win = component.window
     return estimate_memory(cfg.component, component.model, cfg.batch_size, win.k, cache.spec.obs_dim,
@@ -105,7 +105,7 @@ def estimate_built(cfg: TrainConfig, component, cache):
 
 def check_budget(cfg: TrainConfig, est) -> None:
     """Refuse, before the first step, a configuration whose estimated memory cannot fit the budget."""
-    from hope_models.train.estimate import MemoryBudgetError, check_fits
+    from hope_models.train.estimate import MemoryBudgetError, check_fits  # lazy: loads psutil
 
     try:
         check_fits(est, cfg.memory_budget_mb, cfg.memory_soft_fraction)

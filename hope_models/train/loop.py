@@ -38,9 +38,12 @@ from hope_models.train.config import ConfigValueError, TrainConfig
 from hope_models.train.contract import Control, ControlCommand, NoControl, TrainSetupError
 from hope_models.train.job_setup import LOADER_CHUNK
 from hope_models.train.loss_history import LossHistory
+from hope_models.train.provenance import write_provenance
 from hope_models.train.result import TrainResult
 from hope_models.train.run_dir_lock import RunDirBusy, RunDirLock
 from hope_models.train.schedule import lr_at
+from hope_models.train.thermal import ThermalGovernor
+from hope_models.train.validation import NoValidationSplit, ValidationSetup, anchor_sampler, validation_metrics
 
 Emit = Callable[[str, dict], None]
 
@@ -125,7 +128,7 @@ class _Trainer:
         cfg = self.cfg
         factory = self.factory
         if factory is None:
-            from hope_models.components.build import build_component as factory
+            from hope_models.components.build import build_component as factory  # lazy: loads numpy, safetensors, torch
         try:
             return factory(cfg.component, spec, model_config=dict(cfg.model_config), vqvae_dir=self.vqvae_dir,
                            data_fingerprint=fingerprint)
@@ -133,8 +136,6 @@ class _Trainer:
             raise TrainSetupError(f"cannot build {cfg.component}: {exc}") from None
 
     def _sampler(self, cache, component, split: str):
-        from hope_models.train.validation import anchor_sampler
-
         cfg = self.cfg
         return anchor_sampler(cache, component, split, batch_size=cfg.batch_size, seed=cfg.seed,
                               imagined_ratio=cfg.imagined_ratio, val_fraction=cfg.val_fraction)
@@ -170,7 +171,7 @@ class _Trainer:
 
     def checkpoint(self, step: int) -> Path | None:
         """Write checkpoint `step` unless it is already the newest; refuses non-finite weights."""
-        import torch
+        import torch  # lazy: loads torch
 
         if step == self.last_ckpt_step or step == 0:
             return self.last_ckpt_path
@@ -196,7 +197,7 @@ class _Trainer:
 
     def _optimizer(self):
         """AdamW; weight decay on matrices only (biases, norms and other vectors are left alone)."""
-        import torch
+        import torch  # lazy: loads torch
 
         decay = [p for p in self.model.parameters() if p.requires_grad and p.dim() >= 2]
         no_decay = [p for p in self.model.parameters() if p.requires_grad and p.dim() < 2]
@@ -207,8 +208,7 @@ class _Trainer:
 
     # -- run ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
-        from hope_models.train.guards import MemoryGuard
-        from hope_models.train.thermal import ThermalGovernor
+        from hope_models.train.guards import MemoryGuard  # lazy: loads psutil
 
         cfg = self.cfg
         self.t_start = time.monotonic()
@@ -247,11 +247,10 @@ class _Trainer:
                            message, time.monotonic() - self.t_start)
 
     def _train(self, cache) -> TrainResult:
-        import numpy as np
-        import torch
+        import numpy as np  # lazy: loads numpy
+        import torch  # lazy: loads torch
 
-        from hope_models.train.metrics import MetricsLog, convergence_summary
-        from hope_models.train.provenance import write_provenance
+        from hope_models.train.metrics import MetricsLog, convergence_summary  # lazy: loads mcap
 
         cfg = self.cfg
         torch.set_num_threads(cfg.threads)
@@ -324,7 +323,7 @@ class _Trainer:
 
     def _loop(self, step: int) -> tuple[str, str, int]:
         """Optimizer steps up to cfg.steps; (outcome, message, the last step done)."""
-        from hope_models.data.windows import WindowLoader
+        from hope_models.data.windows import WindowLoader  # lazy: loads numpy
 
         cfg, comp = self.cfg, self.component
         if step >= cfg.steps:
@@ -391,7 +390,7 @@ class _Trainer:
     def _step(self, s: int, batch) -> tuple[float, float, float, dict] | str:
         """Optimizer step `s`: (loss, lr, grad norm, the component's extra metrics), or why it
         stopped before the optimizer step (a non-finite loss or gradient)."""
-        import torch
+        import torch  # lazy: loads torch
 
         lr = lr_at(s, self.cfg)
         for g in self.opt.param_groups:
@@ -437,8 +436,6 @@ class _Trainer:
     def _validate(self, cache) -> dict[str, float]:
         """Mean evaluate() metrics over a few validation batches; the RNG is left as it was. The
         promotion gate computes the same numbers with the same function (train/validation.py)."""
-        from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
-
         try:
             return validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
         except NoValidationSplit:

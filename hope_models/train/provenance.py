@@ -25,10 +25,12 @@ import logging
 import subprocess
 import threading
 import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-from hope_models.checkpoint_format import VQVAE_REF
+from hope_models.checkpoint_format import VQVAE_REF, CheckpointError, checkpoint_version
+from hope_models.durable import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +41,6 @@ GIT_TIMEOUT_S = 2.0
 
 
 def package_version() -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(PACKAGE)
     except PackageNotFoundError:
@@ -90,7 +90,6 @@ def dataset_info(cfg, cache) -> dict[str, Any]:
 def vqvae_info(vqvae_dir: Path | None) -> dict[str, Any] | None:
     if vqvae_dir is None:
         return None
-    from hope_models.checkpoint_format import CheckpointError, checkpoint_version
 
     ckpt = Path(vqvae_dir)
     run_id = ckpt.parent.parent.name if ckpt.parent.name == "checkpoints" else None
@@ -103,8 +102,6 @@ def vqvae_info(vqvae_dir: Path | None) -> dict[str, Any] | None:
 
 def write_provenance(run_dir: Path, cfg, cache, vqvae_dir: Path | None) -> None:
     """provenance.json for this attempt (atomic); logs and carries on when it cannot."""
-    from hope_models.durable import atomic_write
-
     try:
         obj = {"format": FORMAT, "written_at": round(time.time(), 3), "component": cfg.component,
                "config": cfg.to_json_obj(), "dataset": dataset_info(cfg, cache), VQVAE_REF: vqvae_info(vqvae_dir),

@@ -9,8 +9,8 @@ from typing import Any
 
 def capture() -> tuple[dict[str, Any], dict[str, Any]]:
     """(tensors, json) of the current global RNG state."""
-    import numpy as np
-    import torch
+    import numpy as np  # lazy: loads numpy
+    import torch  # lazy: loads torch
 
     np_name, np_keys, np_pos, np_has_gauss, np_gauss = np.random.get_state()
     tensors = {"rng.torch": torch.get_rng_state(),
@@ -25,8 +25,8 @@ def capture() -> tuple[dict[str, Any], dict[str, Any]]:
 def restore(tensors: dict[str, Any], state: dict[str, Any]) -> None:
     """Set the global RNG state from capture()'s output (read back from a checkpoint, so any
     wrong shape raises; the caller names the checkpoint)."""
-    import numpy as np
-    import torch
+    import numpy as np  # lazy: loads numpy
+    import torch  # lazy: loads torch
 
     torch.set_rng_state(tensors["rng.torch"])
     keys = tensors["rng.numpy_keys"].numpy().view(np.uint32)

@@ -69,7 +69,7 @@ def anchor_sampler(cache, component, split: str, *, batch_size: int, seed: int, 
     """The AnchorSampler the trainer draws `split` ("train", "val", "all") from for this component.
     A component that clones the recorded actions (`clones_actions`, the fast_loop) never draws
     from play episodes: their actions are exploration, not labels."""
-    from hope_models.data.sampler import AnchorSampler
+    from hope_models.data.sampler import AnchorSampler  # lazy: loads numpy
 
     win = component.window
     horizon = getattr(component, "horizon_s", max(win.horizons_s, default=0.0))
@@ -86,9 +86,9 @@ def validation_metrics(component, cache, setup: ValidationSetup, *, anchors_from
     `cache` may be a view of the dataset with another model's normalisation (gate.py); the anchors
     do not depend on it. Raises NoValidationSplit when the split has no anchors.
     """
-    import torch
+    import torch  # lazy: loads torch
 
-    from hope_models.data.windows import make_windows
+    from hope_models.data.windows import make_windows  # lazy: loads numpy
 
     if setup.batches < 1:
         raise ValueError(f"val_batches={setup.batches} must be >= 1")

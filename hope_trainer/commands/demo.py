@@ -42,14 +42,19 @@ from pathlib import Path
 from typing import Any
 
 from hope_models.cli.argtypes import positive_int
+from hope_models.durable import atomic_write
+from hope_models.settings import SettingsError
+from hope_trainer.commands.serve import add_listen_arguments, listen_settings, setup_logging
+from hope_trainer.demo.report import format_summary, verdict
+from hope_trainer.demo.session import Demo
 from hope_trainer.demo.shared import DemoError, Interrupted, say
+from registry.run_request import RunRequestError
+from webapp.server import ServerError
 
 log = logging.getLogger("hope.demo")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hope_trainer.commands.serve import add_listen_arguments
-
     parser.add_argument("--episodes", type=positive_int, default=50, help="expert demonstrations to record (default 50)")
     parser.add_argument("--noise", type=float, default=1.0, help="DART noise of the demonstrations (default 1.0)")
     parser.add_argument("--steps", type=positive_int, default=4000, help="training steps of every component (default 4000)")
@@ -65,12 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _run_demo(demo: Any) -> tuple[int, dict[str, Any] | None]:
     """The demo up to its summary: (exit code, summary), the summary None when it stopped early."""
-    from hope_models.settings import SettingsError
-    from registry.db import RegistryError
-    from registry.run_request import RunRequestError
-    from registry.runs import RunError
-    from webapp.auth import TokenError
-    from webapp.server import ServerError
+    from registry.db import RegistryError  # lazy: loads sqlalchemy
+    from registry.runs import RunError  # lazy: loads sqlalchemy
+    from webapp.auth import TokenError  # lazy: loads flask
 
     try:
         return 0, demo.run()
@@ -90,9 +92,6 @@ def _run_demo(demo: Any) -> tuple[int, dict[str, Any] | None]:
 
 def _report(summary: dict[str, Any], home: Path, target_return: float) -> bool:
     """Judge the summary, write it to $HOPE_HOME/demo/summary.json and print it; True when it passed."""
-    from hope_models.durable import atomic_write
-    from hope_trainer.demo.report import format_summary, verdict
-
     problems = verdict(summary, target_return)
     log.info("demo finished in %.0f s: %s", summary["timings"]["total"], "; ".join(problems) or "ok")
     summary["ok"] = not problems
@@ -111,10 +110,6 @@ def _report(summary: dict[str, Any], home: Path, target_return: float) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.settings import SettingsError
-    from hope_trainer.commands.serve import listen_settings, setup_logging
-    from hope_trainer.demo.session import Demo
-
     try:
         settings = listen_settings(args)
     except SettingsError as exc:

@@ -16,6 +16,7 @@ import os
 import sys
 from pathlib import Path
 
+import hope_models.settings as settings_module
 from hope_trainer.doctor import FAIL, OK, SKIP, WARN, Check, check_names, run_checks
 
 _MARK = {OK: "ok  ", WARN: "WARN", FAIL: "FAIL", SKIP: "skip"}
@@ -30,8 +31,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def load_settings_readonly():
     """(settings, a fail line or None), read without securing $HOPE_HOME (no mkdir, no chmod):
     the doctor reports the home as it is."""
-    import hope_models.settings as settings_module
-
     try:
         return settings_module.load_settings(secure=False), None
     except settings_module.SettingsError as exc:

@@ -28,10 +28,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import urllib.error
+import urllib.request
 from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
 from hope_models.numbers import NumberError, float_from_text
+from hope_models.settings import SettingsError, load_settings
 
 if TYPE_CHECKING:
     from hope_models.settings import Settings
@@ -72,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _observation(text: str, flag: str = "--observation") -> list[float]:
-    from hope_models.runtime.brain_service import BrainError, observation_values
+    from hope_models.runtime.brain_service import BrainError, observation_values  # lazy: loads numpy
 
     try:
         obj = json.loads(text)
@@ -96,10 +99,7 @@ def _base_url(settings: Settings) -> str:
 
 
 def _via_http(settings: Settings, body: dict[str, Any], timeout: float) -> dict[str, Any]:
-    import urllib.error
-    import urllib.request
-
-    from webapp.auth import TokenError, read_token, token_path
+    from webapp.auth import TokenError, read_token, token_path  # lazy: loads flask
 
     base = _base_url(settings)
     hint = ("start the service with `python run_trainer.py serve`, or answer in this process with --local")
@@ -140,8 +140,8 @@ def _via_http(settings: Settings, body: dict[str, Any], timeout: float) -> dict[
 def _record_first_inference(settings: Settings):
     """on_first_inference for --local: the loop-closure time goes into the registry as with serve."""
     def record(component: str, version: str, checkpoint: str, when) -> None:
-        from registry import promotion
-        from registry.db import Registry
+        from registry import promotion  # lazy: loads sqlalchemy
+        from registry.db import Registry  # lazy: loads sqlalchemy
 
         with Registry.open(settings) as registry, registry.session() as s:
             promotion.record_first_inference(s, checkpoint, when)
@@ -150,7 +150,7 @@ def _record_first_inference(settings: Settings):
 
 
 def _via_local(settings: Settings, body: dict[str, Any]) -> dict[str, Any]:
-    from hope_models.runtime.brain_service import BrainError, BrainService
+    from hope_models.runtime.brain_service import BrainError, BrainService  # lazy: loads numpy
 
     try:
         brain = BrainService(settings.home, on_first_inference=_record_first_inference(settings))
@@ -167,8 +167,6 @@ def _via_local(settings: Settings, body: dict[str, Any]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.settings import SettingsError, load_settings
-
     try:
         settings = load_settings()
         body: dict[str, Any] = {"component": args.component, "observation": _observation(args.observation)}

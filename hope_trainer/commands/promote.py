@@ -34,8 +34,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+from daemon.cli.registry import CommandError, open_registry
+from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
+from hope_models.promoted import PointerError, checkpoint_version
 
 PROMOTED_EXIT, REFUSED_EXIT, USAGE_EXIT = 0, 1, 2
 log = logging.getLogger(__name__)
@@ -110,11 +113,11 @@ def _run_data(run) -> str | None:
 
 def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | None]:
     """(checkpoint dir, run id or None, the run's dataset or None) of the request."""
-    from sqlalchemy import select
+    from sqlalchemy import select  # lazy: loads sqlalchemy
 
-    from hope_models.promote.gate import GateError, resolve_candidate
-    from registry import runs
-    from registry.models import Run
+    from hope_models.promote.gate import GateError, resolve_candidate  # lazy: loads numpy
+    from registry import runs  # lazy: loads sqlalchemy
+    from registry.models import Run  # lazy: loads sqlalchemy
 
     if args.run:
         run = runs.get_run(s, args.run)
@@ -136,9 +139,6 @@ def _candidate(s, args: argparse.Namespace) -> tuple[Path, str | None, str | Non
 
 def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
     """The checkpoint's component (from its config.json; `expected` if given) and its version."""
-    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
-    from hope_models.promoted import PointerError, checkpoint_version
-
     try:
         component = read_json_object(ckpt / CONFIG_FILE).get("component")
     except (OSError, CheckpointError) as exc:
@@ -157,8 +157,8 @@ def _component_and_version(ckpt: Path, expected: str | None) -> tuple[str, str]:
 def _record_forced(s: Any, by: str, model: Any, reasons: list[str]) -> None:
     """A forced promotion is said out loud: a WARNING line, and a log event on the candidate's run
     (the models row holds forced and forced_by in its gate_result either way)."""
-    from registry import runs
-    from registry.models import Run
+    from registry import runs  # lazy: loads sqlalchemy
+    from registry.models import Run  # lazy: loads sqlalchemy
 
     message = (f"forced promotion by {by}: {model.component} {model.version} (model {model.id}) served past the "
                f"gate's refusal: {'; '.join(map(str, reasons)) or 'no reason given'}")
@@ -170,12 +170,12 @@ def _record_forced(s: Any, by: str, model: Any, reasons: list[str]) -> None:
 
 def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
     """The whole command minus printing: (exit code, output object). UsageError for exit 2."""
-    from sqlalchemy import select
+    from sqlalchemy import select  # lazy: loads sqlalchemy
 
-    from hope_models.promote.gate import GateError, gate_candidate
-    from registry import promotion
-    from registry.models import Model
-    from registry.runs import RunError
+    from hope_models.promote.gate import GateError, gate_candidate  # lazy: loads numpy
+    from registry import promotion  # lazy: loads sqlalchemy
+    from registry.models import Model  # lazy: loads sqlalchemy
+    from registry.runs import RunError  # lazy: loads sqlalchemy
 
     with registry.session(readonly=True) as s:
         try:
@@ -199,7 +199,7 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
                                "reasons": [f"{version} is already the promoted {component}"], "metrics": {},
                                "already": True}
 
-    import torch
+    import torch  # lazy: loads torch
 
     torch.set_num_threads(max(1, int(args.threads)))
     try:
@@ -241,8 +241,7 @@ def promote_candidate(settings: Any, registry: Any, args: argparse.Namespace) ->
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.cli.registry import CommandError, open_registry
-    from registry.promotion import PromotionError
+    from registry.promotion import PromotionError  # lazy: loads sqlalchemy
 
     if bool(args.run) == bool(args.checkpoint):
         return _usage(args, "give either RUN or --checkpoint DIR (exactly one)")

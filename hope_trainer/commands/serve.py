@@ -34,8 +34,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+from daemon.events import SocketIOSink
 from hope_models.child_command import dies_with_parent
+from hope_models.log_format import console_formatter
+from hope_models.log_limits import PipeToLog, rate_limit, rotating_file_handler
+from hope_models.malloc_arenas import limit_malloc_arenas
 from hope_models.numbers import NumberError, int_from_text
+from hope_models.settings import SettingsError, load_settings
+from webapp import create_app
+from webapp.door_process import DoorProcess
+from webapp.server import ConnectionLimits, HttpServer, ServerError
+from workers.cli import worker_command, worker_env
 
 log = logging.getLogger("hope.serve")
 
@@ -63,8 +72,6 @@ def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
 
 def listen_settings(args: argparse.Namespace):
     """The settings with --host/--port applied; SettingsError when config.toml or the env is bad."""
-    from hope_models.settings import load_settings
-
     settings = load_settings()
     if args.host is not None:
         settings.host = args.host
@@ -89,8 +96,6 @@ class WorkerSupervisor:
     """Keeps one worker process alive (restart with backoff) until stop()."""
 
     def __init__(self, settings: Any, queue: str, log_path: Path):
-        from workers.cli import worker_command, worker_env
-
         self.cmd = worker_command(settings, queue)
         self.env = worker_env(settings)
         self.settings = settings
@@ -105,8 +110,6 @@ class WorkerSupervisor:
         self._thread.start()
 
     def _spawn(self) -> subprocess.Popen:
-        from hope_models.log_limits import PipeToLog
-
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         argv = dies_with_parent(self.cmd)
         # its own session: the terminal's Ctrl-C reaches serve only, which stops the worker in order.
@@ -199,14 +202,10 @@ class Serve:
         self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
 
     def start(self) -> str:
-        from daemon.events import SocketIOSink
-        from daemon.service import Daemon
+        from daemon.service import Daemon  # lazy: loads mcap, numpy, psutil, sqlalchemy
         from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
-        from registry.db import Registry
-        from webapp import create_app
-        from webapp.auth import load_or_create_token
-        from webapp.door_process import DoorProcess
-        from webapp.server import ConnectionLimits, HttpServer
+        from registry.db import Registry  # lazy: loads sqlalchemy
+        from webapp.auth import load_or_create_token  # lazy: loads flask
 
         self.registry = Registry.open(self.settings, migrate=True)  # the one migration of this process
         token = load_or_create_token(self.settings)
@@ -241,10 +240,10 @@ class Serve:
     # -- stopping ----------------------------------------------------------------------------
 
     def _local_running(self) -> list[str]:
-        from sqlalchemy import select
+        from sqlalchemy import select  # lazy: loads sqlalchemy
 
-        from registry import runs
-        from registry.models import Run
+        from registry import runs  # lazy: loads sqlalchemy
+        from registry.models import Run  # lazy: loads sqlalchemy
 
         with self.registry.session(readonly=True) as s:
             return list(s.scalars(select(Run.id).where(Run.state.in_(runs.ACTIVE), Run.queue == self.args.queue)))
@@ -252,8 +251,8 @@ class Serve:
     def _hand_back_runs(self) -> list[str]:
         """Ask our worker's running job to checkpoint and requeue itself; a run dispatched but not yet
         claimed by a child goes back to the queue at once (its task, if delivered later, is stale)."""
-        from registry import runs
-        from registry.models import Run
+        from registry import runs  # lazy: loads sqlalchemy
+        from registry.models import Run  # lazy: loads sqlalchemy
 
         waiting = []
         for run_id in self._local_running():
@@ -336,9 +335,6 @@ def setup_logging(home: Path, console_level: int = logging.INFO, settings: Any =
     gets `console_level` and up (the demo keeps it to warnings so its own lines stay readable).
     Under a systemd unit the terminal lines carry journald priorities instead of a timestamp
     (hope_models/log_format.py). Both are rate-limited (hope_models/log_limits.py)."""
-    from hope_models.log_format import console_formatter
-    from hope_models.log_limits import rate_limit, rotating_file_handler
-
     root = logging.getLogger()
     root.setLevel(logging.INFO)
     console = logging.StreamHandler(sys.stderr)
@@ -352,11 +348,8 @@ def setup_logging(home: Path, console_level: int = logging.INFO, settings: Any =
 
 
 def run(args: argparse.Namespace) -> int:
-    from hope_models.malloc_arenas import limit_malloc_arenas
-    from hope_models.settings import SettingsError
-    from registry.db import RegistryError
-    from webapp.auth import TokenError
-    from webapp.server import ServerError
+    from registry.db import RegistryError  # lazy: loads sqlalchemy
+    from webapp.auth import TokenError  # lazy: loads flask
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     try:

@@ -24,7 +24,15 @@ import sys
 import threading
 from typing import TYPE_CHECKING
 
+from daemon.events import EventTailer, SocketIOSink
+from daemon.sdnotify import SdNotifier
+from hope_models.log_format import configure_logging, journal_prefix
+from hope_models.malloc_arenas import limit_malloc_arenas
+from hope_models.settings import SettingsError
 from hope_trainer.commands.serve import add_listen_arguments, brain_summary, door_line, listen_settings
+from webapp import create_app
+from webapp.door_process import DoorProcess
+from webapp.server import ConnectionLimits, HttpServer, ServerError
 
 if TYPE_CHECKING:
     from registry.db import Registry
@@ -53,8 +61,6 @@ def health_ok(host: str, port: int, timeout: float = 5.0) -> bool:
 
 def _tail_events(registry: Registry, socketio, stop: threading.Event) -> None:
     """No Redis: push run events from the registry to this process's browsers."""
-    from daemon.events import EventTailer, SocketIOSink
-
     tailer = EventTailer(registry, SocketIOSink(socketio))
     while not stop.is_set():
         try:
@@ -66,24 +72,15 @@ def _tail_events(registry: Registry, socketio, stop: threading.Event) -> None:
 
 def _start_logging(level: str) -> None:
     """Under systemd each line carries its journal priority (<3> err ...), elsewhere a timestamp."""
-    from hope_models.log_format import configure_logging
-
     configure_logging(getattr(logging, level.upper()))
     for noisy in ("werkzeug", "engineio", "socketio", "alembic"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.sdnotify import SdNotifier
-    from hope_models.log_format import journal_prefix
-    from hope_models.malloc_arenas import limit_malloc_arenas
     from hope_models.runtime.brain_service import BrainService  # NumPy, no torch
-    from hope_models.settings import SettingsError
-    from registry.db import Registry, RegistryError
-    from webapp import create_app
-    from webapp.auth import TokenError, load_or_create_token, token_path
-    from webapp.door_process import DoorProcess
-    from webapp.server import ConnectionLimits, HttpServer, ServerError
+    from registry.db import Registry, RegistryError  # lazy: loads sqlalchemy
+    from webapp.auth import TokenError, load_or_create_token, token_path  # lazy: loads flask
 
     limit_malloc_arenas()  # a thread per connection, for days: hope_models/malloc_arenas.py
     _start_logging(args.log_level)

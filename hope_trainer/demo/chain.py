@@ -11,8 +11,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from daemon.cli.watch import Display, end_line, progress_line
 from hope_models.components import ACTOR
 from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
+from registry.run_request import build_request
 
 if TYPE_CHECKING:
     from hope_models.settings import Settings
@@ -31,8 +33,7 @@ class ChainSteps:
         def _try_close_loop(self, fast_id: str, display: Any = None) -> bool: ...
 
     def queue_chain(self, data: Path) -> list[str]:
-        from registry.run_request import build_request
-        from registry.sequences import create_sequence
+        from registry.sequences import create_sequence  # lazy: loads sqlalchemy
 
         a = self.args
         req = build_request(component=COMPONENTS[0], data=str(data), steps=a.steps, queue=a.queue,
@@ -57,10 +58,10 @@ class ChainSteps:
         """The run ids of a demo chain with this same config that an interrupted demo left queued
         (Ctrl-C hands the running job back to the queue): finishing it beats queueing a second
         chain behind it."""
-        from sqlalchemy import select
+        from sqlalchemy import select  # lazy: loads sqlalchemy
 
-        from registry import runs
-        from registry.models import Run
+        from registry import runs  # lazy: loads sqlalchemy
+        from registry.models import Run  # lazy: loads sqlalchemy
 
         with self.serve.registry.session(readonly=True) as s:
             seqs = s.scalars(select(Run.sequence_id).where(Run.sequence_id.is_not(None),
@@ -78,7 +79,7 @@ class ChainSteps:
         return None
 
     def _runs(self, ids: list[str]) -> list[dict[str, Any]]:
-        from registry import runs
+        from registry import runs  # lazy: loads sqlalchemy
 
         with self.serve.registry.session(readonly=True) as s:
             return [runs.get_run(s, i).to_json_obj() for i in ids]
@@ -87,8 +88,6 @@ class ChainSteps:
         """Progress until every member ended, closing the loop on the fast_loop on the way: as soon
         as it is promoted and served, one inference goes through the API (that is the moment a
         robot would get the new reflex; later, the mid_loop's training would count as closure)."""
-        from daemon.cli.watch import Display, end_line, progress_line
-
         tty = sys.stdout.isatty()
         display = Display()
         ended: set[str] = set()

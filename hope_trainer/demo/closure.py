@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
-from hope_trainer.demo.shared import CLOSURE_WAIT_S, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
+from hope_trainer.demo.report import gate_outcome
+from hope_trainer.demo.shared import CLOSURE_WAIT_S, COMPONENTS, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
 
 if TYPE_CHECKING:
     from hope_models.settings import Settings
@@ -43,8 +44,6 @@ class ClosureSteps:
         return promoter is not None and not promoter.busy and promoter.next_run() is None
 
     def _gate(self, run_id: str) -> dict[str, Any] | None:
-        from hope_trainer.demo.report import gate_outcome
-
         with self.serve.registry.session(readonly=True) as s:
             return gate_outcome(s, run_id)
 
@@ -100,8 +99,6 @@ class ClosureSteps:
         """Once the gate promoted the chain's vqvae and mid_loop and BrainService serves them: one
         session ticked through the first 1.5 s of the first demonstration (a Mid Loop prediction
         made one horizon ago is then due), and its last answer: action, code, prediction, surprise."""
-        from hope_trainer.demo.shared import COMPONENTS
-
         wanted = {c: (gates.get(i) or {}) for c, i in zip(COMPONENTS, ids, strict=False)}
         if any(g.get("state") != "promoted" for g in wanted.values()):
             return None  # the summary already says which one the gate refused
@@ -159,7 +156,7 @@ class ClosureSteps:
         return answer
 
     def loop_closure(self, fast_id: str) -> float | None:
-        from registry import runs
+        from registry import runs  # lazy: loads sqlalchemy
 
         deadline = time.monotonic() + CLOSURE_WAIT_S
         while True:

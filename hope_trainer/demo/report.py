@@ -36,10 +36,10 @@ def gate_outcome(session: Any, run_id: str) -> dict[str, Any] | None:
 
     {"state": "promoted", "version", "model_id"} | {"state": "refused", "version", "model_id",
     "reasons"} | {"state": "error", "message"} (the promote child could not gate, or skipped it)."""
-    from sqlalchemy import select
+    from sqlalchemy import select  # lazy: loads sqlalchemy
 
-    from registry import runs
-    from registry.models import Model
+    from registry import runs  # lazy: loads sqlalchemy
+    from registry.models import Model  # lazy: loads sqlalchemy
 
     model = session.scalars(select(Model).where(Model.run_id == run_id).order_by(Model.id.desc())).first()
     if model is not None:

@@ -21,8 +21,10 @@ from hope_models.child_result import ChildResultError, read_result, result_argv,
 from hope_models.components import ACTOR
 from hope_models.durable import fsync_path
 from hope_models.log_limits import rotate_if_over
+from hope_trainer.commands.serve import Serve
 from hope_trainer.demo.chain import ChainSteps
 from hope_trainer.demo.closure import ClosureSteps
+from hope_trainer.demo.report import component_figures
 from hope_trainer.demo.shared import COMPONENTS, DEMO_SEED, DemoError, Interrupted, say
 
 
@@ -121,8 +123,6 @@ class Demo(ChainSteps, ClosureSteps):
     # -- 2. the services ------------------------------------------------------------------------
 
     def start_services(self) -> None:
-        from hope_trainer.commands.serve import Serve
-
         serve_args = argparse.Namespace(host=None, port=None, no_worker=False, queue=self.args.queue, tick=0.5)
         self.serve = Serve(self.settings, serve_args)
         self.token = self.serve.start()
@@ -159,8 +159,6 @@ class Demo(ChainSteps, ClosureSteps):
     # -- the whole thing ----------------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
-        from hope_trainer.demo.report import component_figures
-
         data = self.record_demos()
         self.first_observation = self._observation(data)
         self.check()

@@ -6,9 +6,13 @@ import os
 import platform
 import shutil
 import sys
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
+from hope_models.disk import FLOOR_MARGIN_MB, dispatch_floor_mb, free_mb
+from hope_models.train.config import TrainConfig
+from hope_models.train.thermal import ThermalGovernor
 from hope_trainer.doctor.check import FAIL, OK, SKIP, WARN, Check
 
 MB = 1024 * 1024
@@ -94,8 +98,6 @@ def check_page_size(settings: Any) -> Check:
 def check_thermal(settings: Any) -> list[Check]:
     """The zone file's temperature and `vcgencmd get_throttled`'s flags, through the readers the
     trainer and the daemon use. Missing sources are a fail only on a Raspberry Pi, where they exist."""
-    from hope_models.train.thermal import ThermalGovernor
-
     zone, vcgencmd = settings.thermal_zone_path, settings.vcgencmd_path
     reader = ThermalGovernor(zone, vcgencmd, settings.thermal_soft_c, settings.thermal_hard_c,
                              settings.thermal_resume_c)
@@ -141,7 +143,7 @@ def _vcgencmd_line(vcgencmd: str, flags: Any, missing: str) -> Check:
 
 
 def check_memory(settings: Any) -> Check:
-    import psutil
+    import psutil  # lazy: loads psutil
 
     vm = psutil.virtual_memory()
     budget = int(settings.memory_budget_mb)
@@ -167,18 +169,12 @@ def checkpoints_mb(home: Path) -> float:
 
 
 def _default_keep() -> int:
-    from dataclasses import fields
-
-    from hope_models.train.config import TrainConfig
-
     return next(int(f.default) for f in fields(TrainConfig) if f.name == "keep_last")
 
 
 def disk_floor_mb(settings: Any) -> tuple[float, str]:
     """(floor, how it was chosen), by the daemon's rule (hope_models/disk.py): disk_floor_mb when
     set (> 0), else a checkpoint x (keep_last + 2) + 200 MB."""
-    from hope_models.disk import FLOOR_MARGIN_MB, dispatch_floor_mb
-
     setting = float(getattr(settings, "disk_floor_mb", 0) or 0)
     if setting > 0:
         return dispatch_floor_mb(0.0, 1, setting), "disk_floor_mb"
@@ -188,8 +184,6 @@ def disk_floor_mb(settings: Any) -> tuple[float, str]:
 
 
 def check_disk(settings: Any) -> Check:
-    from hope_models.disk import free_mb
-
     free = free_mb(settings.home)
     floor, how = disk_floor_mb(settings)
     if free is None:

@@ -12,7 +12,9 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+import migrations
 from hope_trainer.doctor.check import FAIL, OK, SKIP, WARN, Check
+from registry.broker import broker_path
 
 SERVICES = ("hope-daemon", "hope-webapp", "hope-worker")
 REDIS_TIMEOUT_S = 2.0
@@ -40,7 +42,7 @@ def check_home(settings: Any) -> Check:
 
 
 def check_token(settings: Any) -> Check:
-    from webapp.auth import MIN_TOKEN_CHARS, token_path
+    from webapp.auth import MIN_TOKEN_CHARS, token_path  # lazy: loads flask
 
     path = token_path(settings)
     try:
@@ -67,9 +69,8 @@ def check_token(settings: Any) -> Check:
 
 def _heads() -> tuple[set[str], set[str]]:
     """(the heads, every revision) of the migrations this code carries."""
-    from alembic.script import ScriptDirectory
+    from alembic.script import ScriptDirectory  # lazy: loads alembic
 
-    import migrations
 
     scripts = ScriptDirectory(str(Path(migrations.__file__).resolve().parent))
     return set(scripts.get_heads()), {s.revision for s in scripts.walk_revisions()}
@@ -91,7 +92,7 @@ def _stored_revisions(path: Path) -> set[str] | None:
 
 
 def check_database(settings: Any) -> Check:
-    from registry.db import db_path
+    from registry.db import db_path  # lazy: loads sqlalchemy
 
     path = db_path(settings)
     if not path.exists():
@@ -127,8 +128,6 @@ def _writable_where(path: Path) -> tuple[bool, Path]:
 
 
 def check_broker(settings: Any) -> Check:
-    from registry.broker import broker_path
-
     url = getattr(settings, "redis_url", None)
     if not url:
         path = broker_path(settings)
@@ -144,7 +143,7 @@ def check_broker(settings: Any) -> Check:
 def _redis_ping(url: str) -> Check:
     shown = _without_password(url)
     try:
-        import redis
+        import redis  # lazy: loads redis
     except ImportError:
         return Check("broker", FAIL, f"redis_url is {shown} but the redis package is not installed", "sudo make install")
     try:

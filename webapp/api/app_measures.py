@@ -40,7 +40,7 @@ from typing import Any
 
 from sqlalchemy import func, or_, select
 
-from hope_models.checkpoint_format import VQVAE_REF
+from hope_models.checkpoint_format import CONFIG_FILE, VQVAE_REF, CheckpointError, read_json_object
 from hope_models.components import COMPONENTS
 from registry.models import Model, Run
 
@@ -53,8 +53,6 @@ MAX_RESULT_BYTES = 1 << 20
 def held_out_figures(run_dir: str | Path) -> dict[str, Any] | None:
     """A finished run's validation figures (result.json summary.val: the component's held-out
     metrics and, for vqvae and mid_loop, their baselines), or None."""
-    from hope_models.checkpoint_format import CheckpointError, read_json_object
-
     try:
         result = read_json_object(Path(run_dir) / RESULT_FILE, max_bytes=MAX_RESULT_BYTES)
     except (OSError, CheckpointError):
@@ -117,7 +115,7 @@ def latest_runs(s) -> list[Run]:
 
 
 def loss_points(run: Run) -> list[dict[str, Any]]:
-    from hope_models.train.metrics import read_metrics
+    from hope_models.train.metrics import read_metrics  # lazy: loads mcap
 
     out = []
     for rec in read_metrics(Path(run.run_dir)):
@@ -152,8 +150,6 @@ def last_metric(run: Run) -> dict[str, Any] | None:
 
 def _code_space(run: Run) -> tuple[int, int] | None:
     """(n_codes per group, groups) of the VQ-VAE the run's Mid Loop reads."""
-    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
-
     ckpt = run.last_checkpoint
     try:
         if not ckpt:  # a run the registry lost the checkpoint of: result.json names it
@@ -206,8 +202,6 @@ def learning_updates(s) -> int:
 
 
 def _manifest_hashes(dataset: Path) -> frozenset[str]:
-    from hope_models.checkpoint_format import CheckpointError, read_json_object
-
     path = dataset / "manifest.json"
     try:
         st = path.stat()
@@ -248,7 +242,7 @@ def total_episodes(s, inbox: Path) -> int:
 def relative_change(old_ckpt: str, new_ckpt: str) -> float | None:
     """||new - old|| / ||old|| over the tensors both hold with the same shape (NumPy, one tensor
     at a time); None when they share none or the old weights are all zero."""
-    from safetensors import safe_open
+    from safetensors import safe_open  # lazy: loads safetensors
 
     num = den = 0.0
     shared = 0

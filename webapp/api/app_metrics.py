@@ -44,6 +44,7 @@ from flask import Blueprint, current_app, jsonify
 from sqlalchemy import select
 
 from hope_models.components import COMPONENTS
+from registry.models import Model
 from webapp.api import app_measures as measures
 from webapp.api.validation import query_args, query_int
 
@@ -137,8 +138,6 @@ def benchmark(model) -> dict[str, Any] | None:
 
 @bp.get("/training/benchmarks")
 def training_benchmarks():
-    from registry.models import Model
-
     query_args("limit")
     limit = query_int("limit", default=BENCH_DEFAULT, minimum=1, maximum=BENCH_MAX)
     out = []

@@ -33,6 +33,8 @@ from typing import Any
 
 from flask import Blueprint, current_app, jsonify
 
+from hope_models.components import COMPONENTS
+from webapp.api.brain import wait_serving
 from webapp.api.validation import get_str, json_body, query_args, query_int
 from webapp.errors import ApiError
 
@@ -50,7 +52,7 @@ def _state():
 
 def backend_of(component: str) -> str:
     """What runs a component's weights when they are served (see the module doc)."""
-    from hope_models.runtime.brain_service import RUNTIMES
+    from hope_models.runtime.brain_service import RUNTIMES  # lazy: loads numpy
 
     return "numpy" if component in RUNTIMES else "torch"
 
@@ -113,8 +115,7 @@ def model_json(model) -> dict[str, Any]:
 
 @bp.get("")
 def list_models():
-    from hope_models.components import COMPONENTS
-    from registry import promotion
+    from registry import promotion  # lazy: loads sqlalchemy
 
     query_args("history")
     limit = query_int("history", default=HISTORY_DEFAULT, minimum=1, maximum=HISTORY_MAX)
@@ -136,9 +137,8 @@ def _model_id(body: dict) -> str:
 
 @bp.post("/activate")
 def activate():
-    from registry import promotion
-    from registry.models import Model
-    from webapp.api.brain import wait_serving
+    from registry import promotion  # lazy: loads sqlalchemy
+    from registry.models import Model  # lazy: loads sqlalchemy
 
     model_id = _model_id(json_body(allowed=("model_id",), required=("model_id",)))
     state = _state()

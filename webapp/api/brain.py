@@ -45,6 +45,10 @@ from pathlib import Path
 
 from flask import Blueprint, current_app, jsonify, request
 
+from hope_models.components import COMPONENTS
+from hope_models.paths import data_roots
+from hope_models.promoted import PointerError, read_pointer
+from registry.run_request import RunRequestError, resolve_path
 from webapp.admin import force_refusal
 from webapp.api.validation import get_bool, get_numbers, get_str, json_body, query_int
 from webapp.errors import ApiError
@@ -66,8 +70,6 @@ def _state():
 
 
 def _components() -> tuple[str, ...]:
-    from hope_models.components import COMPONENTS
-
     return tuple(COMPONENTS)
 
 
@@ -99,8 +101,7 @@ def wait_serving(brain, component: str, version: str | None, timeout_s: float = 
 
 @bp.get("")
 def status():
-    from hope_models.promoted import PointerError, read_pointer
-    from registry import promotion
+    from registry import promotion  # lazy: loads sqlalchemy
 
     limit = query_int("history", default=10, minimum=0, maximum=100)
     state = _state()
@@ -126,7 +127,7 @@ def status():
 
 @bp.post("/infer")
 def infer():
-    from hope_models.runtime.brain_service import BrainError
+    from hope_models.runtime.brain_service import BrainError  # lazy: loads numpy
 
     body = json_body(allowed=("component", "observation", "session", "reset", "action"),
                      required=("component", "observation"))
@@ -146,9 +147,6 @@ def infer():
 
 
 def _checkpoint_arg(value: str) -> str:
-    from hope_models.paths import data_roots
-    from registry.run_request import RunRequestError, resolve_path
-
     settings = _state().settings
     try:
         path = resolve_path("checkpoint", value, base=Path(settings.home), allowed_roots=data_roots(settings))
@@ -161,7 +159,7 @@ def _checkpoint_arg(value: str) -> str:
 
 @bp.post("/promote")
 def promote():
-    from registry.models import Run
+    from registry.models import Run  # lazy: loads sqlalchemy
 
     body = json_body(allowed=("run_id", "checkpoint", "component", "force"))
     run_id = get_str(body, "run_id", max_len=MAX_RUN_ID)
@@ -198,7 +196,9 @@ def promote():
         raise ApiError(f"the promotion gate did not finish within {PROMOTE_TIMEOUT_S:.0f} s", 504)
     if res.code is None:  # killed: the webapp is stopping
         raise ApiError(f"the promotion was stopped before it finished: {res.error()}", 503)
-    out = dict(res.output or {})
+    if res.output is None:  # it ended without writing its result: say so, never answer an empty success
+        raise ApiError(f"the promotion gate gave no result: {res.error()}", 500)
+    out = dict(res.output)
     if res.code == 0:  # promoted now, or it already was the promoted one ("already": true)
         if out.get("forced"):
             log.warning("forced promotion over HTTP (from %s, admin token): %s %s (model %s) served past the "
@@ -220,7 +220,7 @@ def promote():
 
 
 def _component_of(out: dict) -> str | None:
-    from registry.models import Model
+    from registry.models import Model  # lazy: loads sqlalchemy
 
     model_id = out.get("model_id")
     if not isinstance(model_id, int):
@@ -232,7 +232,7 @@ def _component_of(out: dict) -> str | None:
 
 @bp.post("/rollback")
 def rollback():
-    from registry import promotion
+    from registry import promotion  # lazy: loads sqlalchemy
 
     body = json_body(allowed=("component",), required=("component",))
     component = get_str(body, "component", choices=_components())

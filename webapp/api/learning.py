@@ -29,7 +29,7 @@ def _state():
 
 
 def _status() -> dict:
-    from registry import learning
+    from registry import learning  # lazy: loads sqlalchemy
 
     state = _state()
     with state.registry.session(readonly=True) as s:
@@ -50,7 +50,7 @@ def training_status():
 
 @bp.post("/api/learning/pause")
 def pause():
-    from registry import learning
+    from registry import learning  # lazy: loads sqlalchemy
 
     no_body()
     state = _state()
@@ -62,7 +62,7 @@ def pause():
 
 @bp.post("/api/learning/resume")
 def resume():
-    from registry import learning
+    from registry import learning  # lazy: loads sqlalchemy
 
     no_body()
     state = _state()

@@ -33,6 +33,17 @@ from pathlib import Path
 
 from flask import Blueprint, Response, current_app, jsonify, request
 
+from webapp.api.run_files import (
+    UnsafeFile,
+    artifact_size,
+    candidates,
+    is_safe,
+    list_artifacts,
+    open_checkpoint_tar,
+    open_confined,
+)
+from webapp.api.run_provenance import gate_records
+from webapp.api.run_provenance import provenance as assemble
 from webapp.api.runs import run_dir_of, run_or_404
 from webapp.api.validation import query_args
 from webapp.errors import ApiError
@@ -42,9 +53,6 @@ bp = Blueprint("run_artifacts", __name__, url_prefix="/api")
 
 @bp.get("/runs/<run_id>/provenance")
 def provenance(run_id: str):
-    from webapp.api.run_provenance import gate_records
-    from webapp.api.run_provenance import provenance as assemble
-
     query_args()
     with current_app.extensions["hope"].registry.session(readonly=True) as s:
         obj = assemble(run_or_404(s, run_id), gate_records(s, run_id))
@@ -53,8 +61,6 @@ def provenance(run_id: str):
 
 @bp.get("/runs/<run_id>/artifacts")
 def artifacts(run_id: str):
-    from webapp.api.run_files import UnsafeFile, artifact_size, list_artifacts
-
     query_args()
     run_dir = Path(run_dir_of(run_id))
     out = []
@@ -73,8 +79,6 @@ def artifacts(run_id: str):
 
 @bp.get("/runs/<run_id>/artifacts/<path:name>")
 def download(run_id: str, name: str):
-    from webapp.api.run_files import UnsafeFile, candidates, is_safe, open_checkpoint_tar, open_confined
-
     query_args()
     run_dir = Path(run_dir_of(run_id))
     art = {a.name: a for a in candidates(run_dir)}.get(name)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Iterator
 
+from hope_models.checkpoints import list_step_dirs
+
 CHUNK = 256 * 1024
 BLOCK = tarfile.BLOCKSIZE
 
@@ -91,8 +93,7 @@ def checkpoint_files(run_dir: Path, ckdir: Path) -> list[Path]:
 def candidates(run_dir: Path) -> list[Artifact]:
     """Every artifact the run dir seems to hold, in a fixed order, before the confinement check
     (`is_safe`): names a client may ask for, some of which may be refused."""
-    from hope_models.checkpoints import list_step_dirs
-    from hope_models.train.metrics import mcap_segments
+    from hope_models.train.metrics import mcap_segments  # lazy: loads mcap
 
     if not run_dir.is_dir():
         return []

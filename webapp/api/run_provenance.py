@@ -19,17 +19,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from hope_models.checkpoint_format import VQVAE_REF
+from hope_models.checkpoint_format import CONFIG_FILE, VQVAE_REF, CheckpointError, read_json_object
+from hope_models.checkpoints import list_step_dirs
 from hope_models.components import spec_of
+from hope_models.train.provenance import read_provenance
 
 CODE_NULL = {"version": None, "git_commit": None, "git_dirty": None}
 DATASET_KEYS = ("path", "fingerprint", "episodes", "steps", "imagined_episodes", "imagined_share")
 
 
 def _checkpoint_config(run_dir: Path) -> dict[str, Any] | None:
-    from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
-    from hope_models.checkpoints import list_step_dirs
-
     for _, ckdir in list_step_dirs(run_dir):
         try:
             return read_json_object(ckdir / CONFIG_FILE)
@@ -47,9 +46,9 @@ def _verdict(gate: Any) -> str | None:
 
 
 def gate_records(s, run_id: str) -> list[dict[str, Any]]:
-    from sqlalchemy import select
+    from sqlalchemy import select  # lazy: loads sqlalchemy
 
-    from registry.models import Model, iso
+    from registry.models import Model, iso  # lazy: loads sqlalchemy
 
     rows = s.scalars(select(Model).where(Model.run_id == run_id).order_by(Model.created_at, Model.id)).all()
     out = []
@@ -66,8 +65,6 @@ _UNRECORDED = object()
 
 def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
     """The answer for a registry Run row (read inside its session) and its gate records."""
-    from hope_models.train.provenance import read_provenance
-
     run_dir = Path(run.run_dir)
     rec = read_provenance(run_dir) or {}
     request_config = run.config if isinstance(run.config, dict) else {}

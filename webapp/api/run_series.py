@@ -29,6 +29,7 @@ import re
 
 from flask import Blueprint, Response, jsonify, request
 
+from hope_models.train.metric_series import series_columns
 from webapp.api.runs import run_dir_of
 from webapp.api.validation import query_args, query_int
 from webapp.errors import ApiError
@@ -56,8 +57,6 @@ def _names() -> list[str] | None:
 
 @bp.get("/runs/<run_id>/series")
 def series(run_id: str):
-    from hope_models.train.metric_series import series_columns
-
     query_args("names", "after")
     names = _names()
     after = query_int("after", default=None, minimum=0)

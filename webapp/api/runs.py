@@ -36,6 +36,8 @@ from pathlib import Path
 
 from flask import Blueprint, current_app, jsonify, request
 
+from hope_models.paths import data_roots
+from registry.run_request import RunRequestError, queue_run, request_from_json
 from webapp.api.validation import json_body, no_body, query_args, query_int
 from webapp.errors import ApiError
 
@@ -51,7 +53,7 @@ def _state():
 
 def run_or_404(s, run_id: str):
     """The registry's Run row of run_id (inside session s); 404 for an unknown run."""
-    from registry.models import Run
+    from registry.models import Run  # lazy: loads sqlalchemy
 
     run = s.get(Run, run_id)
     if run is None:
@@ -67,7 +69,7 @@ def run_dir_of(run_id: str) -> str:
 
 @bp.get("")
 def list_runs():
-    from registry import runs
+    from registry import runs  # lazy: loads sqlalchemy
 
     query_args("state", "limit")
     states = None
@@ -84,9 +86,6 @@ def list_runs():
 
 @bp.post("")
 def create_run():
-    from hope_models.paths import data_roots
-    from registry.run_request import RunRequestError, queue_run, request_from_json
-
     state = _state()
     settings = state.settings
     try:
@@ -103,8 +102,8 @@ def create_run():
 
 @bp.get("/<run_id>")
 def get_run(run_id: str):
-    from registry import runs
-    from webapp.api.app_measures import held_out_figures
+    from registry import runs  # lazy: loads sqlalchemy
+    from webapp.api.app_measures import held_out_figures  # lazy: loads sqlalchemy
 
     query_args()
     with _state().registry.session(readonly=True) as s:
@@ -116,7 +115,7 @@ def get_run(run_id: str):
 
 @bp.get("/<run_id>/metrics")
 def metrics(run_id: str):
-    from hope_models.train.metrics import read_metrics
+    from hope_models.train.metrics import read_metrics  # lazy: loads mcap
 
     query_args("after", "limit", "events")
     after = query_int("after", default=None, minimum=0)
@@ -158,7 +157,7 @@ def _stepped(records: list[dict]):
 
 
 def _control(run_id: str, action: str):
-    from registry import runs
+    from registry import runs  # lazy: loads sqlalchemy
 
     no_body()
     state = _state()

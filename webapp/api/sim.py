@@ -47,6 +47,7 @@ from typing import Any
 from flask import Blueprint, current_app, jsonify
 
 from hope_models.components import ACTOR, PREDICTOR
+from hope_models.promoted import PointerError, read_pointer
 from webapp.api.validation import get_int, get_str, json_body
 from webapp.errors import ApiError
 
@@ -233,8 +234,6 @@ def _state():
 
 @bp.post("/reflex")
 def start_reflex():
-    from hope_models.promoted import PointerError, read_pointer
-
     body = json_body(allowed=("episodes", "seed", "task", "target_jump_s"))
     episodes = get_int(body, "episodes", default=1, minimum=1, maximum=MAX_EPISODES)
     seed = get_int(body, "seed", default=0, minimum=0, maximum=MAX_SEED)

@@ -26,11 +26,14 @@ run: unknown, null).
 """
 from __future__ import annotations
 
+import os
 import threading
 
 from flask import Blueprint, current_app, jsonify
 from sqlalchemy import func, select
 
+from registry import system_samples
+from registry.models import Run
 from webapp.api.validation import query_args, query_int
 
 bp = Blueprint("system", __name__, url_prefix="/api")
@@ -48,8 +51,6 @@ def _summary(run) -> dict:
 
 
 def queue_summary(session) -> dict:
-    from registry.models import Run
-
     counts = dict(session.execute(select(Run.state, func.count()).group_by(Run.state)).all())
 
     def of(state: str, order):
@@ -73,7 +74,7 @@ def _sample(state) -> tuple[dict, int | None, str | None]:
         return sample, policy.level, "daemon"
     with _monitor_lock:
         if state.monitor is None:
-            from daemon.monitor import SystemMonitor
+            from daemon.monitor import SystemMonitor  # lazy: loads psutil
 
             state.monitor = SystemMonitor(state.settings)
         return state.monitor.sample(), None, None
@@ -81,11 +82,8 @@ def _sample(state) -> tuple[dict, int | None, str | None]:
 
 @bp.get("/system")
 def system():
-    import os
+    import psutil  # lazy: loads psutil
 
-    import psutil
-
-    from registry.models import Run
 
     state = current_app.extensions["hope"]
     sample, level, source = _sample(state)
@@ -102,8 +100,6 @@ def system():
 
 @bp.get("/system/history")
 def system_history():
-    from registry import system_samples
-
     query_args("seconds")
     seconds = query_int("seconds", default=HISTORY_DEFAULT_S, minimum=1, maximum=HISTORY_MAX_S)
     state = current_app.extensions["hope"]

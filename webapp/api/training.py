@@ -18,6 +18,9 @@ from pathlib import Path
 
 from flask import Blueprint, current_app, jsonify
 
+from hope_models.components.chain import SequenceError, parse_sequence
+from hope_models.paths import data_roots
+from registry.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
 from webapp.api.validation import json_body
 from webapp.errors import ApiError
 
@@ -40,10 +43,7 @@ def _components(value) -> str:
 
 @bp.post("/sequential")
 def sequential():
-    from hope_models.components.chain import SequenceError, parse_sequence
-    from hope_models.paths import data_roots
-    from registry import runs
-    from registry.run_request import CONFIG_FIELDS, REQUEST_KEYS, RunRequestError, build_request, queue_sequence
+    from registry import runs  # lazy: loads sqlalchemy
 
     state = current_app.extensions["hope"]
     settings = state.settings

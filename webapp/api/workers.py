@@ -28,7 +28,7 @@ bp = Blueprint("workers", __name__, url_prefix="/api")
 
 @bp.get("/workers")
 def list_workers():
-    from registry import workers
+    from registry import workers  # lazy: loads sqlalchemy
 
     query_args()
     state = current_app.extensions["hope"]

@@ -48,6 +48,7 @@ from hope_models.components.fast_loop.checkpoint import FastLoopNumpyError, read
 from hope_models.components.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import VQVAENumpy
 from hope_models.data.features import FeatureSpec
+from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
 RATE_MIN = 1e-4  # WindowSSM.RATE_MIN / RATE_MAX: the clamp on the decay rate
 RATE_MAX = 20.0
@@ -55,8 +56,6 @@ RATE_MAX = 20.0
 
 def _reacher_bounds(spec: FeatureSpec) -> tuple[float, float] | None:
     """The reacher's motor bounds when the spec is the dm_control reacher's (observation and action)."""
-    from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
-
     obs = [(f.path, f.size) for f in spec.observation.fields]
     act = [(f.path, f.size) for f in spec.action.fields]
     if obs == [tuple(x) for x in OBS_FIELDS] and act == [tuple(ACTION_FIELD)]:
