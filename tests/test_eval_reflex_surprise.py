@@ -146,7 +146,7 @@ def test_the_records_are_brain_services_surprise(models, tmp_path):
     the same surprise at every grid point. Run in-process, with the jump, so the values vary."""
     from hope_models.promote.reflex_policy import ReflexPolicy
     from hope_models.runtime.brain_service import BrainService
-    from hope_models.runtime.surprise_stream import SurpriseStream, observation_values
+    from hope_models.components.mid_loop.surprise_stream import SurpriseStream, observation_values
     from hope_models.sim.evaluate import evaluate_policy
 
     home = _home(tmp_path, models, ("fast_loop", "vqvae", "mid_loop"))

@@ -32,7 +32,7 @@ sent = 0 and the error; if dm_control cannot even be imported with that backend,
 (exit 2) with the reason. The expert and random episodes are never rendered.
 
 Surprise: `--stream-surprise` shows the policy's first episode to the mid_loop promoted in $HOPE_HOME
-(hope_models/runtime/surprise_stream.py: BrainService's session and surprise, fed the sim's
+(hope_models/components/mid_loop/surprise_stream.py: BrainService's session and surprise, fed the sim's
 observations and the actions the reflex takes), and writes one line per Mid Loop grid point (every 5
 control steps, rendered or not; with --stream-frames, among the frames) after a header line:
 
@@ -125,7 +125,7 @@ def _jump(text: str) -> float:
 def _surprise_tick(args, out):
     """(on_tick for the streamed episode, the result's "surprise" summary) for the promoted mid_loop;
     the header line is written at once, so a reader knows whether records will follow."""
-    from hope_models.runtime.surprise_stream import SurpriseStream  # lazy: loads numpy
+    from hope_models.components.mid_loop.surprise_stream import SurpriseStream  # lazy: loads numpy
     from hope_models.sim.reacher import CONTROL_PERIOD_S  # lazy: loads numpy
 
     try:

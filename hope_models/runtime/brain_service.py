@@ -13,7 +13,7 @@ NumPy form (its folder's numpy_form.RUNTIME) and follows promotions without a re
 
 The answer is composed by role from the promoted components that read the request's observation
 layout: the actor's `action`, the tokenizer's `code`, the predictor's `prediction` and `surprise`
-(brain_mid.py), and `outputs` {component: its form's answer(values)} for any other component.
+(mid_serving.py), and `outputs` {component: its form's answer(values)} for any other component.
 
 Each component's promoted model is named by its pointer file $HOPE_HOME/promoted/<component>.json
 (hope_models.promoted). A watcher thread reads the pointers every poll_s (0.2 s) and compares
@@ -40,7 +40,7 @@ equal to its torch model.
 A request is one control tick of a session and answers from every served component that reads the
 observation's layout; `component` names the one the caller needs (503 while it is not served).
 The fast_loop's recurrent state (window-exact: FastLoop.forward over the session's last K
-observations) and the Mid Loop's grid points (brain_mid.py: when it runs, `prediction` and
+observations) and the Mid Loop's grid points (mid_serving.py: when it runs, `prediction` and
 `surprise`) are per session; without one the call is stateless (a 1-point window). Sessions are
 kept per component in an LRU of `max_sessions`; `reset=True` starts the session's episode again,
 and a version change resets that component's sessions (a state computed by other weights means
@@ -67,10 +67,12 @@ import numpy as np
 
 from hope_models.components import ACTOR, COMPONENTS, PREDICTOR, TOKENIZER
 from hope_models.components.checkpoint_checks import CheckpointRefused
+from hope_models.components.mid_loop import serving as mid_serving
 from hope_models.components.numpy_layers import NumpyWindowState
 from hope_models.promoted import PointerError, pointer_path, read_pointer
-from hope_models.runtime import brain_input, brain_mid
+from hope_models.runtime import brain_input
 from hope_models.runtime.brain_input import MAX_ABS_OBSERVATION, MAX_SESSIONS, BrainError, observation_values
+from hope_models.runtime.brain_status import status_extra
 from hope_models.runtime.hook_thread import HookThread
 
 log = logging.getLogger(__name__)
@@ -292,7 +294,7 @@ class BrainService:
         """One tick of a session: every served component whose observation layout is `component`'s, on
         `observation` (a list of finite numbers, the spec order). `component` is the one the caller
         needs (503 while it is not served). `action`: the action taken on the previous tick (the Mid
-        Loop's input; by default the fast_loop's previous answer). brain_mid: the fields beyond the action."""
+        Loop's input; by default the fast_loop's previous answer). mid_serving: the predictor's fields."""
         started = time.perf_counter()
         slot = self._slots.get(component) if isinstance(component, str) else None
         if slot is None:
@@ -316,15 +318,15 @@ class BrainService:
         given = None
         if action is not None:  # checked before any state moves: a refused request changes no session
             try:
-                given = brain_mid.action_values(action, (mid or served).model.act_dim)
+                given = mid_serving.action_values(action, (mid or served).model.act_dim)
             except ValueError as exc:
                 raise BrainError(str(exc)) from None
         answered = None if fast is None else self._fast_tick(self._slots[fast.model.name], fast, values, session, reset)
         out = {"action": None if answered is None else [float(v) for v in answered],
                "model_version": served.version, "latency_ms": 0.0, "session": session,
                "code": None if vq is None else [int(c) for c in vq.model.codes_of(np.asarray(values))]}
-        out.update(brain_mid.EMPTY if mid is None else
-                   brain_mid.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
+        out.update(mid_serving.EMPTY if mid is None else
+                   mid_serving.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
                                     fast.model if fast else None, self.max_sessions))
         # a component with none of the roles above answers with its NumPy form's own output
         others = {name: p.model.answer(np.asarray(values)) for name, p in peers.items()
@@ -429,7 +431,7 @@ class BrainService:
                 "act_dim": model.act_dim if model else None,
                 "observation_fields": model.spec.observation.dim_names() if model else None,
                 "action_fields": model.spec.action.dim_names() if model else None,
-                **brain_mid.status_extra(model, vq.model if vq else None),
+                **status_extra(model, vq.model if vq else None),
             }
         return out
 

@@ -14,7 +14,7 @@ then lasts only this command, so every --local call is an episode's first tick).
 
 Prints the action, the model version that produced it and the latency, and, when a vqvae and a
 mid_loop are promoted, the observation's code, the Mid Loop's prediction at each horizon and the
-surprise (hope_models/runtime/brain_mid.py defines it; it needs a --session ticked for one horizon
+surprise (hope_models/components/mid_loop/serving.py defines it; it needs a --session ticked for one horizon
 on the service). --action is the action the robot actually took on the previous tick (the Mid
 Loop's input; default: the fast_loop's previous answer). --json: the service's answer ("action",
 "model_version", "latency_ms", "session", "code", "prediction", "surprise", ...) plus "via":

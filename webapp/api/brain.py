@@ -12,7 +12,7 @@
              "surprise_by_horizon": {"0.5s": float | null, ...} | null, "mid_tick": int | null,
              "mid_grid_point": int | null, "versions": {"vqvae": str | null, "fast_loop": ..., "mid_loop": ...}}
             One request is one control tick of the session; every served component that reads the
-            observation's layout answers (hope_models/runtime/brain_mid.py: `code`, the Mid Loop's
+            observation's layout answers (hope_models/components/mid_loop/serving.py: `code`, the Mid Loop's
             grid points, `prediction` in raw units and `surprise` in nats, defined in
             docs/training.md "Surprise at inference"). `component` is the one the caller needs:
             503 while it is not promoted (an action needs the fast_loop; a prediction the mid_loop).
