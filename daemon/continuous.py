@@ -161,6 +161,7 @@ class ContinuousLearning:
         host = [r for r in local if r.state == "paused" and r.pause_reason in learning.HOST_PAUSES]
         if host:
             run = host[0]
+            assert run.pause_reason is not None  # one of HOST_PAUSES (the filter above)
             phase = {"thermal": "waiting to cool", "memory": "waiting for memory", "disk": "waiting for disk"}
             return Decision(phase[run.pause_reason], f"run {run.id} ({run.component}) paused for {run.pause_reason}")
         queued = [r for r in local if r.state == "queued"]
@@ -297,6 +298,7 @@ class ContinuousLearning:
                 for run in members:
                     runs.add_event(s, run.id, "log", {"level": "info", "message": reason, "auto_train": payload})
                 sequence_id = members[0].sequence_id
+                assert sequence_id is not None  # create_sequence gives every member the chain's id
                 learning.record_auto_run(s, sequence_id, reason, {c: trainable[c] for c in chain if c in trainable})
         except (RunRequestError, runs.RunError, OSError) as exc:
             self._refused = (stamp, str(exc))

@@ -76,7 +76,7 @@ def _dir_mb(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / MB
 
 
-def newest_checkpoint_mb(run_dir: str | os.PathLike) -> float | None:
+def newest_checkpoint_mb(run_dir: str | Path) -> float | None:
     try:
         steps = list_step_dirs(run_dir)
         return _dir_mb(steps[0][1]) if steps else None
@@ -188,7 +188,7 @@ class DiskGuard:
         return pruned
 
 
-def produced(run_dir: str | os.PathLike) -> bool:
+def produced(run_dir: str | Path) -> bool:
     """Whether a run left anything worth keeping: a checkpoint or a metrics file."""
     try:
         return bool(list_step_dirs(run_dir)) or (Path(run_dir) / JSONL_NAME).is_file()

@@ -51,7 +51,7 @@ class NullSink:
 class ListSink:
     """Keeps every (event, data) pushed; thread-safe, for tests."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._lock = threading.Lock()
         self.events: list[tuple[str, dict[str, Any]]] = []
 
@@ -143,7 +143,7 @@ def event_for(row: Any) -> tuple[str, dict[str, Any]] | None:
         data.setdefault("kind", row.kind)
     data["run_id"] = row.run_id
     data["event_id"] = row.id
-    time = getattr(row, "time", None)
+    time: Any = getattr(row, "time", None)
     data.setdefault("time", time.isoformat() if hasattr(time, "isoformat") else time)
     return name, data
 

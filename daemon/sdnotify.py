@@ -12,15 +12,16 @@ import logging
 import os
 import socket
 import time
+from collections.abc import Mapping
 
 log = logging.getLogger(__name__)
 
 
 class SdNotifier:
-    def __init__(self, env: dict[str, str] | None = None):
-        env = os.environ if env is None else env
-        self.address = self._address(env.get("NOTIFY_SOCKET") or "")
-        self.watchdog_s = self._watchdog_s(env)
+    def __init__(self, env: Mapping[str, str] | None = None):
+        environ: Mapping[str, str] = os.environ if env is None else env
+        self.address = self._address(environ.get("NOTIFY_SOCKET") or "")
+        self.watchdog_s = self._watchdog_s(environ)
         self._sock: socket.socket | None = None
         self._last_ping: float | None = None
         self._warned = False

@@ -200,6 +200,7 @@ class Daemon:
     def tick(self) -> None:
         assert self.dispatcher is not None and self.reconciler is not None and self.tailer is not None, \
             "Daemon.start() first"
+        assert self.learning is not None and self.autopromoter is not None, "Daemon.start() first"
         sample = self.monitor.sample()
         self.last_sample = sample
         change = self.policy.update_from_sample(sample)
@@ -274,6 +275,7 @@ class Daemon:
                 written = True
         if change is not None and not written:
             # No run to record it on: browsers still hear about it.
+            assert self.tailer is not None, "Daemon.start() first"  # tick() asserts it before calling here
             self.tailer.push(THROTTLE_EVENT, {**change.to_json_obj(), "run_id": None, "source": "daemon"})
 
     # -- status ------------------------------------------------------------------------------

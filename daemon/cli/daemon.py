@@ -23,7 +23,7 @@ import signal
 import sys
 import threading
 
-from daemon.events import NullSink, RedisEmitterSink
+from daemon.events import EventSink, NullSink, RedisEmitterSink
 from daemon.sdnotify import SdNotifier
 from hope_models.cli.argtypes import positive_float
 from hope_models.log_format import configure_logging, journal_prefix
@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
 
     from daemon.service import Daemon  # lazy: loads mcap, numpy, psutil, sqlalchemy
 
+    sink: EventSink
     if settings.redis_url:
         sink = RedisEmitterSink(settings.redis_url)
     else:

@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
             with registry.session() as s:
                 was = promotion.promoted(s, args.component)
                 model = promotion.rollback(s, settings, args.component)
+                assert was is not None  # rollback() raised PromotionError when nothing was promoted
                 out = {"rolled_back": True, "component": args.component, "model": model.to_json_obj(),
                        "demoted": was.to_json_obj()}
     except (CommandError, promotion.PromotionError) as exc:

@@ -86,7 +86,7 @@ class Display:
         self.stream = stream or sys.stdout
         self.tty = self.stream.isatty()
         self.quiet = quiet
-        self._last = None
+        self._last: str | None = None
         self._open = False
 
     def show(self, run: dict[str, Any]) -> None:
