@@ -113,7 +113,9 @@ def create_app(settings: Settings, *, token: str, daemon: Any = None, registry: 
 
     app.register_blueprint(pages_bp)  # the Robot Editor: "/" and its pages (webapp/pages.py)
     # Outermost, around Socket.IO's middleware too: no route or handshake answers a foreign Host.
-    app.wsgi_app = HostAllowlist(app.extensions["hope"].socket_guard.middleware(app.wsgi_app), hosts)
+    # Flask's documented middleware hook; its stubs declare wsgi_app a method, so mypy refuses the assignment.
+    app.wsgi_app = HostAllowlist(  # type: ignore[method-assign]
+        app.extensions["hope"].socket_guard.middleware(app.wsgi_app), hosts)
 
     return app, socketio
 

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 TOKEN_FILENAME = "token"
 TOKEN_BYTES = 32  # 256 bits, urlsafe base64 (43 characters)
 MIN_TOKEN_CHARS = 16
+PUBLIC_ATTR = "hope_public"  # set on a view by public()
 
 
 class TokenError(RuntimeError):
@@ -109,7 +110,7 @@ def check_request():
 
 def public(view: Callable) -> Callable:
     """Mark a view as open (no token), e.g. the health check."""
-    view.hope_public = True
+    setattr(view, PUBLIC_ATTR, True)
     return view
 
 
@@ -121,7 +122,7 @@ def install(app: Flask, socketio) -> None:
         if not request.path.startswith("/api/"):
             return None
         view = app.view_functions.get(request.endpoint) if request.endpoint else None
-        if view is not None and getattr(view, "hope_public", False):
+        if view is not None and getattr(view, PUBLIC_ATTR, False):
             return None
         return check_request()
 

@@ -108,6 +108,7 @@ class DoorProcess:
                                     start_new_session=True)
         finally:
             os.close(write_fd)
+        assert proc.stdout is not None  # stdout=PIPE
         PipeToLog(self.log_path, self.settings).start(proc.stdout)
         try:
             ready = _read_ready(read_fd, proc, READY_TIMEOUT_S)

@@ -90,7 +90,8 @@ def create_door_app(settings: Settings, *, token: str, registry: Registry, brain
     app.register_blueprint(health.bp)
     app.register_blueprint(brain_api.bp)
     wire_brain(brain, None, registry)  # first inferences recorded (the loop closure); no browsers here
-    app.wsgi_app = HostAllowlist(app.wsgi_app, HostPolicy.from_settings(settings))
+    # Flask's documented middleware hook; its stubs declare wsgi_app a method, so mypy refuses the assignment.
+    app.wsgi_app = HostAllowlist(app.wsgi_app, HostPolicy.from_settings(settings))  # type: ignore[method-assign]
     return app
 
 

@@ -38,7 +38,7 @@ import stat
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from werkzeug.serving import ThreadedWSGIServer, WSGIRequestHandler, select_address_family
 
@@ -46,6 +46,8 @@ from webapp.request_phases import CONN_KEY, BodyReader, bounded_drain, has_body
 from webapp.strikes import STRIKE_KEY, Strikes
 
 if TYPE_CHECKING:
+    from _typeshed.wsgi import WSGIApplication
+
     from hope_models.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -158,13 +160,13 @@ class GuardedServer(ThreadedWSGIServer):
     """Werkzeug's threaded server under the limits: the connection cap (evicting a stalled request
     first), and a reaper thread that cuts a connection past its phase's deadline."""
 
-    def __init__(self, *args, limits: ConnectionLimits, **kwargs):
+    def __init__(self, host: str, port: int, app: WSGIApplication, *, limits: ConnectionLimits, **kwargs: Any):
         self.limits = limits
         self._conns: dict[int, _Connection] = {}
         self._conns_lock = threading.Lock()
         self.refused = 0
         self.strikes = Strikes(to_ban=limits.strikes_to_ban)  # addresses refused at accept for a while
-        super().__init__(*args, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
+        super().__init__(host, port, app, handler=GuardedRequestHandler, **kwargs)  # (calls server_close once)
         self._reaper_stop = threading.Event()
         self._reaper = threading.Thread(target=self._reap, name="http-deadlines", daemon=True)
         self._reaper.start()

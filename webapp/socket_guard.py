@@ -144,6 +144,8 @@ def cut_websocket(environ: dict | None) -> None:
     if not environ or environ.get("HTTP_UPGRADE", "").lower() != "websocket":
         return
     sock = environ.get("werkzeug.socket")
+    if sock is None:  # no socket to shut (what the AttributeError below used to swallow)
+        return
     try:
         sock.shutdown(socket.SHUT_RDWR)
     except (OSError, AttributeError):

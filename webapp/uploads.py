@@ -31,7 +31,7 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterator
+from typing import IO, Any, BinaryIO, Callable, Iterator
 
 from flask import request
 from werkzeug.exceptions import RequestEntityTooLarge
@@ -117,7 +117,7 @@ class TmpRoom:
 class _Counter:
     """Reads the request body in chunks, refusing it once past the limit or the room in tmp."""
 
-    def __init__(self, stream: BinaryIO, limit: int, room: TmpRoom):
+    def __init__(self, stream: IO[bytes], limit: int, room: TmpRoom):
         self.stream, self.limit, self.room, self.read_bytes = stream, limit, room, 0
 
     def read(self) -> bytes:
@@ -181,6 +181,7 @@ class _Parts:
     def end(self) -> None:
         if self.out is not None:
             self.out.close()
+            assert self.path is not None  # start() sets path together with out
             self.got.files.append((self.name or "", self.filename or "", self.path, self.path.stat().st_size))
         else:
             try:

@@ -163,7 +163,8 @@ def _code_space(run: Run) -> tuple[int, int] | None:
     n = cfg.get("n_codes") if isinstance(cfg, dict) else None
     vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
     groups = vq_cfg.get("groups", 1) if isinstance(vq_cfg, dict) else 1  # 1: saved before groups existed
-    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (n, groups)) or n < 2 or groups < 1:
+    if (not isinstance(n, int) or isinstance(n, bool) or not isinstance(groups, int) or isinstance(groups, bool)
+            or n < 2 or groups < 1):
         return None
     return n, groups
 
@@ -185,7 +186,7 @@ def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
         when = run.finished_at or run.updated_at
         out.append({"run_id": run.id, "finished_at": when.isoformat() if when else None, "step": run.step,
                     "surprise": loss, "n_codes": n, "code_groups": groups,
-                    "curiosity": loss / (groups * math.log(n)) if space else None})
+                    "curiosity": loss / (space[1] * math.log(space[0])) if space else None})
     return out[::-1]
 
 

@@ -117,7 +117,8 @@ def benchmark(model) -> dict[str, Any] | None:
     """A gated candidate as a benchmark entry, or None when the gate measured no score for it."""
     metrics = model.metrics if isinstance(model.metrics, dict) else {}
     gate = model.gate_result if isinstance(model.gate_result, dict) else {}
-    reflex = metrics.get("reflex") if isinstance(metrics.get("reflex"), dict) else {}
+    recorded_reflex = metrics.get("reflex")
+    reflex = recorded_reflex if isinstance(recorded_reflex, dict) else {}
     ret = measures.finite_number(reflex.get("candidate_mean_return"))
     val = measures.finite_number(metrics.get("candidate_val_loss"))
     if model.component in COMPONENTS and COMPONENTS[model.component].acts and ret is not None:

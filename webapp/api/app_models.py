@@ -132,7 +132,9 @@ def _model_id(body: dict) -> str:
     value = body.get("model_id")
     if not isinstance(value, str):
         raise ApiError("model_id: expected the model's id as a string (an \"id\" of GET /api/v1/models)", 400)
-    return get_str(body, "model_id", max_len=MAX_ID).strip()  # empty, too long, lone surrogates: 400
+    text = get_str(body, "model_id", max_len=MAX_ID)  # empty, too long, lone surrogates: 400
+    assert text is not None  # a string (checked above): get_str returns it, not the default
+    return text.strip()
 
 
 @bp.post("/activate")

@@ -29,6 +29,7 @@ reason (webapp/api/run_files.py). Errors: 404 unknown run or artifact.
 """
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from pathlib import Path
 
 from flask import Blueprint, Response, current_app, jsonify, request
@@ -101,7 +102,7 @@ def download(run_id: str, name: str):
         raise ApiError(f"artifact {name}: gone (pruned or replaced since it was listed)", 404) from None
     rv = Response(_limited(f, st.st_size), mimetype=art.media_type, direct_passthrough=True)
     rv.content_length = st.st_size
-    rv.last_modified = st.st_mtime
+    rv.last_modified = datetime.fromtimestamp(st.st_mtime, timezone.utc)  # the same header as the float gave
     rv.set_etag(f"{st.st_ino}-{st.st_size}-{st.st_mtime_ns}")
     rv.cache_control.no_cache = True
     rv.headers["Content-Disposition"] = f"attachment; filename={art.name}"

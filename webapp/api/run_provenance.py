@@ -79,7 +79,8 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
     else:
         config, source = request_config, "request"
 
-    recorded = rec.get("dataset") if isinstance(rec.get("dataset"), dict) else {}
+    recorded_dataset = rec.get("dataset")
+    recorded = recorded_dataset if isinstance(recorded_dataset, dict) else {}
     dataset = {k: recorded.get(k) for k in DATASET_KEYS}
     dataset.update({k: v for k, v in recorded.items() if k not in dataset})
     if dataset["path"] is None:
@@ -103,7 +104,8 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
             derived = Path(path).parent.parent.name if path and Path(path).parent.name == "checkpoints" else None
             vqvae = {"dir": path, "run_id": run_ref or derived, "version": None}
 
-    code = rec.get("code") if isinstance(rec.get("code"), dict) else {}
+    recorded_code = rec.get("code")
+    code = recorded_code if isinstance(recorded_code, dict) else {}
     return {"run_id": run.id, "component": run.component, "config": config, "config_source": source,
             "dataset": dataset, VQVAE_REF: vqvae, "code": {**CODE_NULL, **code}, "gate": gate,
             "recorded_at": rec.get("written_at")}

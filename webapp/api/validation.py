@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from typing import Any, Iterable
+from typing import Any, Iterable, overload
 
 from flask import current_app, request
 
@@ -200,6 +200,12 @@ def get_numbers(body: dict, name: str, *, max_len: int, min_len: int = 1) -> lis
     return out
 
 
+
+
+@overload
+def query_int(name: str, *, default: int, minimum: int, maximum: int | None = None) -> int: ...
+@overload
+def query_int(name: str, *, default: None, minimum: int, maximum: int | None = None) -> int | None: ...
 
 
 def query_int(name: str, *, default: int | None, minimum: int, maximum: int | None = None) -> int | None:
