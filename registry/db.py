@@ -105,7 +105,7 @@ def _run_alembic(engine_or_path: Engine | Path | str, action: str, revision: str
     from alembic import command  # lazy: loads alembic
 
     own = not isinstance(engine_or_path, Engine)
-    engine = make_engine(engine_or_path) if own else engine_or_path
+    engine = engine_or_path if isinstance(engine_or_path, Engine) else make_engine(engine_or_path)
     try:
         with _migrate_lock(_engine_path(engine)):
             if action == "upgrade":

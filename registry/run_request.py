@@ -247,15 +247,16 @@ def preflight(settings: Settings, req: RunRequest, components: list[str] | None 
     except FeatureSpecError as exc:
         raise RunRequestError(f"data: {exc}") from None
     vq = None  # the VQ-VAE a member reads codes from: given, then the chain's own once it is trained
-    if req.vqvae_dir or vqvae_run_dir:
+    vq_source = req.vqvae_dir or vqvae_run_dir
+    if vq_source:
         what = "vqvae_dir" if req.vqvae_dir else "vqvae_run"
         try:
-            vq = read_vqvae_config(ckpt.resolve_checkpoint_dir(req.vqvae_dir or vqvae_run_dir))
+            vq = read_vqvae_config(ckpt.resolve_checkpoint_dir(vq_source))
         except (ckpt.CheckpointError, ValueError) as exc:
             raise RunRequestError(f"{what}: {exc}") from None
     if spec is None:
         return []
-    defaults = {f.name: f.default for f in fields(TrainConfig)}
+    defaults: dict[str, Any] = {f.name: f.default for f in fields(TrainConfig)}  # these two have defaults
     batch_size = req.overrides.get("batch_size", defaults["batch_size"])
     estimates = []
     for name in names:
@@ -298,6 +299,7 @@ def queue_sequence(registry: Registry, settings: Settings, names: list[str], req
         check_queue_room(s, settings, req.queue, len(names))
         members = create_sequence(s, names, req.config(), total_steps=req.steps, runs_dir=settings.runs_dir,
                                   queue=req.queue, priority=req.priority, max_attempts=req.max_attempts)
+        assert members[0].sequence_id is not None  # create_sequence gives every member the chain's id
         return members[0].sequence_id, [show(s, r) if show is not None else r.to_json_obj() for r in members]
 
 

@@ -20,9 +20,9 @@ row; the worker child reads them between steps and reports back through finish()
 from __future__ import annotations
 
 import re
-from typing import Any, Iterable
+from typing import Any, Iterable, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.orm import Session
 
 from hope_models.components import COMPONENTS
@@ -229,6 +229,7 @@ def request_control(s: Session, run_id: str, action: str) -> Run:
 # --- dispatch (daemon) ----------------------------------------------------------------------
 
 def _predecessor(s: Session, run: Run) -> Run | None:
+    assert run.sequence_index is not None  # called only for a chain member past the first
     return s.scalars(
         select(Run).where(Run.sequence_id == run.sequence_id, Run.sequence_index == run.sequence_index - 1)
     ).first()
@@ -328,7 +329,8 @@ def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: i
     stale (re-sent, requeued, paused, cancelled, or already claimed): then it must not train."""
     now = utcnow()
     # One guarded UPDATE, so of two deliveries racing for the run exactly one wins.
-    result = s.execute(
+    # An UPDATE statement's result is a CursorResult (it has rowcount); Session.execute is typed Result.
+    result = cast(CursorResult[Any], s.execute(
         update(Run)
         .where(
             Run.id == run_id,
@@ -339,7 +341,7 @@ def claim(s: Session, run_id: str, task_id: str, attempt: int, host: str, pid: i
         )
         .values(worker_pid=pid, worker_host=host, started_at=now, heartbeat_at=now, updated_at=now)
         .execution_options(synchronize_session=False)
-    )
+    ))
     if result.rowcount != 1:
         return None
     run = s.scalars(select(Run).where(Run.id == run_id).execution_options(populate_existing=True)).one()
@@ -358,12 +360,12 @@ def heartbeat(s: Session, run_id: str, pid: int, **progress: Any) -> bool:
         raise RunError(f"run {run_id}: heartbeat fields {sorted(unknown)} are not among {', '.join(HEARTBEAT_FIELDS)}")
     now = utcnow()
     values = {k: v for k, v in finite(progress).items() if v is not None}
-    result = s.execute(
+    result = cast(CursorResult[Any], s.execute(  # an UPDATE's result: a CursorResult, with rowcount
         update(Run)
         .where(Run.id == run_id, Run.worker_pid == pid, Run.state == "running")
         .values(heartbeat_at=now, updated_at=now, **values)
         .execution_options(synchronize_session=False)
-    )
+    ))
     return result.rowcount == 1
 
 

@@ -183,6 +183,7 @@ class WorkerHeartbeat:
         if self._redis is None:
             import redis  # lazy: loads redis
 
+            assert self.settings.redis_url is not None  # report_mode() says "redis" only with a URL
             self._redis = redis.Redis.from_url(self.settings.redis_url, socket_timeout=5, socket_connect_timeout=5)
         self._redis.rpush(REPORTS_KEY, worker_report(self.snapshot("redis"), event))
 
