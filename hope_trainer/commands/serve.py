@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from daemon.events import SocketIOSink
 from hope_models.child_command import dies_with_parent
@@ -45,6 +45,13 @@ from webapp import create_app
 from webapp.door_process import DoorProcess
 from webapp.server import ConnectionLimits, HttpServer, ServerError
 from workers.cli import worker_command, worker_env
+
+if TYPE_CHECKING:
+    from flask import Flask
+
+    from daemon.service import Daemon
+    from hope_models.runtime.brain_service import BrainService
+    from registry.db import Registry
 
 log = logging.getLogger("hope.serve")
 
@@ -117,6 +124,7 @@ class WorkerSupervisor:
         # an appended file would grow without bound.
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 env=self.env, start_new_session=True)
+        assert proc.stdout is not None  # stdout=PIPE
         PipeToLog(self.log_path, self.settings).start(proc.stdout)
         return proc
 
@@ -191,14 +199,14 @@ class Serve:
         self.shutdown = threading.Event()
         self.force = threading.Event()
         self.daemon_stop = threading.Event()
-        self.registry = None
-        self.server = None
-        self.door = None  # the inference port, a child process (webapp/door_process.py)
-        self.daemon = None
+        self.registry: Registry | None = None
+        self.server: HttpServer | None = None
+        self.door: DoorProcess | None = None  # the inference port, a child process (webapp/door_process.py)
+        self.daemon: Daemon | None = None
         self.daemon_thread: threading.Thread | None = None
         self.worker: WorkerSupervisor | None = None
-        self.app = None
-        self.brain = None  # BrainService: the promoted models, answering POST /api/brain/infer
+        self.app: Flask | None = None
+        self.brain: BrainService | None = None  # the promoted models, answering POST /api/brain/infer
         self.failed = False  # the daemon loop died: exit non-zero after stopping the rest
 
     def start(self) -> str:
@@ -230,6 +238,7 @@ class Serve:
         return token
 
     def _run_daemon(self) -> None:
+        assert self.daemon is not None  # start() sets it before it starts this thread
         try:
             self.daemon.run_forever(self.daemon_stop)
         except Exception:  # noqa: BLE001 - a dead daemon thread must stop serve, not leave it half-alive
@@ -245,6 +254,7 @@ class Serve:
         from registry import runs  # lazy: loads sqlalchemy
         from registry.models import Run  # lazy: loads sqlalchemy
 
+        assert self.registry is not None  # called by stop() only with a worker, which start() adds last
         with self.registry.session(readonly=True) as s:
             return list(s.scalars(select(Run.id).where(Run.state.in_(runs.ACTIVE), Run.queue == self.args.queue)))
 
@@ -256,6 +266,7 @@ class Serve:
 
         waiting = []
         for run_id in self._local_running():
+            assert self.registry is not None  # _local_running() checked it
             with self.registry.session() as s:
                 run = s.get(Run, run_id)
                 if run is None or run.state not in runs.ACTIVE:
@@ -379,6 +390,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
         broker = "redis" if settings.redis_url else f"embedded ({settings.home / 'broker'})"
         worker = "no worker (--no-worker)" if args.no_worker else f"worker queue {args.queue}"
+        assert serve.server is not None  # start() returned: it is listening
         print(f"Robot Editor: {serve.server.url}  token: {token}", flush=True)
         print(door_line(serve.door), flush=True)
         print(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop", flush=True)

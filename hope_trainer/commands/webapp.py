@@ -131,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         print(brain_summary(brain), flush=True)
         notifier.ready(f"listening on {server.url}")
         ping_every = notifier.watchdog_s / 2 if notifier.watchdog_s else 5.0
+        assert door.port is not None  # DoorProcess.start() set it from the child's ready message
         while not stop.wait(ping_every):
             # the robot's door: the editor's port may be full of a neighbour's requests, which a
             # restart would not cure but would cut the robot's inference

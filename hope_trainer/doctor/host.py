@@ -169,7 +169,8 @@ def checkpoints_mb(home: Path) -> float:
 
 
 def _default_keep() -> int:
-    return next(int(f.default) for f in fields(TrainConfig) if f.name == "keep_last")
+    defaults: dict[str, Any] = {f.name: f.default for f in fields(TrainConfig)}  # keep_last has one
+    return int(defaults["keep_last"])
 
 
 def disk_floor_mb(settings: Any) -> tuple[float, str]:
