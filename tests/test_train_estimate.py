@@ -246,10 +246,11 @@ def test_runtime_baseline_matches_a_process_that_imported_torch_and_took_a_step(
 
 
 def _expanded(layers):
-    from collections import Counter
-    from dataclasses import replace
+    from hope_models.components.layers import expand
 
-    return Counter(replace(layer, repeat=1) for layer in layers for _ in range(layer.repeat))
+    out = {layer.name: layer for layer in expand(layers)}  # each with its name: its state_dict prefix
+    assert len(out) == sum(layer.repeat for layer in layers), "two layers of one name"
+    return out
 
 
 @pytest.mark.parametrize("frames", [False, True])

@@ -94,7 +94,7 @@ CONVS = ("Conv1d", "Conv2d", "ConvTranspose1d", "ConvTranspose2d")
 def model_layers(model: Any) -> list[Layer]:
     """The layers of a torch module, in registration order (the order the convs see the image)."""
     out = []
-    for m in model.modules():
+    for path, m in model.named_modules():
         own = list(m.parameters(recurse=False))
         if not own:
             continue
@@ -104,7 +104,8 @@ def model_layers(model: Any) -> list[Layer]:
             padding = m.padding if isinstance(m.padding, str) else m.padding[0]
             conv = (m.in_channels, m.out_channels, m.kernel_size[0], m.stride[0], padding, m.dilation[0],
                     m.output_padding[0])
-        out.append(Layer(name, tuple(tuple(p.shape) for p in own), any(p.requires_grad for p in own), conv))
+        out.append(Layer(name, tuple(tuple(p.shape) for p in own), any(p.requires_grad for p in own), conv,
+                         name=path))
     return out
 
 

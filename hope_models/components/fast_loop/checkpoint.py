@@ -19,6 +19,7 @@ same bytes. Torch-free.
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +34,16 @@ from hope_models.components.checkpoint_checks import (
     check_weights,
     read_component,
 )
+from hope_models.components.fast_loop.config import FastLoopConfig
+from hope_models.components.fast_loop.layers import layers
+from hope_models.components.layers import tensors
+from hope_models.components.vqvae.config import VQVAEConfig
+from hope_models.components.vqvae.layers import vqvae_layers
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K
 
+VQVAE_PREFIX = "vqvae."  # the frozen VQ-VAE's tensors in a fast_loop's state_dict
 MODEL_CONFIG_KEYS = ("obs_dim", "act_dim", "window_k", "d_model", "d_state", "mlp_ratio", "min_timescale",
                      "max_timescale", "n_codes")
 
@@ -118,22 +125,11 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
 
 
 def expected_shapes(mc: dict[str, Any], groups: int = 1) -> dict[str, tuple[int, ...]]:
-    """Tensor name -> shape of every weight the NumPy form reads."""
-    d, n, hidden = mc["d_model"], mc["d_state"], mc["mlp_ratio"] * mc["d_model"]
-    shapes: dict[str, tuple[int, ...]] = {
-        "obs_in.weight": (d, mc["obs_dim"]), "obs_in.bias": (d,),
-        "ssm.B": (n, d), "ssm.C": (d, n), "ssm.D": (d,), "ssm.log_rate": (n,),
-        "out.weight": (mc["act_dim"], d), "out.bias": (mc["act_dim"],),
-    }
-    for name in ("enc_ln", "ssm_ln", "head_ln", "out_ln"):
-        shapes[f"{name}.weight"] = shapes[f"{name}.bias"] = (d,)
-    for name in ("enc_mlp", "head_mlp"):
-        shapes.update({f"{name}.w_gate.weight": (hidden, d), f"{name}.w_gate.bias": (hidden,),
-                       f"{name}.w_up.weight": (hidden, d), f"{name}.w_up.bias": (hidden,),
-                       f"{name}.w_out.weight": (d, hidden), f"{name}.w_out.bias": (d,)})
-    if mc["n_codes"]:
-        shapes["code_in.weight"] = (mc["n_codes"] * groups, d)  # one row per code of every group
-    return shapes
+    """Tensor name -> shape of every weight of the fast_loop itself (its frozen VQ-VAE's apart), from
+    the same layer description the memory estimate reads (layers.py)."""
+    cfg = FastLoopConfig(**{f.name: mc[f.name] for f in fields(FastLoopConfig) if f.name in mc})
+    vq = VQVAEConfig(n_codes=mc["n_codes"], groups=groups) if mc["n_codes"] else None
+    return tensors([layer for layer in layers(cfg, vq) if not layer.name.startswith(VQVAE_PREFIX)])
 
 
 def vqvae_groups(config: dict[str, Any]) -> int:
@@ -144,15 +140,18 @@ def vqvae_groups(config: dict[str, Any]) -> int:
 
 
 def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any], groups: int) -> dict[str, tuple[int, ...]]:
-    """The vector VQ-VAE encoder and codebook the codes need; its widths are the file's own."""
+    """The vector VQ-VAE encoder and codebook the codes need; its widths are the file's own, its
+    layers the VQ-VAE's description (vqvae/layers.py)."""
     w0 = t.get("vqvae.encoder.0.0.weight")
     w4 = t.get("vqvae.encoder.0.4.weight")
     hidden = w0.shape[0] if w0 is not None and w0.ndim == 2 else -1
     code_dim = w4.shape[0] if w4 is not None and w4.ndim == 2 else -1
-    return {"vqvae.encoder.0.0.weight": (hidden, mc["obs_dim"]), "vqvae.encoder.0.0.bias": (hidden,),
-            "vqvae.encoder.0.2.weight": (hidden, hidden), "vqvae.encoder.0.2.bias": (hidden,),
-            "vqvae.encoder.0.4.weight": (code_dim, hidden), "vqvae.encoder.0.4.bias": (code_dim,),
-            "vqvae.codebook": (mc["n_codes"] * groups, code_dim // groups if code_dim % groups == 0 else -1)}
+    cfg = VQVAEConfig(input="vector", obs_dim=mc["obs_dim"], hidden=hidden, code_dim=code_dim, n_codes=mc["n_codes"],
+                      groups=groups)
+    want = {k: v for k, v in tensors(vqvae_layers(cfg, prefix=VQVAE_PREFIX)).items()
+            if k.startswith(VQVAE_PREFIX + "encoder.")}
+    want[VQVAE_PREFIX + "codebook"] = (mc["n_codes"] * groups, code_dim // groups if code_dim % groups == 0 else -1)
+    return want
 
 
 def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1) -> None:

@@ -14,6 +14,7 @@ model may add). Anything else is MidLoopNumpyError naming the file and the reaso
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,10 @@ from hope_models.components.checkpoint_checks import (
     check_weights,
     read_component,
 )
+from hope_models.components.layers import tensors
+from hope_models.components.mid_loop.config import MidLoopConfig
+from hope_models.components.mid_loop.layers import layers
+from hope_models.components.vqvae.config import VQVAEConfig
 from hope_models.components.vqvae.numpy_form import MAX_WIDTH, check_vqvae_ref, check_vqvae_tensors
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
@@ -88,20 +93,12 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
 
 
 def expected_shapes(mc: dict[str, Any], groups: int) -> dict[str, tuple[int, ...]]:
-    """Tensor name -> shape of every Mid Loop weight the NumPy form reads (the VQ-VAE's apart)."""
-    d, n, hid = mc["d_model"], mc["d_state"], mc["mlp_ratio"] * mc["d_model"]
-    out = len(mc["horizon_steps"]) * groups * mc["n_codes"]
-    shapes: dict[str, tuple[int, ...]] = {
-        "code_in.weight": (groups * mc["n_codes"], d), "act_in.weight": (d, mc["act_dim"]), "act_in.bias": (d,),
-        "ssm.ln_f.weight": (d,), "ssm.ln_f.bias": (d,), "head.weight": (out, d), "head.bias": (out,)}
-    for i in range(mc["n_layers"]):
-        p = f"ssm.blocks.{i}"
-        shapes.update({f"{p}.ln1.weight": (d,), f"{p}.ln1.bias": (d,), f"{p}.ln2.weight": (d,), f"{p}.ln2.bias": (d,),
-                       f"{p}.ssm.B": (n, d), f"{p}.ssm.C": (d, n), f"{p}.ssm.D": (d,), f"{p}.ssm.log_rate": (n,),
-                       f"{p}.mlp.w_gate.weight": (hid, d), f"{p}.mlp.w_gate.bias": (hid,),
-                       f"{p}.mlp.w_up.weight": (hid, d), f"{p}.mlp.w_up.bias": (hid,),
-                       f"{p}.mlp.w_out.weight": (d, hid), f"{p}.mlp.w_out.bias": (d,)})
-    return shapes
+    """Tensor name -> shape of every Mid Loop weight the NumPy form reads (the VQ-VAE's and the world
+    model's apart), from the same layer description the memory estimate reads (layers.py)."""
+    cfg = MidLoopConfig(**{f.name: mc[f.name] for f in fields(MidLoopConfig) if f.name in mc})
+    cfg.horizon_steps = tuple(mc["horizon_steps"])
+    vq = VQVAEConfig(n_codes=mc["n_codes"], groups=groups)
+    return tensors([layer for layer in layers(cfg, vq) if not layer.name.startswith(("vqvae.", "wm_"))])
 
 
 def check_tensors(t: dict[str, np.ndarray], config: dict[str, Any], where: Path) -> None:

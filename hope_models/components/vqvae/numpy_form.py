@@ -25,14 +25,17 @@ from typing import Any
 import numpy as np
 
 from hope_models.components.checkpoint_checks import (
+    MAX_GROUPS,
     CheckpointRefused,
     check_header,
     check_trained,
     check_weights,
     read_component,
 )
-from hope_models.components.fast_loop.checkpoint import MAX_GROUPS
+from hope_models.components.layers import tensors
 from hope_models.components.numpy_layers import Linear, layer_norm, silu
+from hope_models.components.vqvae.config import VQVAEConfig
+from hope_models.components.vqvae.layers import vqvae_layers
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
 
@@ -152,13 +155,12 @@ def check_vqvae_tensors(t: dict[str, np.ndarray], vq_cfg: dict[str, Any], where:
     """The VQ-VAE tensors under prefix: the shapes the NumPy form reads (returned, for the caller's
     misfit check), finite, and a trained codebook."""
     w0 = t.get(f"{prefix}encoder.0.0.weight")
-    hidden = w0.shape[0] if w0 is not None and w0.ndim == 2 else -1
+    # the width config.json names; one saved before it named it: the file's own
+    hidden = vq_cfg.get("hidden") or (w0.shape[0] if w0 is not None and w0.ndim == 2 else -1)
     g, n, d, obs = vq_cfg.get("groups", 1), vq_cfg["n_codes"], vq_cfg["code_dim"], vq_cfg["obs_dim"]
-    shapes = {"encoder.0.0": (hidden, obs), "encoder.0.2": (hidden, hidden), "encoder.0.4": (d, hidden),
-              "decoder.0": (hidden, d), "decoder.2": (hidden, hidden), "decoder.4": (obs, hidden)}
-    want = {}
-    for name, (o, i) in shapes.items():
-        want[f"{prefix}{name}.weight"], want[f"{prefix}{name}.bias"] = (o, i), (o,)
+    # the encoder and decoder from the layer description the memory estimate reads (layers.py)
+    cfg = VQVAEConfig(input="vector", obs_dim=obs, hidden=hidden, code_dim=d, n_codes=n, groups=g)
+    want = tensors(vqvae_layers(cfg, prefix=prefix))
     want[f"{prefix}codebook"] = (g * n, d // g)
     # the rest of the file (other parts of the model, the EMA buffers) is the caller's to check
     check_weights(t, want, where, "the VQ-VAE's config", error, ignore=[k for k in t if k not in want])
