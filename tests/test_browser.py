@@ -35,10 +35,8 @@ STEPS = 400  # ~15 ms a step on one thread: several seconds of live progress (5 
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
-    """One chromium per test process, shared by every browser test module (each opens its own
-    context: no cookie, storage or page leaks from one to the next)."""
     try:
         from playwright.sync_api import sync_playwright
     except ImportError:
