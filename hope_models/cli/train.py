@@ -21,7 +21,7 @@ from typing import Any
 
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
-from hope_models.settings import SettingsError, load_settings
+from hope_models.settings import Settings, SettingsError, load_settings
 from hope_models.train.config import (
     OPTIONS,
     TrainConfig,
@@ -145,7 +145,7 @@ def _duration(seconds: Any) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
 
 
-def config_from_args(args: argparse.Namespace, settings, component: str, run_dir: str):
+def config_from_args(args: argparse.Namespace, settings: Settings, component: str, run_dir: str):
     """The TrainConfig of the flags given, the deployment's values from `settings` for the rest
     of what the deployment decides, TrainConfig's defaults for everything else."""
     given = values_from_args(args, "train")
@@ -157,7 +157,7 @@ def config_from_args(args: argparse.Namespace, settings, component: str, run_dir
                        **{**deployment_values(settings), **given})
 
 
-def _run_one(args: argparse.Namespace, settings) -> int:
+def _run_one(args: argparse.Namespace, settings: Settings) -> int:
     events = ConsoleEvents(args.component)
     control = SignalControl()
     try:
