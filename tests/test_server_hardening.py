@@ -248,9 +248,11 @@ def test_connections_over_the_cap_get_503_and_stalled_requests_make_room():
     from webapp.server import ConnectionLimits, HttpServer
 
     release = threading.Event()
+    inside: list[int] = []  # requests the app is serving (their headers read)
 
     def app(environ, start_response):
         if environ["PATH_INFO"] == "/hold":
+            inside.append(1)
             release.wait(10)
         start_response("200 OK", [("Content-Type", "application/json"), ("Content-Length", "2")])
         return [b"{}"]
@@ -271,7 +273,9 @@ def test_connections_over_the_cap_get_503_and_stalled_requests_make_room():
                    for _ in range(8)]
         for t in holders:
             t.start()
-        assert wait_until(lambda: server.open_connections == 8, 3)
+        # all eight in the app, not merely accepted: one still sending its headers is a stalled
+        # request to the server, which a newcomer at the cap may evict
+        assert wait_until(lambda: len(inside) == 8 and server.open_connections == 8, 5)
         status, body = http_request(server.port, "GET", "/ok")
         assert status == 503
         assert "limit" in json.loads(body)["error"]
