@@ -58,7 +58,7 @@ def _estimated_checkpoint_mb(run: Run) -> float:
     cfg = run.config or {}
     try:
         spec = probe_dataset_spec(cfg["data"])
-        reads = spec_of(run.component).reads_vqvae != "never"
+        reads = spec_of(run.component).reads_codes
         if spec is None or reads and cfg.get("vqvae_dir") is None and cfg.get("vqvae_run") is not None:
             return 0.0  # too large to probe here, or codes from a VQ-VAE not trained yet
         vq = None

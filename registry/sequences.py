@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from hope_models.components import TOKENIZER
-from hope_models.components.chain import VQVAE_MEMBER, SequenceError, parse_sequence, plan_chain
+from hope_models.components.chain import VQVAE_MEMBER, SequenceError, first_missing, parse_sequence, plan_chain
 from registry import runs
 from registry.models import Run, new_run_id
 
@@ -26,7 +26,7 @@ def create_sequence(s: Any, components: Iterable[str] | str, base_config: dict[s
     except SequenceError as exc:
         raise runs.RunError(str(exc).replace("--sequential", "components")) from None
     plan = plan_chain(names, given=bool(base_config.get("vqvae_dir") or base_config.get("vqvae_run")))
-    missing = next((step.name for step in plan if step.missing), None)
+    missing = first_missing(plan)
     if missing:
         raise runs.RunError(f"components: {missing} needs a trained VQ-VAE: put {TOKENIZER} before it in the chain, "
                             "or give vqvae_dir / vqvae_run")

@@ -74,10 +74,9 @@ class UnknownComponent(ValueError):
 
 def spec_of(name: object) -> ComponentSpec:
     """The spec of a component by name, or UnknownComponent naming the valid ones."""
-    spec = COMPONENTS.get(name) if name in COMPONENTS else None
-    if spec is None:
+    if name not in COMPONENTS:
         raise UnknownComponent(f"component {name!r} is not one of {', '.join(COMPONENTS)}")
-    return spec
+    return COMPONENTS[name]
 
 
 __all__ = ["ACTOR", "COMPONENTS", "ComponentTable", "NEEDS_VQVAE", "PREDICTOR", "TOKENIZER", "ComponentSpec", "UnknownComponent", "spec_of"]

@@ -69,8 +69,8 @@ def _build(name: str, spec: FeatureSpec, model_config: dict | None, vq: tuple[VQ
 def build_component(name: str, spec: FeatureSpec, *, model_config: dict | None = None,
                     vqvae_dir: str | Path | None = None, data_fingerprint: str = "") -> TrainingComponent:
     """A fresh component for a dataset's feature spec (see the module doc)."""
-    if spec_of(name).reads_vqvae == "never" and vqvae_dir is not None:
-        readers = [n for n, c in COMPONENTS.items() if c.reads_vqvae != "never"]
+    if not spec_of(name).reads_codes and vqvae_dir is not None:
+        readers = [n for n, c in COMPONENTS.items() if c.reads_codes]
         raise ValueError(f"vqvae_dir is for {' and '.join(readers)} (the VQ-VAE whose codes they read); "
                          f"the {name} component itself takes none")
     vq = None if vqvae_dir is None else _load_vqvae(Path(vqvae_dir), spec)
@@ -182,7 +182,7 @@ def _from_config(obj: dict, where: Path) -> TrainingComponent:
     model_config["window"] = dict(obj["window"])
     vq = None
     ref = obj.get("vqvae")
-    if component.reads_vqvae != "never" and ref is not None:
+    if component.reads_codes and ref is not None:
         if not isinstance(ref, dict) or not isinstance(ref.get("model_config"), dict):
             raise CheckpointError(f"{where}: 'vqvae' must name the VQ-VAE with its model_config")
         vq_cfg = make_config(VQVAEConfig, {}, ref["model_config"], "vqvae")
@@ -193,7 +193,7 @@ def _from_config(obj: dict, where: Path) -> TrainingComponent:
 def _load_vqvae(vqvae_dir: Path, spec: FeatureSpec) -> tuple[VQVAE, dict]:
     """The trained VQ-VAE in vqvae_dir, checked against this dataset's features, and its reference."""
     comp = component_from_checkpoint(vqvae_dir)
-    if not spec_of(comp.name).tokenizer:
+    if comp.name != TOKENIZER:
         raise ValueError(f"vqvae_dir={str(vqvae_dir)!r} holds a {comp.name} checkpoint, not a {TOKENIZER}")
     vq: VQVAE = comp.model
     if vq.cfg.input == "frame":

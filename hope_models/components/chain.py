@@ -38,7 +38,7 @@ def parse_sequence(text: str) -> list[str]:
                             f"(known: {', '.join(COMPONENTS)})")
     if len(set(names)) != len(names):
         raise SequenceError(f"--sequential {text}: a component is listed twice")
-    if TOKENIZER in names and any(COMPONENTS[n].reads_vqvae != "never" for n in names[:names.index(TOKENIZER)]):
+    if TOKENIZER in names and any(COMPONENTS[n].reads_codes for n in names[:names.index(TOKENIZER)]):
         raise SequenceError(f"--sequential: {TOKENIZER} must come before the components that read its codes")
     return names
 
@@ -46,7 +46,12 @@ def parse_sequence(text: str) -> list[str]:
 def tokenizer_missing(names: list[str], has_vqvae: bool) -> str | None:
     """The first component of a chain that needs a trained VQ-VAE and has none (neither the chain's
     tokenizer before it nor one given), or None."""
-    return next((step.name for step in plan_chain(names, given=has_vqvae) if step.missing), None)
+    return first_missing(plan_chain(names, given=has_vqvae))
+
+
+def first_missing(plan: list["ChainStep"]) -> str | None:
+    """The first member of a plan that needs a VQ-VAE and has none, or None."""
+    return next((step.name for step in plan if step.missing), None)
 
 
 @dataclass(frozen=True)
@@ -70,7 +75,7 @@ def plan_chain(names: list[str], *, given: bool, given_first: bool = False) -> l
     steps: list[ChainStep] = []
     tokenizer: int | None = None
     for index, name in enumerate(names):
-        reads = COMPONENTS[name].reads_vqvae != "never"
+        reads = COMPONENTS[name].reads_codes
         if not reads:
             step = ChainStep(name, VQVAE_NONE)
         elif given and (given_first or tokenizer is None):

@@ -38,7 +38,7 @@ class Resolved:
 
     @property
     def wants_frames(self) -> bool:
-        vq = self.cfg if spec_of(self.name).tokenizer else self.vq_cfg
+        vq = self.cfg if self.name == TOKENIZER else self.vq_cfg
         return vq is not None and vq.input == "frame"
 
 
@@ -85,7 +85,7 @@ def resolve(name: str, spec: FeatureSpec, model_config: dict | None, vq_cfg: VQV
     component = spec_of(name)
     overrides = dict(model_config or {})
     window = window_for(name, overrides.pop("window", None))
-    if component.reads_vqvae == "never":
+    if not component.reads_codes:
         vq_cfg = None
     elif component.reads_vqvae == "required" and vq_cfg is None:
         raise ValueError(f"{name} needs vqvae_dir: the checkpoint dir (model.safetensors + config.json) of a "

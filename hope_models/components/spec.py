@@ -51,10 +51,13 @@ def _no_held_out(val: dict[str, Any]) -> dict[str, Any] | None:
     return None
 
 
+def _no_line(held_out: dict[str, Any]) -> str | None:
+    return None
+
+
 @dataclass(frozen=True)
 class ComponentSpec:
     name: str
-    summary: str  # one line: what it reads and predicts
     package: str  # the folder's module path: <package>.train builds it (torch), <package>.numpy_form serves it
     config_class: type  # its torch-free config dataclass
     window_scale: str  # "fast" | "mid" (data/windows.py)
@@ -69,16 +72,21 @@ class ComponentSpec:
     acts: bool = False  # it outputs the robot's action (reflex rollouts; the app's action figures)
     predicts: bool = False  # it predicts codes ahead (imagination, surprise)
     held_out: Callable[[dict[str, Any]], dict[str, Any] | None] = _no_held_out  # result.json summary.val -> figures
-    held_out_line: Callable[[dict[str, Any]], str | None] = lambda h: None  # those figures in one report line
-    # (gate, validation figures, candidate) -> (status, detail) of the gate's "baselines" check, or
+    held_out_line: Callable[[dict[str, Any]], str | None] = _no_line  # those figures in one report line
+    # (validation figures, candidate, settings) -> (status, detail) of the gate's "baselines" check, or
     # None when it has no baselines to beat
     baselines: Callable[..., tuple[str, str]] | None = None
 
     def __post_init__(self) -> None:
         if self.reads_vqvae not in READS_VQVAE:
             raise ValueError(f"component {self.name}: reads_vqvae={self.reads_vqvae!r} is not one of {READS_VQVAE}")
-        if self.tokenizer and self.reads_vqvae != "never":
+        if self.tokenizer and self.reads_codes:
             raise ValueError(f"component {self.name}: the tokenizer reads no other VQ-VAE")
+
+    @property
+    def reads_codes(self) -> bool:
+        """Whether it reads a frozen VQ-VAE's codes at all (optionally or necessarily)."""
+        return self.reads_vqvae != "never"
 
     def part(self, name: str) -> ModuleType:
         """A module of the component's folder by name: "train" (its loss and build(); imports torch,

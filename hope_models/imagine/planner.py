@@ -26,7 +26,7 @@ import torch
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, read_json_object
 from hope_models.checkpoints import latest_complete
-from hope_models.components import PREDICTOR, spec_of
+from hope_models.components import PREDICTOR
 from hope_models.components.mid_loop.model import MidLoop, previous_actions
 from hope_models.durable import file_sha256
 from hope_models.imagine.recorded import Goal
@@ -75,7 +75,7 @@ def find_mid_loop_checkpoint(path: str | Path) -> Path:
 class WorldModel:
     def __init__(self, component, checkpoint: Path):
         model: MidLoop = component.model
-        if not spec_of(component.name).predicts:
+        if component.name != PREDICTOR:
             raise ValueError(f"{checkpoint}: a {component.name} checkpoint, not a {PREDICTOR}")
         if not model.has_world_model:
             raise ValueError(f"{checkpoint}: this mid_loop has no world model (trained with wm_horizon 0, "

@@ -49,7 +49,7 @@ import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
 from hope_models.checkpoints import load_tensors, resolve_checkpoint_dir
-from hope_models.components import spec_of
+from hope_models.components import ACTOR
 from hope_models.data.features import FeatureSpecError
 from hope_models.json_finite import finite
 from hope_models.paths import PathError, confine_path, data_roots
@@ -377,7 +377,7 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
 
 
 def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
-    if not spec_of(cand.name).acts:
+    if cand.name != ACTOR:
         return
     try:
         check_spec(cand.spec, str(cand_dir), SIM_OBSERVATION, SIM_ACTION)

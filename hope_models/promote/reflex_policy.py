@@ -35,7 +35,7 @@ import numpy as np
 
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
 from hope_models.checkpoints import open_checkpoint
-from hope_models.components import ACTOR, spec_of
+from hope_models.components import ACTOR
 from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
 SIM_OBSERVATION: tuple[tuple[str, int], ...] = OBS_FIELDS
@@ -132,7 +132,7 @@ class ReflexPolicy:
         except CheckpointError as exc:
             raise ReflexPolicyError(str(exc)) from None
         where = str(ckpt / CONFIG_FILE)
-        if not spec_of(comp.name).acts:
+        if comp.name != ACTOR:
             raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a {ACTOR} checkpoint")
         if comp.model.wants_frames:
             raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "

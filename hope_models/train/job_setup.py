@@ -84,7 +84,7 @@ def estimate_from_config(cfg: TrainConfig, cache, vqvae_dir: Path | None):
     from hope_models.train import estimate  # lazy: loads psutil
 
     try:
-        vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and spec_of(cfg.component).reads_vqvae != "never" \
+        vq = read_vqvae_config(vqvae_dir) if vqvae_dir is not None and spec_of(cfg.component).reads_codes \
             else None
         resolved = resolve(cfg.component, cache.spec, dict(cfg.model_config), vq)
     except ValueError as exc:

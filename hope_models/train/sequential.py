@@ -42,7 +42,7 @@ def child_command(args: argparse.Namespace, component: str, run_dir: Path, vqvae
     for name, value in values_from_args(args, "train").items():
         if name not in ("run_dir", "vqvae_dir"):  # each child gets its own run dir; the vqvae below
             cmd += [flag_of(name), json.dumps(value) if isinstance(value, dict) else str(value)]
-    if vqvae is not None and COMPONENTS[component].reads_vqvae != "never":
+    if vqvae is not None and COMPONENTS[component].reads_codes:
         cmd += ["--vqvae", str(vqvae)]
     return cmd
 

@@ -31,7 +31,6 @@ def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | No
 
 SPEC = ComponentSpec(
     name="toy",
-    summary="the latest observation -> the action, one linear layer (a test's fourth component)",
     package=__name__,
     config_class=ToyConfig,
     window_scale="fast",

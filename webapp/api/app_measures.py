@@ -41,7 +41,7 @@ from typing import Any
 from sqlalchemy import func, or_, select
 
 from hope_models.checkpoint_format import CONFIG_FILE, VQVAE_REF, CheckpointError, read_json_object
-from hope_models.components import COMPONENTS
+from hope_models.components import PREDICTOR
 from registry.models import Model, Run
 
 log = logging.getLogger(__name__)
@@ -172,8 +172,7 @@ def _code_space(run: Run) -> tuple[int, int] | None:
 def mid_loop_validations(s, limit: int) -> list[dict[str, Any]]:
     """The validation cross-entropy of the newest `limit` completed mid_loop runs, oldest first:
     [{"run_id", "finished_at", "step", "surprise", "n_codes", "code_groups", "curiosity"}]."""
-    predictors = [name for name, spec in COMPONENTS.items() if spec.predicts]
-    rows = s.scalars(select(Run).where(Run.component.in_(predictors), Run.state == "completed")
+    rows = s.scalars(select(Run).where(Run.component == PREDICTOR, Run.state == "completed")
                      .order_by(Run.finished_at.desc(), Run.created_at.desc()).limit(limit))
     out = []
     for run in rows:

@@ -43,7 +43,7 @@ from typing import Any
 from flask import Blueprint, current_app, jsonify
 from sqlalchemy import select
 
-from hope_models.components import COMPONENTS
+from hope_models.components import ACTOR
 from registry.models import Model
 from webapp.api import app_measures as measures
 from webapp.api.validation import query_args, query_int
@@ -121,7 +121,7 @@ def benchmark(model) -> dict[str, Any] | None:
     reflex = recorded_reflex if isinstance(recorded_reflex, dict) else {}
     ret = measures.finite_number(reflex.get("candidate_mean_return"))
     val = measures.finite_number(metrics.get("candidate_val_loss"))
-    if model.component in COMPONENTS and COMPONENTS[model.component].acts and ret is not None:
+    if model.component == ACTOR and ret is not None:
         score, kind, higher = ret, "reflex_mean_return", True
     elif val is not None:
         score, kind, higher = val, "val_loss", False

@@ -91,7 +91,7 @@ def provenance(run, gate: list[dict[str, Any]]) -> dict[str, Any]:
 
     if recorded_vq is not _UNRECORDED:
         vqvae = recorded_vq if isinstance(recorded_vq, dict) else None
-    elif spec_of(run.component).reads_vqvae == "never":
+    elif not spec_of(run.component).reads_codes:
         vqvae = None
     else:
         ref = (ck or {}).get(VQVAE_REF)

@@ -33,7 +33,6 @@ def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | No
 
 SPEC = ComponentSpec(
     name="fast_loop",
-    summary="the last 100 ms of observations (+ VQ-VAE codes) -> the action (the reflex policy)",
     package=__name__,
     config_class=FastLoopConfig,
     window_scale="fast",

@@ -39,7 +39,6 @@ def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | No
 
 SPEC = ComponentSpec(
     name="mid_loop",
-    summary="VQ-VAE codes and actions over 2 s -> the codes 0.5 s and 1 s ahead (the predictor)",
     package=__name__,
     config_class=MidLoopConfig,
     window_scale="mid",

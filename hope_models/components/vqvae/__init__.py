@@ -42,7 +42,6 @@ def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | No
 
 SPEC = ComponentSpec(
     name="vqvae",
-    summary="observation vector or camera frame -> one code per group (the tokenizer)",
     package=__name__,
     config_class=VQVAEConfig,
     window_scale="fast",
