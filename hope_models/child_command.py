@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 TRAINER_MODULE = "hope_trainer"  # `python -m hope_trainer <verb>` is `hope-trainer <verb>`
 
@@ -58,3 +59,26 @@ def end_child(proc: subprocess.Popen, timeout: float) -> None:
 
 
 __all__ = ["TRAINER_MODULE", "dies_with_parent", "end_child", "module_argv", "trainer_argv"]
+
+
+class RestartBackoff:
+    """How long a supervisor waits before starting a child again: the next of `delays` after each
+    quick death, the first again once the child had stayed up `stable_s` (the worker under serve,
+    the inference door)."""
+
+    def __init__(self, delays: tuple[float, ...], stable_s: float = 60.0):
+        self.delays, self.stable_s = delays, stable_s
+        self.failures = 0
+
+    def after_exit(self, started: float) -> float:
+        """The delay after a child that ran since `started` (time.monotonic()) exited."""
+        self.failures = 0 if time.monotonic() - started >= self.stable_s else self.failures + 1
+        return self.delay()
+
+    def after_failed_start(self) -> float:
+        """The delay after a child that could not even be started."""
+        self.failures += 1
+        return self.delay()
+
+    def delay(self) -> float:
+        return self.delays[min(self.failures, len(self.delays) - 1)]

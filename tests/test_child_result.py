@@ -247,3 +247,15 @@ def test_commands_write_their_result_file_and_still_print_json(tmp_path, argv):
     result = read_result(path, proc.args, proc.returncode)
     assert result.get("error") and result.get("ok", result.get("promoted")) is False
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == result  # --json is unchanged for people
+
+
+def test_restart_backoff_grows_with_quick_deaths_and_resets_after_a_stable_run():
+    import time
+
+    from hope_models.child_command import RestartBackoff
+
+    backoff = RestartBackoff((1.0, 2.0, 5.0), stable_s=60.0)
+    now = time.monotonic()
+    assert [backoff.after_exit(now) for _ in range(4)] == [2.0, 5.0, 5.0, 5.0]  # quick deaths climb, then stay
+    assert backoff.after_exit(now - 61.0) == 1.0  # it had stayed up: from the first again
+    assert backoff.after_failed_start() == 2.0 and backoff.failures == 1

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hope_models.child_command import dies_with_parent, end_child, module_argv
+from hope_models.child_command import RestartBackoff, dies_with_parent, end_child, module_argv
 from hope_models.log_format import configure_logging
 from hope_models.log_limits import PipeToLog
 from hope_models.malloc_arenas import limit_malloc_arenas
@@ -122,15 +122,14 @@ class DoorProcess:
         return proc, ready
 
     def _watch(self) -> None:
-        failures = 0
+        backoff = RestartBackoff(BACKOFF_S, STABLE_S)
         while not self._stopping.is_set():
             proc = self.proc
             started = time.monotonic()
             code = proc.wait() if proc is not None else None
             if self._stopping.is_set():
                 return
-            failures = 0 if time.monotonic() - started >= STABLE_S else failures + 1
-            delay = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
+            delay = backoff.after_exit(started)
             log.warning("the inference door exited with code %s; restarting in %.1f s (see %s)", code, delay,
                         self.log_path)
             if self._stopping.wait(delay):
@@ -144,8 +143,7 @@ class DoorProcess:
             except (ServerError, OSError) as exc:
                 log.warning("the inference door could not be restarted: %s", exc)
                 self.proc = None
-                failures += 1
-                self._stopping.wait(BACKOFF_S[min(failures, len(BACKOFF_S) - 1)])
+                self._stopping.wait(backoff.after_failed_start())
 
     def stop(self, timeout: float = STOP_S) -> None:
         self._stopping.set()

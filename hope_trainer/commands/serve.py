@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from daemon.events import SocketIOSink
-from hope_models.child_command import dies_with_parent
+from hope_models.child_command import RestartBackoff, dies_with_parent
 from hope_models.log_format import console_formatter
 from hope_models.log_limits import PipeToLog, rate_limit, rotating_file_handler
 from hope_models.malloc_arenas import limit_malloc_arenas
@@ -129,7 +129,7 @@ class WorkerSupervisor:
         return proc
 
     def _loop(self) -> None:
-        failures = 0
+        backoff = RestartBackoff(BACKOFF_S, STABLE_S)
         while not self._stopping.is_set():
             started = time.monotonic()
             try:
@@ -144,11 +144,10 @@ class WorkerSupervisor:
                 why = f"could not be started: {exc}"
             if self._stopping.is_set():
                 return
-            failures = 0 if time.monotonic() - started >= STABLE_S else failures + 1
-            delay = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
+            delay = backoff.after_exit(started)
             self.restarts += 1
             log.warning("worker %s; restarting in %.0f s (see %s)%s", why, delay, self.log_path,
-                        "\n" + self.log_tail() if failures >= 2 else "")
+                        "\n" + self.log_tail() if backoff.failures >= 2 else "")
             self._stopping.wait(delay)
 
     def log_tail(self, lines: int = 15) -> str:
