@@ -43,7 +43,7 @@ ORDER_TEXT = ("hope_models < registry (+ migrations) < daemon, workers (neither 
 # hope_models' sub-packages, bottom tier first; a tier's members are peers (one may import the
 # other, never both ways).
 HOPE_MODELS_TIERS: tuple[tuple[str, ...], ...] = (
-    ("rlds",),
+    ("rlds", "media"),
     ("data", "sim"),
     ("components",),
     ("train", "intake"),
