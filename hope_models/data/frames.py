@@ -26,6 +26,9 @@ from typing import Any
 
 import numpy as np
 
+from hope_models.media import MediaError
+from hope_models.media import floats_to_uint8 as media_floats_to_uint8
+
 FRAME_BLOB_SUFFIX = ".npy"
 _NPY_MAGIC = b"\x93NUMPY"
 _NPY_HEADER_ALLOWANCE = 1 << 20  # a .npy header is at most 4 GiB in theory, a few hundred bytes in practice
@@ -163,11 +166,9 @@ def load_frame_blob(path: str | os.PathLike, shape: tuple[int, int, int], uri: s
 
 
 def floats_to_uint8(raw: np.ndarray) -> np.ndarray:
-    """float32 image values in [0, 1] -> uint8 by rint(x * 255): the one rule for inline image_rgb
-    floats and float blobs alike. Out-of-range or non-finite values raise BlobFrameError."""
-    if not np.isfinite(raw).all():
-        raise BlobFrameError("image values are NaN or infinite")
-    lo, hi = float(raw.min()), float(raw.max())
-    if lo < 0.0 or hi > 1.0:
-        raise BlobFrameError(f"image values span [{lo:g}, {hi:g}], expected [0, 1]")
-    return np.rint(raw * 255.0).astype(np.uint8)
+    """hope_models.media's float rule (rint(x * 255) of values in [0, 1]), raising BlobFrameError
+    as the callers of this module expect."""
+    try:
+        return media_floats_to_uint8(raw)
+    except MediaError as exc:
+        raise BlobFrameError(str(exc)) from None

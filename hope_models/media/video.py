@@ -15,7 +15,6 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import av
 import numpy as np
 
 from hope_models.media.errors import DEFAULT_MAX_PIXELS, MediaError, check_pixels, label
@@ -42,6 +41,10 @@ def sniff_video(path: Path, name: str) -> str:
 def open_video(path: Path, name: str, max_pixels: int, threads: int = 1) -> tuple[Any, Any, FrameInfo, float | None]:
     """(container, its first video stream, FrameInfo, duration in s or None) from the headers only."""
     kind = sniff_video(path, name)
+    # lazy: PyAV loads FFmpeg's libraries (about 18 MB of RSS), which a process reading only stills
+    # (or only importing hope_models.data.frames) should not pay for
+    import av
+
     try:
         container = av.open(os.fspath(path), mode="r")
     except Exception as exc:  # untrusted bytes: FFmpeg's errors come as av.error.* (and OSError)
