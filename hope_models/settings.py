@@ -17,6 +17,7 @@ import stat
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from hope_models.numbers import NumberError, as_float, as_int, float_from_text, int_from_text, short
 
@@ -43,6 +44,9 @@ class Settings:
     # Host names the webapp answers besides loopback and this machine's own names/addresses
     # (webapp/hosts.py): a browser reaching it through any other name may be DNS rebinding.
     allowed_hosts: list[str] = field(default_factory=list)
+    # browser origins (scheme://host[:port]) whose pages may call /api/ on the Robot Editor's port: a
+    # web build of the Continuon app served from elsewhere (webapp/cors.py); empty = no CORS at all
+    cors_origins: list[str] = field(default_factory=list)
     max_connections: int = 200  # open HTTP/WebSocket connections at once; more get 503 (webapp/server.py)
     # open connections from one client address at once (a browser's six, its editor tabs' WebSockets
     # and the phone app stay far below); one neighbour cannot take the whole server (webapp/server.py)
@@ -91,6 +95,14 @@ class Settings:
     # reading may take upload_extract_s, plus 0.5 s per MB it sent (webapp/uploads.py, webapp/api/episodes.py)
     upload_tmp_max_mb: int = 3072
     upload_extract_s: float = 30.0
+    # one multipart body holds at most upload_max_parts parts (the app's handoff sends 3-4 files per
+    # tap, each streamed to its own file: a 2,000-tap session with depth is 8,002 parts); one package
+    # unpacks to at most upload_unpack_max_mb (and never past the room in $HOPE_HOME/tmp) and holds at
+    # most upload_max_members members (the Pi writes an rgb and a depth .npy per step)
+    # (webapp/uploads.py, hope_models/rlds/upload_package.py)
+    upload_max_parts: int = 20_000
+    upload_unpack_max_mb: int = 4096
+    upload_max_members: int = 20_000
     # continuous learning (daemon/continuous.py): when at least auto_train_min_new_episodes new
     # trainable episodes reached the inbox and the robot is idle, cool and has memory and disk to
     # spare, queue a chain of auto_train_components on it (auto_train_steps each; 0 = TrainConfig's default)
@@ -134,6 +146,7 @@ _ENV = {
     "HOPE_REDIS_URL": "redis_url",
     "HOPE_MEMORY_BUDGET_MB": "memory_budget_mb",
     "HOPE_ALLOWED_HOSTS": "allowed_hosts",
+    "HOPE_CORS_ORIGINS": "cors_origins",
     "HOPE_MAX_CONNECTIONS": "max_connections",
     "HOPE_MAX_CONNECTIONS_PER_CLIENT": "max_connections_per_client",
     "HOPE_STRIKES_TO_BAN": "strikes_to_ban",
@@ -159,6 +172,9 @@ _ENV = {
     "HOPE_UPLOAD_MAX_MB": "upload_max_mb",
     "HOPE_UPLOAD_TMP_MAX_MB": "upload_tmp_max_mb",
     "HOPE_UPLOAD_EXTRACT_S": "upload_extract_s",
+    "HOPE_UPLOAD_MAX_PARTS": "upload_max_parts",
+    "HOPE_UPLOAD_UNPACK_MAX_MB": "upload_unpack_max_mb",
+    "HOPE_UPLOAD_MAX_MEMBERS": "upload_max_members",
     "HOPE_AUTO_TRAIN": "auto_train",
     "HOPE_AUTO_TRAIN_MIN_NEW_EPISODES": "auto_train_min_new_episodes",
     "HOPE_AUTO_TRAIN_COMPONENTS": "auto_train_components",
@@ -178,13 +194,38 @@ _MINIMUM = {"gate_val_tolerance": 0.0, "gate_reflex_tolerance": 0.0, "gate_refle
             "max_connections": 8, "max_connections_per_client": 2, "strikes_to_ban": 0,
             "inference_port": 0,
             "socketio_ping_interval_s": 1.0, "disk_floor_mb": 0, "keep_runs": 0, "max_queued_runs": 1,
-            "upload_max_mb": 1, "upload_tmp_max_mb": 1, "auto_train_min_new_episodes": 1, "auto_train_steps": 0,
+            "upload_max_mb": 1, "upload_tmp_max_mb": 1,
+            "upload_max_parts": 3, "upload_unpack_max_mb": 1, "upload_max_members": 2, "auto_train_min_new_episodes": 1, "auto_train_steps": 0,
             "log_max_mb": 1, "log_backups": 0}
 # fields that must be above zero (an interval of 0 s would spin)
 _POSITIVE = {"system_sample_s", "worker_heartbeat_s", "upload_extract_s"}
 # list settings whose items never contain a path separator are split on commas and blanks instead
 # (an IPv6 address holds ':', os.pathsep)
-_WORD_LISTS = {"allowed_hosts", "auto_train_components"}
+_WORD_LISTS = {"allowed_hosts", "auto_train_components", "cors_origins"}
+_DEFAULT_PORTS = {"http": "80", "https": "443"}
+
+
+def check_origin(value: str, where: str) -> str:
+    """A browser origin as the Origin header spells it: `http(s)://host[:port]`, lower case, the
+    scheme's default port left out. Never `*` nor `null`: each allowed origin is named."""
+    text = value.strip()
+    usage = "an origin is scheme://host[:port], e.g. https://app.example.com or http://192.168.1.20:8081"
+    if text in ("*", "null"):
+        raise SettingsError(f"{where}: setting 'cors_origins': {text!r} is not allowed; name each origin ({usage})")
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        raise SettingsError(f"{where}: setting 'cors_origins': {text!r} is not an origin ({usage})") from None
+    if (parts.scheme.lower() not in _DEFAULT_PORTS or not parts.hostname or "@" in parts.netloc
+            or parts.path or parts.query or parts.fragment or text.endswith(("?", "#"))):
+        raise SettingsError(f"{where}: setting 'cors_origins': {text!r} is not an origin ({usage}; no path, not "
+                            "even a trailing /)")
+    scheme, host = parts.scheme.lower(), parts.hostname.lower()
+    if ":" in host:
+        host = f"[{host}]"
+    shown = "" if port is None or str(port) == _DEFAULT_PORTS[scheme] else f":{port}"
+    return f"{scheme}://{host}{shown}"
 
 
 def _coerce(name: str, value, where: str, from_env: bool = False):
@@ -208,9 +249,12 @@ def _coerce(name: str, value, where: str, from_env: bool = False):
         if kind == "list[str]":
             if isinstance(value, str):
                 if name in _WORD_LISTS:
-                    return [v for v in re.split(r"[,\s]+", value) if v]
-                return [v for v in value.split(os.pathsep) if v]
-            return [str(v) for v in value]
+                    items = [v for v in re.split(r"[,\s]+", value) if v]
+                else:
+                    items = [v for v in value.split(os.pathsep) if v]
+            else:
+                items = [str(v) for v in value]
+            return [check_origin(v, where) for v in items] if name == "cors_origins" else items
         if kind == "str | None":
             return str(value) if value not in (None, "") else None
         return str(value)

@@ -67,15 +67,16 @@ def dart_json(obj) -> str:
     return json.dumps(obj)
 
 
-def make_client(home: Path, upload_max_mb: int = 1):
-    """The webapp on a fresh HOPE_HOME as a Flask test client with .settings, .token and .close()."""
+def make_client(home: Path, upload_max_mb: int = 1, **env: str):
+    """The webapp on a fresh HOPE_HOME as a Flask test client with .settings, .token and .close();
+    `env` adds HOPE_* variables (e.g. HOPE_UPLOAD_MAX_PARTS="10")."""
     from hope_models.settings import load_settings
     from registry.db import Registry
     from webapp import create_app
     from webapp.auth import load_or_create_token
 
     settings = load_settings(env={"HOPE_HOME": str(home), "HOPE_THERMAL_ZONE": "", "HOPE_VCGENCMD": "",
-                                  "HOPE_UPLOAD_MAX_MB": str(upload_max_mb)})
+                                  "HOPE_UPLOAD_MAX_MB": str(upload_max_mb), **env})
     token = load_or_create_token(settings)
     registry = Registry.open(settings)
     app, _ = create_app(settings, token=token, registry=registry)
@@ -277,13 +278,15 @@ def test_an_asset_no_step_names_is_stored_beside_the_episode(client):
     assert "uri" not in listed[f"{PHONE}/mic_0.wav"] and "status" not in listed[f"{PHONE}/mic_0.wav"]
 
 
-def test_too_many_parts_are_refused(client):
-    from webapp.uploads import MAX_PARTS
-
-    files = [("asset", f"f{i}.jpg", b"x") for i in range(MAX_PARTS + 1)]
-    r = handoff(client, record(), files=files)
-    assert r.status_code == 400 and f"more than {MAX_PARTS} parts" in r.get_json()["error"]
-    assert inbox_files(client) == []
+def test_too_many_parts_are_refused_naming_the_limit(tmp_path):
+    c = make_client(tmp_path / "home", 1, HOPE_UPLOAD_MAX_PARTS="10")
+    try:
+        files = [("asset", f"f{i}.jpg", b"x") for i in range(9)]  # 2 fields + 9 files: 11 parts
+        r = handoff(c, record(), files=files)
+        assert r.status_code == 413 and "more than 10 parts (upload_max_parts=10)" in r.get_json()["error"]
+        assert inbox_files(c) == []
+    finally:
+        c.close()
 
 
 def test_a_rejected_episode_is_a_422_with_its_reasons_and_listed(client):

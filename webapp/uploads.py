@@ -13,10 +13,13 @@ read, and sets it as the request's own limit, so a chunked body (no length) is c
 `received` streams the body to files under `$HOPE_HOME/tmp/upload-<random>/` (not /tmp: on Pi OS
 that is RAM, and an upload may be hundreds of MB): a multipart body part by part (`.fields` the
 form fields, text; `.files` (field, filename as sent, path, size) of the file parts, stored under
-names of our own), any other body whole as `.body`. The size limit is counted while reading, a
-body with more than MAX_PARTS parts or a field larger than MAX_FIELD_BYTES is refused, and the
-directory is removed when the block ends, whatever happens in it. The filename a client sends is
-only reported, never used as a path.
+names of our own), any other body whole as `.body`. The size limit is counted while reading. A
+file part goes straight to its own file (one open at a time, nothing of it held in memory), so the
+number of parts is bounded by what a real session sends, `settings.upload_max_parts` (20,000: the
+app's 2,000-tap session with depth is 8,002), not by descriptors or memory; past it, or past
+MAX_FIELD_BYTES in one form field or MAX_FIELDS_BYTES in all of them (the fields are held in
+memory), 413 naming the limit and its value. The directory is removed when the block ends,
+whatever happens in it. The filename a client sends is only reported, never used as a path.
 
 `TmpRoom` is what every upload in progress holds in `$HOPE_HOME/tmp` together (bodies as they are
 read, and what a package unpacks to): at most `upload_tmp_max_mb`, and never so much that the free
@@ -40,8 +43,8 @@ from werkzeug.sansio.multipart import Data, Epilogue, Field, File, MultipartDeco
 from hope_models.disk import FLOOR_MARGIN_MB, MB, free_mb
 from webapp.errors import LARGE_BODY_ATTR, ApiError
 
-MAX_PARTS = 1000  # a handoff sends a few per step; far more is a client gone wrong (or hostile)
 MAX_FIELD_BYTES = 16 << 20  # a form field is held in memory (and parsed): a long episode's manifest fits
+MAX_FIELDS_BYTES = 32 << 20  # all fields together: the manifest and the assets list of a long session
 CHUNK = 1 << 16
 TMP_DIR = "tmp"
 
@@ -145,8 +148,8 @@ def _read_raw(got: Received, body: _Counter) -> None:
 class _Parts:
     """Where the multipart events go: the current part's name, and its file or its bytes."""
 
-    def __init__(self, got: Received, max_parts: int):
-        self.got, self.max_parts, self.count = got, max_parts, 0
+    def __init__(self, got: Received, max_parts: int, limit_name: str):
+        self.got, self.max_parts, self.limit_name, self.count, self.field_bytes = got, max_parts, limit_name, 0, 0
         self.name: str | None = None
         self.filename: str | None = None
         self.out: BinaryIO | None = None
@@ -156,7 +159,7 @@ class _Parts:
     def start(self, event: Field | File) -> None:
         self.count += 1
         if self.count > self.max_parts:
-            raise ApiError(f"multipart body: more than {self.max_parts} parts", 400)
+            raise ApiError(f"multipart body: more than {self.max_parts} parts ({self.limit_name})", 413)
         self.name = event.name
         if isinstance(event, File):
             self.filename = event.filename or ""
@@ -173,8 +176,12 @@ class _Parts:
             self.out.write(event.data)
         else:
             self.buf += event.data
+            self.field_bytes += len(event.data)
             if len(self.buf) > MAX_FIELD_BYTES:
                 raise ApiError(f"{self.name}: form field larger than {MAX_FIELD_BYTES} bytes", 413)
+            if self.field_bytes > MAX_FIELDS_BYTES:
+                raise ApiError(f"{self.name}: the form fields together hold more than {MAX_FIELDS_BYTES} "
+                               "bytes (they are held in memory)", 413)
         if not event.more_data:
             self.end()
 
@@ -196,12 +203,12 @@ class _Parts:
             self.out.close()
 
 
-def _read_multipart(got: Received, body: _Counter, max_parts: int) -> None:
+def _read_multipart(got: Received, body: _Counter, max_parts: int, limit_name: str) -> None:
     boundary = request.mimetype_params.get("boundary")
     if not boundary:
         raise ApiError("multipart/form-data body without a boundary parameter", 400)
     decoder = MultipartDecoder(boundary.encode("latin-1"), max_form_memory_size=MAX_FIELD_BYTES)
-    parts = _Parts(got, max_parts)
+    parts = _Parts(got, max_parts, limit_name)
     try:
         while True:
             chunk = body.read()
@@ -228,15 +235,20 @@ def _read_multipart(got: Received, body: _Counter, max_parts: int) -> None:
 
 
 @contextmanager
-def received(settings: Any, *, max_parts: int = MAX_PARTS) -> Iterator[Received]:
-    """The current request's body on disk (see the module doc); removed on exit."""
+def received(settings: Any, *, max_parts: int | None = None) -> Iterator[Received]:
+    """The current request's body on disk (see the module doc); removed on exit. `max_parts`
+    (default settings.upload_max_parts) bounds a multipart body's parts."""
+    limit_name = "this endpoint's limit"
+    if max_parts is None:
+        max_parts = int(settings.upload_max_parts)
+        limit_name = f"upload_max_parts={max_parts}"
     root = Path(settings.home) / TMP_DIR
     root.mkdir(mode=0o700, parents=True, exist_ok=True)
     got = Received(Path(tempfile.mkdtemp(prefix="upload-", dir=root)), TmpRoom(settings))
     try:
         body = _Counter(request.stream, upload_limit(settings), got.room)
         if request.mimetype == "multipart/form-data":
-            _read_multipart(got, body, max_parts)
+            _read_multipart(got, body, max_parts, limit_name)
         else:
             _read_raw(got, body)
         yield got
@@ -245,4 +257,4 @@ def received(settings: Any, *, max_parts: int = MAX_PARTS) -> Iterator[Received]
         got.room.release()
 
 
-__all__ = ["MAX_PARTS", "Received", "TmpRoom", "large_body", "received", "upload_limit"]
+__all__ = ["MAX_FIELDS_BYTES", "Received", "TmpRoom", "large_body", "received", "upload_limit"]

@@ -13,9 +13,15 @@ has. Keys go through normalize.py like every producer's (camelCase or snake_case
   Map<String, String>). One of them is lifted to the step's `timestamp_ms`, the same sensor on
   every step where it can be, and timestamps.py detects its unit like any other clock.
 * Assets: a file that came is staged as `<stage>/blobs/assets/<name>` and listed in
-  metadata.assets with that `uri`; a step `uri` equal to its `local_uri` is rewritten to it. The
-  phone paths of files that did not come stay as opaque text (the episode is confined: nothing
-  outside its own dir is ever opened). `status` and `remote_uri` of an asset describe the phone's
+  metadata.assets with that `uri`. A step names it however its writer spelled the path: the app's
+  steps say `Uri.file(path).toString()` (`file:///data/.../egocentric-1.mp4`, spaces and non-ASCII
+  percent-encoded) while the asset's `local_uri` is the bare path; the bare path and a
+  percent-encoded one are the same file too. Every such URI field, anywhere in the step, is
+  rewritten to the stored `uri` (`file_key`). A URI that names a listed asset whose file did not
+  come is kept as text and named in one warning per field (how many steps, the first step and
+  URI); an asset file that came empty (the app's stand-in when native capture fails) is named too.
+  Phone paths stay opaque text otherwise (the episode is confined: nothing outside its own dir is
+  ever opened, so no warning says whether a path exists here). `status` and `remote_uri` of an asset describe the phone's
   transfer, not the episode, and are left out so a retried handoff is the same content. A `uri`
   an asset arrives with is dropped: only a file that came gets one, naming where it is stored.
 """
@@ -23,15 +29,18 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import unquote
 
 from .episode import Episode, SourceReport
 from .json_text import json_dumps
 from .normalize import normalize_metadata, snake_keys, step_from_obj
 from .timestamps import CLOCKS, assign_timestamps
-from .write_episode_dir import BLOBS_DIR, confine_blobs, rewrite_uris
+from .write_episode_dir import BLOBS_DIR, confine_blobs, rewrite_uris, step_uri_fields
 
 LAYOUT = "app_handoff"
 ASSETS_DIR = f"{BLOBS_DIR}/assets"
@@ -42,6 +51,7 @@ OURS = ("uri",)
 MAX_NAME_BYTES = 200
 _CLOCK_KEY = "timestamp_ms"
 _FIRST_SENSORS = ("egocentric_video", "audio.device_mic", "audio.robot_mic")
+_OTHER_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+:")
 
 
 class AppRecordError(ValueError):
@@ -141,6 +151,56 @@ def _place_files(assets: list[dict[str, Any]], files: dict[str, Path], stage: Pa
     return stored
 
 
+def file_keys(uri: str) -> list[str]:
+    """The local paths a URI may spell: a `file:` URI's path (percent-decoded, as Dart's
+    Uri.file encodes it; `file://localhost/` too), a bare path as written and percent-decoded.
+    Another scheme names no local file: []."""
+    for prefix in ("file://localhost/", "file:///", "file:/"):
+        if uri.startswith(prefix):
+            return [unquote("/" + uri[len(prefix):], errors="surrogateescape")]
+    if _OTHER_SCHEME.match(uri):
+        return []
+    decoded = unquote(uri, errors="surrogateescape")
+    return [uri] if decoded == uri else [uri, decoded]
+
+
+def _asset_keys(assets: list[dict[str, Any]]) -> dict[str, str]:
+    """Every spelling of each asset's path -> its local_uri (the first asset wins a clash)."""
+    keys: dict[str, str] = {}
+    for asset in assets:
+        local = asset["local_uri"]
+        for key in [local] + file_keys(local):
+            keys.setdefault(key, local)
+    return keys
+
+
+@dataclass
+class _Unsent:
+    steps: int
+    first_step: int
+    first_uri: str
+
+
+def _rewrite_step(step: dict[str, Any], i: int, keys: dict[str, str], stored: dict[str, str],
+                  unsent: dict[str, _Unsent]) -> dict[str, Any]:
+    """The step with every URI that names a stored asset (however spelled) set to its stored uri;
+    URIs naming an asset whose file did not come are counted in `unsent` by field."""
+    mapping: dict[str, str] = {}
+    for field_path, uri in step_uri_fields(step):
+        local = next((keys[k] for k in [uri] + file_keys(uri) if k in keys), None)
+        if local is None:
+            continue
+        if local in stored:
+            mapping[uri] = stored[local]
+        else:
+            where = re.sub(r"\[\d+\]", "[]", field_path)
+            if where in unsent:
+                unsent[where].steps += 1
+            else:
+                unsent[where] = _Unsent(1, i, uri)
+    return rewrite_uris(step, mapping) if mapping else step
+
+
 def _lift_clock(step: dict[str, Any], prefer: str | None) -> str | None:
     """Sets the step's `timestamp_ms` from a sensor's capture time; returns the sensor used."""
     if any(c.path in step for c in CLOCKS if "." not in c.path):
@@ -193,14 +253,19 @@ def episode_from_record(record: Any, assets: Any, files: dict[str, Path], stage:
     provenance["origin"] = origin
     ep.metadata = meta
     prefer = None
+    keys = _asset_keys(assets)
+    unsent: dict[str, _Unsent] = {}
     for i, raw in enumerate(record["steps"]):
-        step = dict(raw)
-        if stored:
-            for part in ("observation", "action", "step_metadata"):
-                if isinstance(step.get(part), dict):
-                    step[part] = rewrite_uris(step[part], stored)
+        step = _rewrite_step(dict(raw), i, keys, stored, unsent)
         prefer = _lift_clock(step, prefer) or prefer
         ep.steps.append(step_from_obj(step, i, ep))
+    for where, seen in unsent.items():
+        ep.warn(f"{seen.steps} step(s) name an asset file the app did not send, first {seen.first_uri!r}; "
+                "kept as text", step=seen.first_step, field=where)
+    empty = sorted(name for name, path in files.items() if os.path.getsize(path) == 0)
+    if empty:
+        ep.warn(f"{len(empty)} asset file(s) came empty (0 bytes), e.g. {empty[0]!r}: the app sends an empty "
+                "stand-in when its native capture fails", field="metadata.assets")
     assign_timestamps(ep)
     report.episodes.append(confine_blobs(ep))
     return report

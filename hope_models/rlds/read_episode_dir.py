@@ -6,7 +6,8 @@ metadata and no steps is a skip, not an error: the Pi's autonomous loop leaves m
 
 Our own canonical dirs (schema_version "1.1" with provenance.origin) are read on a lean path,
 because training reads hundreds of thousands of steps from them: their keys are already
-canonical and their metadata is taken as written, so reading them back is lossless.
+canonical and their metadata is taken as written, so reading them back is lossless. A producer's
+dir (the XR app's) has its frame ids matched to frame files (rlds/frame_files.py).
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import os
 from pathlib import Path
 
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
+from .frame_files import attach_frame_ids
 from .json_text import ReadLimits, TextReadError, parse_json_document, parse_jsonl, read_text
 from .normalize import canonical_step, normalize_metadata, step_from_obj
 from .timestamps import assign_timestamps
@@ -104,6 +106,8 @@ def read_episode_dir(path: str | os.PathLike, limits: ReadLimits | None = None) 
 
     if not steps:
         ep.warn("steps files hold no steps")
+    if not canonical:  # a producer's dir (the XR app's): frame ids name files; ours are attached already
+        attach_frame_ids(ep, root)
     assign_timestamps(ep, canonical=canonical)
     report.episodes.append(ep)
     return report

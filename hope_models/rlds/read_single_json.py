@@ -2,7 +2,9 @@
 
 Older files say `episode_metadata` instead of `metadata`; the arm recorder and the Pi's upload
 package write the same shape as `<id>/episode.json`, so that file takes its id from its
-directory. Other top-level keys are kept as metadata (unknown keys are never dropped).
+directory, and its per-step camera files beside it (`step_0003_rgb.npy`) are attached to the
+steps by position (rlds/frame_files.py). Other top-level keys are kept as metadata (unknown keys
+are never dropped).
 """
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import os
 from pathlib import Path
 
 from .episode import ERROR, WARNING, Episode, Problem, SourceReport
+from .frame_files import attach_pi_files
 from .json_text import ReadLimits, TextReadError, parse_json_document, read_text
 from .normalize import id_from_name, normalize_metadata, step_from_obj
 from .timestamps import assign_timestamps
@@ -72,6 +75,8 @@ def episode_from_document(doc: object, file: Path, report: SourceReport) -> Sour
         ep.steps.append(step_from_obj(raw, len(ep.steps), ep))
     if not ep.steps:
         ep.warn("episode has no steps", field="steps")
+    if file.name == ARM_RECORDER_FILE:  # the Pi's layout: its camera frames are files beside it
+        attach_pi_files(ep, file.parent)
     assign_timestamps(ep)
     report.episodes.append(ep)
     return report

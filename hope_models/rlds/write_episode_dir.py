@@ -1,8 +1,9 @@
 """Writing one episode as a canonical dir: <dataset>/<episode_id>/metadata.json, steps/000000.jsonl, blobs/.
 
 The dir is built under a temporary name in the dataset dir and renamed into place, so a reader
-(or a crash) never sees half an episode. Relative blob files the steps reference are copied into
-`blobs/` and their URIs rewritten to `blobs/<path>`; URIs with a scheme stay opaque.
+(or a crash) never sees half an episode. Relative blob files the steps reference (in observation,
+action, step_metadata or a step-level key such as the Pi arm recorder's `audio.uri`) are copied
+into `blobs/` and their URIs rewritten to `blobs/<path>`; URIs with a scheme stay opaque.
 
 The content hash covers what is written (metadata but its id, steps, blob bytes) with every
 object's keys sorted, so the same input always hashes the same whatever order a producer wrote
@@ -29,7 +30,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from ..durable import file_sha256, fsync_path
-from .episode import SCHEMA_VERSION, Episode
+from .episode import SCHEMA_VERSION, Episode, Step
 from .json_text import json_dumps
 
 STEPS_FILE = "steps/000000.jsonl"
@@ -37,6 +38,8 @@ BLOBS_DIR = "blobs"
 TMP_PREFIX = ".tmp-"
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+:")  # two letters at least: not a drive letter
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+# the keys Step.to_json_obj writes itself: an extra of the same name is not written, so not walked
+_STEP_FIELDS = ("step_index", "timestamp_ns", "observation", "action", "reward", "is_terminal", "step_metadata")
 _CONFINED = "_hope_blobs_confined"  # an attribute set on an Episode (its own dataclass has no such field)
 
 
@@ -68,6 +71,25 @@ def _uri_fields(value: Any, path: str) -> Iterator[tuple[str, str]]:
         for i, sub in enumerate(value):  # only lists that hold objects can hold URIs
             if isinstance(sub, (dict, list)):
                 yield from _uri_fields(sub, f"{path}[{i}]")
+
+
+def step_uri_fields(step: dict[str, Any]) -> Iterator[tuple[str, str]]:
+    """(dotted path, uri) of every URI field of a step as JSON: its observation, action and
+    step_metadata and its step-level keys alike (the Pi's arm recorder puts `audio: {uri}` there)."""
+    for key, value in step.items():
+        if isinstance(value, str) and _is_uri_key(str(key)) and value:
+            yield str(key), value
+        else:
+            yield from _uri_fields(value, str(key))
+
+
+def _step_parts(step: Step) -> Iterator[tuple[str, Any]]:
+    yield "observation", step.observation
+    yield "action", step.action
+    yield "step_metadata", step.step_metadata
+    for key, value in step.extras.items():
+        if key not in _STEP_FIELDS:
+            yield key, value
 
 
 def confine_blobs(ep: Episode) -> Episode:
@@ -107,14 +129,14 @@ def _resolve(uri: str, blob_root: str | None,
 
 
 def blob_refs(ep: Episode) -> list[BlobRef]:
-    """Every blob URI in the steps, checked once per distinct URI (at its first step)."""
+    """Every blob URI in the steps (observation, action, step_metadata and step-level keys),
+    checked once per distinct URI (at its first step)."""
     refs: list[BlobRef] = []
     seen: set[str] = set()
     confined = blobs_confined(ep)
     for i, step in enumerate(ep.steps):
-        for part, value in (("observation", step.observation), ("action", step.action),
-                            ("step_metadata", step.step_metadata)):
-            for field_path, uri in _uri_fields(value, part):
+        for part, value in _step_parts(step):
+            for field_path, uri in step_uri_fields({part: value}):
                 if uri in seen:
                     continue
                 seen.add(uri)
@@ -124,11 +146,11 @@ def blob_refs(ep: Episode) -> list[BlobRef]:
     # step names them; they are listed in metadata.assets with the `uri` they are stored under.
     assets = ep.metadata.get("assets")
     for i, asset in enumerate(assets if isinstance(assets, list) else []):
-        uri = asset.get("uri") if isinstance(asset, dict) else None
-        if isinstance(uri, str) and uri and uri not in seen:
-            seen.add(uri)
-            status, path, rel = _resolve(uri, ep.blob_root, confined)
-            refs.append(BlobRef(0, f"metadata.assets[{i}].uri", uri, status, path, rel))
+        asset_uri = asset.get("uri") if isinstance(asset, dict) else None
+        if isinstance(asset_uri, str) and asset_uri and asset_uri not in seen:
+            seen.add(asset_uri)
+            status, path, rel = _resolve(asset_uri, ep.blob_root, confined)
+            refs.append(BlobRef(0, f"metadata.assets[{i}].uri", asset_uri, status, path, rel))
     return refs
 
 
@@ -220,8 +242,8 @@ def prepare_episode(ep: Episode, as_id: str | None = None) -> PreparedEpisode:
     for i, step in enumerate(ep.steps):
         obj = step.to_json_obj(i)
         if mapping:
-            for part in ("observation", "action", "step_metadata"):
-                obj[part] = rewrite_uris(obj[part], mapping)
+            for part, _ in _step_parts(step):
+                obj[part] = rewrite_uris({part: obj[part]}, mapping)[part]
         steps.append(obj)
     prepared = PreparedEpisode(episode_id, canonical_metadata(ep, episode_id), steps, blobs)
     prepared.blob_sha256 = {name: file_sha256(path) for name, path in sorted(blobs.items())}
