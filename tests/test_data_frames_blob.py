@@ -12,9 +12,9 @@ import pytest
 
 from hope_models.data import synthetic as gen
 from hope_models.data.cache import CacheError, load_or_build
+from hope_models.data.cameras import camera_refs
 from hope_models.data.features import FeatureSpecError, FrameFeature
 from hope_models.data.spec_request import SpecRequest, spec_from_json_obj
-from hope_models.data.frames import frame_blob_refs
 from hope_models.data.windows import make_windows, window_spec
 
 SHAPE = (64, 64, 3)
@@ -106,7 +106,7 @@ def test_one_missing_blob_excludes_its_episode_with_step_field_and_file(tmp_path
     assert cache.spec.frame is not None and cache.spec.frame.source == "blob"
     missing = ds.resolve() / "ep03" / _uri(2)
     assert _reasons(cache) == {
-        "ep03": f"step 2: observation.media.rgb.uri: blob '{_uri(2)}' ({missing}): file not found"}
+        "ep03": f"step 2: observation.media.rgb.uri: '{_uri(2)}' ({missing}): file not found"}
     assert cache.n_episodes == 9 and "ep03" not in cache.episode_ids and cache.frames.shape[0] == 36
 
 
@@ -121,7 +121,7 @@ def test_a_step_without_the_reference_excludes_the_episode(tmp_path):
     lines[1] = json.dumps(obj)
     steps_file.write_text("\n".join(lines) + "\n")
     cache, _ = load_or_build(ds, tmp_path / "cache")
-    assert _reasons(cache) == {"ep05": "step 1: observation.media.rgb: missing"}
+    assert _reasons(cache) == {"ep05": "step 1: observation.media.rgb: no frame at this step"}
 
 
 def _evil_touch(path: str) -> None:  # what unpickling the object array below would run
@@ -150,15 +150,14 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
 
 
 @pytest.mark.parametrize("content, message", [
-    (_npy_bytes(np.zeros((32, 32, 3), np.uint8)), "shape [32, 32, 3], expected [64, 64, 3]"),
-    (_npy_bytes(np.zeros((64, 64), np.uint8)), "shape [64, 64], expected [64, 64, 3]"),
-    (_npy_bytes(np.zeros(SHAPE, np.int16)), "dtype int16, expected uint8 or float32 in [0, 1]"),
-    (_npy_bytes(np.zeros(SHAPE, np.float64)), "dtype float64, expected uint8 or float32 in [0, 1]"),
+    (_npy_bytes(np.zeros((4, 64, 64, 3), np.uint8)), "shape [4, 64, 64, 3]"),
+    (_npy_bytes(np.zeros(SHAPE, np.int16)), "dtype int16 is not a frame; accepted: uint8 (colour)"),
+    (_npy_bytes(np.zeros(SHAPE, np.float64)), "dtype float64 is not a frame; accepted: uint8 (colour)"),
     (_npy_bytes(np.full(SHAPE, 1.5, np.float32)), "image values span [1.5, 1.5], expected [0, 1]"),
     (_npy_bytes(np.full(SHAPE, np.nan, np.float32)), "image values are NaN or infinite"),
-    (_npy_bytes(np.zeros(SHAPE, np.uint8))[:-100], "unreadable: "),
-    (b"\x89PNG\r\n\x1a\n not a numpy file", "not a .npy file (no NUMPY magic)"),
-    (_npz_bytes(), "not a .npy file (no NUMPY magic)"),
+    (_npy_bytes(np.zeros(SHAPE, np.uint8))[:-100], "truncated"),
+    (b"\x89PNG\r\n\x1a\n not a png file", "PNG"),
+    (_npz_bytes(), "not a known media file"),
     (b"\x93NUMPY\x01\x00\x10\x00{'descr': 'garbage", "unreadable .npy header"),
 ])
 def test_malformed_blobs_exclude_the_episode_with_the_reason(tmp_path, content, message):
@@ -168,7 +167,7 @@ def test_malformed_blobs_exclude_the_episode_with_the_reason(tmp_path, content, 
     (ds / "ep04" / _uri(3)).write_bytes(content)
     cache, _ = load_or_build(ds, tmp_path / "cache")
     reason = _reasons(cache)["ep04"]
-    assert reason.startswith(f"step 3: observation.media.rgb.uri: blob '{_uri(3)}' ({ds.resolve() / 'ep04' / _uri(3)}): ")
+    assert reason.startswith(f"step 3: observation.media.rgb.uri: '{_uri(3)}' ({ds.resolve() / 'ep04' / _uri(3)}): ")
     assert reason.endswith(message) or message in reason, reason
     assert cache.n_episodes == 9 and len(cache.manifest["excluded"]) == 1
 
@@ -184,7 +183,7 @@ def test_object_arrays_that_need_pickle_are_refused_and_never_unpickled(tmp_path
         np.save(ds / "ep06" / _uri(step), evil, allow_pickle=True)
     cache, _ = load_or_build(ds, tmp_path / "cache")
     assert _reasons(cache)["ep06"] == (
-        f"step 0: observation.media.rgb.uri: blob '{_uri(0)}' ({ds.resolve() / 'ep06' / _uri(0)}): holds Python "
+        f"step 0: observation.media.rgb.uri: '{_uri(0)}' ({ds.resolve() / 'ep06' / _uri(0)}): holds Python "
         "objects (dtype object); loading it would need pickle, which is refused")
     assert cache.n_episodes == 9 and not marker.exists()
     # the file really is a pickle payload: loading it the unsafe way runs the code
@@ -224,34 +223,43 @@ def test_a_symlink_out_of_the_episode_dir_is_refused(tmp_path):
     assert reason.startswith(f"step 1: observation.media.rgb.uri: blob uri '{_uri(1)}' escapes the episode dir")
 
 
-def test_which_references_count_as_frame_blobs():
+def test_which_references_count_as_cameras():
     obs = {"media": {"rgb": {"uri": "blobs/a.npy", "width": 64, "height": 64},
-                     "depth": {"uri": "blobs/d.npy"}, "audio": {"uri": "blobs/a.wav"}},
+                     "depth": {"uri": "blobs/d.npy"}, "audio": {"uri": "blobs/a.npy"}},
            "rgb_front": {"uri": "blobs/f.NPY"},
            "wrist_rgb": {"uri": "blobs/w.npy", "width": 640, "height": 480},
            "robot_state": {"joint_positions": [1.0]},
-           "thumb": {"uri": "blobs/t.png"}}
-    assert frame_blob_refs(obs) == {"observation.media.rgb": "blobs/a.npy", "observation.rgb_front": "blobs/f.NPY"}
+           "thumb": {"uri": "blobs/t.png"},
+           "egocentric_video": {"uri": "blobs/assets/egocentric-1.mp4"},
+           "device_mic": {"uri": "blobs/assets/device_mic-1.wav"},
+           "notes": {"uri": "blobs/n.json"}}
+    assert camera_refs(obs) == {"observation.media.rgb": "blobs/a.npy", "observation.media.depth": "blobs/d.npy",
+                                "observation.rgb_front": "blobs/f.NPY", "observation.wrist_rgb": "blobs/w.npy",
+                                "observation.thumb": "blobs/t.png",
+                                "observation.egocentric_video": "blobs/assets/egocentric-1.mp4"}
 
 
-def test_inline_image_rgb_wins_and_blobs_of_another_size_are_not_a_frame(tmp_path):
+def test_inline_image_rgb_wins_and_blobs_of_another_size_are_resized(tmp_path):
     both = tmp_path / "both"
     gen.generate_dataset(both, 40, obs_dim=2, act_dim=1, rates_hz=(10,), episode_seconds=(1, 2),
                          frames=True, frame_blobs=True)
     cache, _ = load_or_build(both, tmp_path / "c1")
     assert cache.spec.frame == FrameFeature("observation.image_rgb", SHAPE, "inline")
-    assert any(n.startswith("observation.media.rgb: frame blobs not used, observation.image_rgb is the frame")
-               for n in cache.spec.notes)
+    # the blob camera is still stored, as a camera of its own
+    assert cache.spec.cameras == [FrameFeature("observation.media.rgb", SHAPE, "blob")]
+    # the generator writes the same image twice: as floats (rounded here) and as uint8 (rounded there)
+    diff = np.abs(cache.cameras["media.rgb"].astype(int) - cache.frames.astype(int))
+    assert cache.cameras["media.rgb"].shape == cache.frames.shape and diff.max() <= 1
 
     big = tmp_path / "big"
     for e in range(3):
         _blob_episode(big, f"ep{e}", seed=e)
         for i in range(4):
-            np.save(big / f"ep{e}" / _uri(i), np.zeros((128, 128, 3), np.uint8), allow_pickle=False)
+            np.save(big / f"ep{e}" / _uri(i), np.full((128, 128, 3), 40 * i + e, np.uint8), allow_pickle=False)
     cache, _ = load_or_build(big, tmp_path / "c2")
-    assert cache.spec.frame is None and cache.frames is None and cache.n_episodes == 3
-    (note,) = [n for n in cache.spec.notes if n.startswith("observation.media.rgb")]
-    assert "a loadable [64, 64, 3] .npy frame in 0 of 3 episodes" in note and "shape [128, 128, 3]" in note
+    assert cache.spec.frame == FrameFeature("observation.media.rgb", SHAPE, "blob") and cache.n_episodes == 3
+    start = cache.episode_ids.index("ep2")
+    assert cache.frames.shape[1:] == SHAPE and (cache.frames[int(cache.offsets[start]) + 3] == 40 * 3 + 2).all()
 
 
 def test_spec_files_name_a_blob_frame_and_old_specs_stay_inline(tmp_path):
@@ -260,15 +268,15 @@ def test_spec_files_name_a_blob_frame_and_old_specs_stay_inline(tmp_path):
         _blob_episode(ds, f"ep{e:02d}", seed=e, key=("rgb_front",) if e < 5 else ("media", "rgb"))
     inferred, _ = load_or_build(ds, tmp_path / "cache")
     assert inferred.spec.frame is None
-    assert any(n.startswith("observation.rgb_front: no frame feature (a loadable [64, 64, 3] .npy frame in 5 of 10")
-               for n in inferred.spec.notes)
+    assert any(n.startswith("observation.rgb_front: not stored (frames decode in 5 of 10 episodes; needs 9")
+               for n in inferred.spec.notes), inferred.spec.notes
 
     override = tmp_path / "spec.json"
     override.write_text(json.dumps({"frame": {"path": "observation.rgb_front", "source": "blob"}}))
     cache, _ = load_or_build(ds, tmp_path / "cache", spec_path=override)
     assert cache.spec.frame == FrameFeature("observation.rgb_front", SHAPE, "blob")
     assert cache.episode_ids == [f"ep{e:02d}" for e in range(5)]
-    assert _reasons(cache)["ep07"] == "step 0: observation.rgb_front: missing"
+    assert _reasons(cache)["ep07"] == "step 0: observation.rgb_front: no frame at this step"
     assert np.array_equal(cache.frames[0], np.load(ds / "ep00" / _uri(0), allow_pickle=False))
 
     # the same path without "source": "blob" means inline floats: the reason says what to change

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from hope_models.intake.inbox import InboxError, ingest_into_inbox, ingest_record, list_inbox, tag_episode
-from hope_models.intake.trainable import trainable
+from hope_models.intake.trainable import trainable, trainable_json
 from hope_models.rlds.discover import read_path
 from hope_models.rlds.ingest import MANIFEST
 
@@ -104,7 +104,8 @@ def test_list_inbox_shows_accepted_and_rejected(tmp_path: Path):
     assert listed["bad"]["status"] == "rejected" and listed["bad"]["errors"]
     assert listed["bad"]["trainable"] == [] and listed["bad"]["origin"] == "upload"
     assert set(listed["good"]) == {"episode_id", "steps", "status", "errors", "warnings", "trainable",
-                                   "not_trainable", "tags", "source", "origin"}
+                                   "not_trainable", "cameras", "reads", "tags", "source", "origin"}
+    assert listed["good"]["cameras"] == [] and listed["good"]["reads"]["vqvae"].startswith("the observation vector")
     assert list_inbox(tmp_path / "nothing-here") == []
 
 
@@ -226,7 +227,31 @@ def test_frames_count_only_when_training_can_read_them(tmp_path: Path):
     jpg = steps(10, act=[], obs=False, egocentric_video={"uri": "blobs/f.jpg", "timestamp_ms": 1})
     (ep,) = read_path(episode_file(ep_dir / "episode.json", "ep", jpg))[0].episodes
     can, cannot = trainable(ep)
-    assert can == [] and "jpg file" in cannot["vqvae"]
+    assert can == [] and "egocentric_video: 0/10 frames" in cannot["vqvae"]
+    assert "not a known media file" in cannot["vqvae"]
+
+
+def test_the_verdict_names_each_camera_and_what_the_tokenizer_reads(tmp_path: Path):
+    from PIL import Image
+
+    ep_dir = tmp_path / "ep"
+    (ep_dir / "blobs").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    # the Continuon app writes a JPEG still into a .mp4-named file: the bytes decide, not the name
+    Image.fromarray(rng.integers(0, 255, (480, 640, 3), np.uint8)).save(ep_dir / "blobs" / "ego.mp4", "JPEG")
+    np.save(ep_dir / "blobs" / "d.npy", np.full((400, 640), 1500, np.uint16))
+    (ep_dir / "blobs" / "empty.mp4").write_bytes(b"")
+    cams = steps(40, egocentric_video={"uri": "blobs/ego.mp4"}, depth={"uri": "blobs/d.npy"},
+                 wrist_rgb={"uri": "blobs/empty.mp4"})
+    (ep,) = read_path(episode_file(ep_dir / "episode.json", "ep", cams))[0].episodes
+    verdict = trainable_json(ep)
+    assert verdict["trainable"] == ["vqvae", "fast_loop", "mid_loop"]
+    assert verdict["cameras"] == ["depth: 40/40 frames, NPY 400x640 -> 64x64 (depth, metres)",
+                                  "egocentric_video: 40/40 frames, JPEG 480x640 -> 64x64",
+                                  f"wrist_rgb: 0/40 frames; step 0: 'blobs/empty.mp4' ({ep_dir / 'blobs/empty.mp4'}): "
+                                  "empty file (0 bytes)"]
+    reads = verdict["reads"]["vqvae"]
+    assert reads.startswith("frame observation.egocentric_video (JPEG 480x640 -> 64x64); not usable: wrist_rgb")
 
 
 def test_episodes_a_plain_ingest_put_in_the_inbox_still_get_a_verdict(tmp_path: Path):

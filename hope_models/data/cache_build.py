@@ -9,7 +9,9 @@ leaves a half cache under a valid name. The layout is in dataset_cache.py.
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 import shutil
 import time
 from dataclasses import dataclass
@@ -18,15 +20,17 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from hope_models.data.cameras import read_camera
 from hope_models.data.dataset_cache import CACHE_FORMAT, CacheError, is_play_episode
 from hope_models.data.dataset_spec import infer_dataset_spec
-from hope_models.data.extract import EpisodeMismatch, blob_frames, field_matrix, group_matrix
-from hope_models.data.features import FeatureSpec
+from hope_models.data.extract import EpisodeMismatch, field_matrix, group_matrix
+from hope_models.data.features import FRAME_SHAPE, FeatureField, FeatureSpec, FrameFeature
 from hope_models.data.frames import BlobFrameError, floats_to_uint8
 from hope_models.data.running_stats import RunningStats
 from hope_models.data.source import iter_sources, read_source
 from hope_models.data.spec_request import SpecRequest, spec_from_request
 from hope_models.durable import fsync_path
+from hope_models.media import area_resize
 
 
 @dataclass
@@ -59,16 +63,35 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def camera_arrays(spec: FeatureSpec) -> list[tuple[str, str, FrameFeature]]:
+    """(array name, file name, camera) of every camera the cache stores; the tokenizer's is `frames`."""
+    out = [("frames", "frames.bin", spec.frame)] if spec.frame is not None else []
+    for i, cam in enumerate(spec.cameras):
+        safe = re.sub(r"[^A-Za-z0-9_]+", "_", cam.name)[:48]
+        out.append((f"camera.{cam.name}", f"camera_{i}_{safe}.bin", cam))
+    return out
+
+
 class _Writer:
-    """Appends one episode's arrays at a time to the flat files of a cache being built."""
+    """Appends one episode's arrays at a time to the flat files of a cache being built; an episode
+    whose frames fail half-way is cut off again (`mark` / `rollback`)."""
 
     def __init__(self, tmp: Path, spec: FeatureSpec):
         self.tmp = tmp
-        self.names = ["steps", "t"] + (["frames"] if spec.frame else [])
-        self.files: dict[str, BinaryIO] = {n: open(tmp / f"{n}.bin", "wb") for n in self.names}
+        names = {"steps": "steps.bin", "t": "t.bin"}
+        names.update({name: file for name, file, _cam in camera_arrays(spec)})
+        self.files: dict[str, BinaryIO] = {n: open(tmp / file, "wb") for n, file in names.items()}
 
     def append(self, name: str, arr: np.ndarray) -> None:
         self.files[name].write(np.ascontiguousarray(arr).tobytes())
+
+    def mark(self) -> dict[str, int]:
+        return {n: f.tell() for n, f in self.files.items()}
+
+    def rollback(self, mark: dict[str, int]) -> None:
+        for n, f in self.files.items():
+            f.seek(mark[n])
+            f.truncate()
 
     def close(self) -> None:
         for f in self.files.values():
@@ -77,8 +100,34 @@ class _Writer:
             f.close()
 
 
-def _episode_rows(ep, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """(t seconds, obs, act, frames) of one episode, or EpisodeMismatch with the step and field."""
+_FRAME_CHUNK = 64  # frames written per call: one decoded frame at a time in memory, few writes
+
+
+def _write_camera(writer: _Writer, name: str, ep, cam: FrameFeature) -> None:
+    """One episode's frames of one camera, decoded one at a time and written in chunks."""
+    if cam.source == "inline":
+        raw = field_matrix(ep.steps, FeatureField(cam.path, math.prod(FRAME_SHAPE)), np.float32)
+        try:
+            frames = floats_to_uint8(raw).reshape((len(ep.steps), *FRAME_SHAPE))
+        except BlobFrameError as exc:
+            raise EpisodeMismatch(str(exc), None, cam.path) from None
+        if frames.shape[1:] != cam.shape:
+            frames = np.stack([area_resize(f, cam.shape[:2]) for f in frames])
+        writer.append(name, frames)
+        return
+    chunk = np.empty((_FRAME_CHUNK, *cam.shape), dtype=np.dtype(cam.dtype))
+    k = 0
+    for img in read_camera(ep.steps, cam, ep.blob_root):
+        chunk[k] = img
+        k += 1
+        if k == _FRAME_CHUNK:
+            writer.append(name, chunk)
+            k = 0
+    writer.append(name, chunk[:k])
+
+
+def _episode_rows(ep, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t seconds, obs, act) of one episode, or EpisodeMismatch with the step and field."""
     steps = ep.steps
     if not steps:
         raise EpisodeMismatch("no steps")
@@ -96,16 +145,7 @@ def _episode_rows(ep, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray, np.nda
     t = (ts - ts[0]).astype(np.float64) / 1e9
     obs = group_matrix(steps, spec.observation).astype(np.float32)
     act = group_matrix(steps, spec.action).astype(np.float32)
-    frames = None
-    if spec.frame is not None and spec.frame.source == "blob":
-        frames = blob_frames(steps, spec.frame, ep.blob_root)  # last: the cheap checks fail first
-    elif spec.frame is not None:
-        raw = field_matrix(steps, spec.frame, np.float32)
-        try:
-            frames = floats_to_uint8(raw).reshape((len(steps), *spec.frame.shape))
-        except BlobFrameError as exc:
-            raise EpisodeMismatch(str(exc), None, spec.frame.path) from None
-    return t, obs, act, frames
+    return t, obs, act
 
 
 def build_cache(dataset: Path, root: Path, key: str, data_fp: str, request: SpecRequest,
@@ -144,6 +184,7 @@ def build_cache(dataset: Path, root: Path, key: str, data_fp: str, request: Spec
 
 def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | None) -> dict[str, Any]:
     writer = _Writer(tmp, spec)
+    cameras = camera_arrays(spec)
     obs_stats, act_stats = RunningStats(spec.obs_dim), RunningStats(spec.act_dim)
     offsets = [0]
     imagined: list[bool] = []
@@ -166,16 +207,18 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
                         excluded.append(Excluded(ep.episode_id, ep.source,
                                                  f"duplicate episode_id (also in {seen[ep.episode_id]})"))
                         continue
+                    mark = writer.mark()
                     try:
-                        t, obs, act, frames = _episode_rows(ep, spec)
+                        t, obs, act = _episode_rows(ep, spec)
+                        for name, _file, cam in cameras:  # last: the cheap checks fail first
+                            _write_camera(writer, name, ep, cam)
                     except EpisodeMismatch as exc:
+                        writer.rollback(mark)
                         excluded.append(Excluded(ep.episode_id, ep.source, str(exc)))
                         continue
                     seen[ep.episode_id] = ep.source
                     writer.append("steps", np.concatenate([obs, act], axis=1))
                     writer.append("t", t)
-                    if frames is not None:
-                        writer.append("frames", frames)
                     obs_stats.add(obs)
                     act_stats.add(act)
                     offsets.append(offsets[-1] + len(t))
@@ -211,8 +254,8 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
         "steps": {"file": "steps.bin", "dtype": "<f4", "shape": [n, spec.obs_dim + spec.act_dim]},
         "t": {"file": "t.bin", "dtype": "<f8", "shape": [n]},
     }
-    if spec.frame is not None:
-        arrays["frames"] = {"file": "frames.bin", "dtype": "|u1", "shape": [n, *spec.frame.shape]}
+    for name, file, cam in cameras:
+        arrays[name] = {"file": file, "dtype": cam.dtype, "shape": [n, *cam.shape], "path": cam.path, "kind": cam.kind}
     return {"steps": n, "episodes": len(episodes), "obs_dim": spec.obs_dim, "act_dim": spec.act_dim,
             "imagined_episodes": int(sum(imagined)), "play_episodes": int(sum(play)), "arrays": arrays,
             "excluded": [e.as_dict() for e in excluded]}

@@ -11,8 +11,11 @@ Layout of <cache_root>/<key>/:
     steps.bin float32 [N, D_obs + D_act]  observation then action columns of each step; `obs`
                           and `act` are column views of it, so a window is one gather, not two
     t.bin    float64 [N]  seconds since the episode's first step
-    frames.bin uint8 [N, H, W, 3]  only when the spec has a frame feature (inline floats or .npy
-                          frame blobs, loaded step by step during the build; see frames.py)
+    frames.bin uint8 [N, H, W, 3]  the camera the tokenizer reads (the spec's frame), when there
+                          is one: inline floats or frame files (.npy, JPEG, PNG, video) decoded
+                          one at a time during the build and resized (see cameras.py)
+    camera_<i>_<name>.bin  every other camera of the spec (`cameras`): colour uint8 [N, H, W, 3],
+                          depth float32 metres [N, H, W, 1]; array `camera.<name>` in the manifest
     offsets.npy int64 [E+1]   imagined.npy bool [E]   play.npy bool [E]
 
 Play episodes (is_play_episode) are unlabeled exploration: their actions are what was executed,
@@ -88,6 +91,8 @@ class DatasetCache:
         self.act = self.x[:, d:]  # [N, D_act] view
         self.t = self._map("t")
         self.frames = self._map("frames") if "frames" in self.manifest["arrays"] else None
+        # every other camera, mapped up front so a damaged file is found when the cache opens
+        self.cameras = {cam.name: self._map(f"camera.{cam.name}") for cam in self.spec.cameras}
         self.episode_ids = [e["episode_id"] for e in self.episodes]
         self.durations = np.array([e["duration_s"] for e in self.episodes], dtype=np.float64)
         obs_mean, obs_std, act_mean, act_std = self.spec.normalizer()

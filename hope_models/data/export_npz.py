@@ -50,7 +50,7 @@ def episode_spec(ep: Episode, request: SpecRequest | None = None) -> FeatureSpec
     request = SpecRequest(request.observation, request.action, None, True, request.std_floor)
     if not ep.steps:
         raise FeatureSpecError("episode has no steps")
-    spec = infer_spec([episode_signature(ep.episode_id, ep.steps, ep.blob_root, check_frame_blobs=False)], request)
+    spec = infer_spec([episode_signature(ep.episode_id, ep.steps, ep.blob_root, check_cameras=False)], request)
     if frame is not None:
         spec.notes.append(f"{frame.path}: frame not exported, the cloud npz holds vectors only")
     return spec

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import FeatureField, FeatureGroup, FrameFeature, is_number
-from hope_models.data.frames import BlobFrameError, frame_blob_uri, load_frame_blob, resolve_blob_uri
 
 
 class EpisodeMismatch(ValueError):
@@ -71,33 +70,6 @@ def field_matrix(steps: list, f: FeatureField | FrameFeature, dtype=np.float64) 
         if n != size:
             raise EpisodeMismatch(f"has {n} values, the spec needs {size}", i, f.path)
     raise EpisodeMismatch("values do not form a numeric matrix", None, f.path)
-
-
-def blob_frames(steps: list, frame: FrameFeature, blob_root: str | None) -> np.ndarray:
-    """Every step's frame file loaded into uint8 [n, H, W, 3], or EpisodeMismatch naming the step,
-    the field and the file. Never a placeholder image: one bad or missing file fails the episode."""
-    root, *rest = frame.path.split(".")
-    parts = tuple(rest)
-    attr = "observation" if root == "observation" else "action"
-    out = np.empty((len(steps), *frame.shape), dtype=np.uint8)
-    prev_uri = None
-    for i, s in enumerate(steps):
-        v = _get(getattr(s, attr), parts)
-        if v is _MISSING or v is None:
-            raise EpisodeMismatch("missing", i, frame.path)
-        uri = frame_blob_uri(v)
-        where = f"{frame.path}.uri" if isinstance(v, dict) else frame.path
-        if uri is None:
-            raise EpisodeMismatch(f"not a blob reference (needs a 'uri' string, got {type(v).__name__})", i, where)
-        if uri == prev_uri:  # a slower camera: consecutive steps share a frame
-            out[i] = out[i - 1]
-            continue
-        try:
-            out[i] = load_frame_blob(resolve_blob_uri(uri, blob_root), frame.shape, uri)
-        except BlobFrameError as exc:
-            raise EpisodeMismatch(str(exc), i, where) from None
-        prev_uri = uri
-    return out
 
 
 def group_matrix(steps: list, group: FeatureGroup) -> np.ndarray:

@@ -13,13 +13,17 @@ Spec JSON (the same shape is the override file, saved in the cache and in checkp
                      "mean": [...], "std": [...]},
      "action": {"fields": [{"path": "action.command", "size": 6}], "mean": [...], "std": [...]},
      "frame": {"path": "observation.image_rgb", "shape": [64, 64, 3], "source": "inline"} or null,
+     "cameras": [{"path": "observation.depth", "shape": [64, 64, 1], "source": "blob", "kind": "depth"}],
      "std_floor": 0.001}
 
-The frame is either inline (`source` "inline", the default when absent: a flat list of floats in
-[0, 1] such as the vlm sample's `image_rgb`) or a blob (`source` "blob": `path` names an
-observation object whose `uri` is a .npy file holding the frame, e.g. `observation.media.rgb`;
-see frames.py). Inference prefers an inline `image_rgb`; without one it picks a .npy frame
-reference that (nearly) every episode has and whose first file loads as a [64, 64, 3] frame.
+The frame (the camera the tokenizer reads) is either inline (`source` "inline", the default when
+absent: a flat list of floats in [0, 1] such as the vlm sample's `image_rgb`) or a blob (`source`
+"blob": `path` names an observation object whose `uri` is a frame file: a .npy array, a JPEG or
+PNG still, or a video; see cameras.py). `cameras` lists every other camera the cache stores (absent
+when there is none), a depth camera (`kind` "depth") as float32 metres [H, W, 1]. Inference prefers
+an inline `image_rgb`; without one the colour camera that (nearly) every episode has; every camera
+usable in (nearly) every episode is stored. `frame_size` (64, 96 or 128; an override key) is the
+square size frames are resized to.
 
 In an override, a field may be a bare path string (size taken from the data), any group or the
 frame may be left out (inferred), and mean/std may be left out (computed when the cache is built).
@@ -40,7 +44,10 @@ import numpy as np
 SPEC_FORMAT = "hope.feature_spec/1"
 FRAME_FIELD = "image_rgb"
 FRAME_SHAPE = (64, 64, 3)
-FRAME_SOURCES = ("inline", "blob")  # image floats in the step / a .npy file the step references
+FRAME_SIZES = (64, 96, 128)  # square frame sizes the cache stores (the VQ-VAE needs multiples of 16)
+DEFAULT_FRAME_SIZE = 64
+FRAME_SOURCES = ("inline", "blob")  # image floats in the step / a frame file the step references
+FRAME_KINDS = ("rgb", "depth")  # uint8 colour [H, W, 3] / float32 metres [H, W, 1]
 DEFAULT_STD_FLOOR = 1e-3
 DEFAULT_COVERAGE = 0.9  # "nearly every episode": a field missing from >10% of episodes is dropped
 MAX_VECTOR = 4096  # longer flat lists are media (a frame, a waveform), not state
@@ -79,27 +86,53 @@ class FeatureGroup:
         return [f.path if f.size == 1 else f"{f.path}[{i}]" for f in self.fields for i in range(f.size)]
 
 
+def camera_kind(path: str) -> str:
+    """A camera whose name says depth holds depth; every other one colour."""
+    return "depth" if "depth" in path.rsplit(".", 1)[-1].lower() else "rgb"
+
+
+def frame_shape(size: int, kind: str = "rgb") -> tuple[int, int, int]:
+    return (size, size, 1 if kind == "depth" else 3)
+
+
 @dataclass
 class FrameFeature:
     path: str  # inline: the float list; blob: the reference object (its `uri` names the file)
     shape: tuple[int, int, int] = FRAME_SHAPE
     source: str = "inline"  # one of FRAME_SOURCES
+    kind: str = "rgb"  # one of FRAME_KINDS
 
     @property
     def size(self) -> int:
         return math.prod(self.shape)
 
+    @property
+    def name(self) -> str:
+        return self.path.removeprefix("observation.")
+
+    @property
+    def dtype(self) -> str:
+        """The cache array's dtype: colour stays uint8, depth is metres."""
+        return "<f4" if self.kind == "depth" else "|u1"
+
     def to_json_obj(self) -> dict[str, Any]:
-        return {"path": self.path, "shape": list(self.shape), "source": self.source}
+        obj: dict[str, Any] = {"path": self.path, "shape": list(self.shape), "source": self.source}
+        if self.kind != "rgb":  # colour specs read the same as before cameras had kinds
+            obj["kind"] = self.kind
+        return obj
 
 
 @dataclass
 class FeatureSpec:
     observation: FeatureGroup
     action: FeatureGroup
-    frame: FrameFeature | None = None
+    frame: FrameFeature | None = None  # the camera the tokenizer reads (colour)
     std_floor: float = DEFAULT_STD_FLOOR
     notes: list[str] = field(default_factory=list)  # why fields were left out; not part of identity
+    cameras: list[FrameFeature] = field(default_factory=list)  # every other camera the cache stores
+
+    def all_cameras(self) -> list[FrameFeature]:
+        return ([self.frame] if self.frame is not None else []) + list(self.cameras)
 
     @property
     def obs_dim(self) -> int:
@@ -124,6 +157,8 @@ class FeatureSpec:
             "frame": None if self.frame is None else self.frame.to_json_obj(),
             "std_floor": self.std_floor,
         }
+        if self.cameras:  # absent, not [], so a spec without extra cameras reads as it always did
+            obj["cameras"] = [c.to_json_obj() for c in self.cameras]
         if with_notes:
             obj["notes"] = list(self.notes)
         return obj

@@ -2,9 +2,10 @@
 
 Inference flattens the numeric leaves of `observation` and `action` (numbers, bools as 0/1, flat
 lists of numbers) into dotted paths and keeps a field only when (nearly) every episode has it with
-the same length; clocks, ids and media are never fields. It prefers an inline `image_rgb` frame;
-without one it picks a .npy frame reference that (nearly) every episode has and whose first file
-loads as a [64, 64, 3] frame. What it leaves out, and why, goes into the spec's notes.
+the same length; clocks, ids and media are never fields. Every camera (cameras.py) whose frames
+decode in (nearly) every episode is stored; the one the tokenizer reads is an inline `image_rgb`
+when there is one, else the colour camera most episodes have. What it leaves out, and why, goes
+into the spec's notes.
 """
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
+from hope_models.data.cameras import CameraCheck, camera_refs, check_camera
 from hope_models.data.features import (
     DEFAULT_COVERAGE,
+    DEFAULT_FRAME_SIZE,
     FRAME_FIELD,
     FRAME_SHAPE,
     MAX_VECTOR,
@@ -24,9 +27,9 @@ from hope_models.data.features import (
     FeatureSpec,
     FeatureSpecError,
     FrameFeature,
+    frame_shape,
     is_number,
 )
-from hope_models.data.frames import BlobFrameError, frame_blob_refs, load_frame_blob, resolve_blob_uri
 from hope_models.data.spec_request import PartialGroup, SpecRequest
 
 _CAMEL = re.compile(r"([a-z0-9])([A-Z])")
@@ -75,29 +78,22 @@ class EpisodeSignature:
 
     episode_id: str
     leaves: dict[str, int]
-    # .npy frame references present at the first and last step -> "ok" when the first step's file
-    # loads as a FRAME_SHAPE frame, else why not
-    frame_blobs: dict[str, str] = field(default_factory=dict)
+    # cameras referenced at the first or the last step, checked there (or at every step)
+    cameras: dict[str, CameraCheck] = field(default_factory=dict)
 
 
 def episode_signature(episode_id: str, steps: list, blob_root: str | None = None,
-                      check_frame_blobs: bool = True) -> EpisodeSignature:
+                      check_cameras: bool = True, every_step: bool = False,
+                      frame_size: int = DEFAULT_FRAME_SIZE) -> EpisodeSignature:
     # First and last step only: the cache build then checks every step of the selected fields
     # and excludes (with the step named) an episode where one goes missing or changes length.
     first = step_signature(steps[0].observation, steps[0].action)
     last = step_signature(steps[-1].observation, steps[-1].action)
     sig = EpisodeSignature(episode_id, {p: n for p, n in first.items() if last.get(p) == n})
-    if check_frame_blobs:
-        refs = frame_blob_refs(steps[0].observation, shape=FRAME_SHAPE)
-        later = frame_blob_refs(steps[-1].observation, shape=FRAME_SHAPE)
-        for path, uri in refs.items():
-            if path not in later:
-                continue
-            try:
-                load_frame_blob(resolve_blob_uri(uri, blob_root), FRAME_SHAPE, uri)
-                sig.frame_blobs[path] = "ok"
-            except BlobFrameError as exc:
-                sig.frame_blobs[path] = str(exc)
+    if check_cameras:
+        paths = set(camera_refs(steps[0].observation)) | set(camera_refs(steps[-1].observation))
+        for path in sorted(paths):
+            sig.cameras[path] = check_camera(steps, path, blob_root, frame_size, every_step)
     return sig
 
 
@@ -170,50 +166,52 @@ def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None =
         action = resolve(request.action, "action", [])
 
     if request.frame_given:
-        frame = request.frame
+        frame, cameras = request.frame, list(request.cameras)
     else:
         frame = None
         need = max(1, math.ceil(coverage * n))
+        size = request.frame_size
         for p in frame_paths:
-            size, c = counts[p].most_common(1)[0]
-            if size == math.prod(FRAME_SHAPE) and c >= need:
-                frame = FrameFeature(p, FRAME_SHAPE)
+            length, c = counts[p].most_common(1)[0]
+            if length == math.prod(FRAME_SHAPE) and c >= need:
+                frame = FrameFeature(p, frame_shape(size))
             else:
-                notes.append(f"{p}: no frame feature ({size} values in {c} of {n} episodes; needs "
+                notes.append(f"{p}: no frame feature ({length} values in {c} of {n} episodes; needs "
                              f"{math.prod(FRAME_SHAPE)} in {need})")
-        blob = _infer_blob_frame(signatures, need, notes, inline=frame)
-        frame = frame or blob
-    return FeatureSpec(observation, action, frame, request.std_floor, notes)
+        frame, cameras = _infer_cameras(signatures, need, notes, frame, size)
+    return FeatureSpec(observation, action, frame, request.std_floor, notes, cameras)
 
 
-def _infer_blob_frame(signatures: list[EpisodeSignature], need: int, notes: list[str],
-                      inline: FrameFeature | None) -> FrameFeature | None:
-    """The .npy frame reference usable in at least `need` episodes (an rgb-named one first)."""
+def _infer_cameras(signatures: list[EpisodeSignature], need: int, notes: list[str], inline: FrameFeature | None,
+                   size: int) -> tuple[FrameFeature | None, list[FrameFeature]]:
+    """(the frame the tokenizer reads, the other cameras): every camera whose frames decode in at
+    least `need` episodes; the tokenizer's is the inline frame, else the colour camera most have."""
     n = len(signatures)
     seen: Counter = Counter()
     ok: Counter = Counter()
     why: dict[str, str] = {}
+    kinds: dict[str, str] = {}
     for sig in signatures:
-        for path, status in sig.frame_blobs.items():
+        for path, check in sig.cameras.items():
             seen[path] += 1
-            if status == "ok":
+            kinds[path] = check.kind
+            if check.ok:
                 ok[path] += 1
             else:
-                why.setdefault(path, f"{sig.episode_id}: {status}")
-    usable = sorted((p for p in seen if ok[p] >= need),
-                    key=lambda p: ("rgb" not in p.rsplit(".", 1)[-1].lower(), -ok[p], p))
-    chosen = None if inline is not None or not usable else usable[0]
+                why.setdefault(path, f"{sig.episode_id}: {check.problem or 'no frame at some step'}")
+    usable = sorted((p for p in seen if ok[p] >= need), key=lambda p: (-ok[p], "rgb" not in p.lower(), p))
+    colour = [p for p in usable if kinds[p] == "rgb"]
+    frame = inline
+    if frame is None and colour:
+        frame = FrameFeature(colour[0], frame_shape(size), "blob")
+    cameras = [FrameFeature(p, frame_shape(size, kinds[p]), "blob", kinds[p])
+               for p in usable if frame is None or p != frame.path]
     for path in sorted(seen):
-        if path == chosen:
-            continue
         if path in usable:
-            other = inline.path if inline is not None else chosen
-            notes.append(f"{path}: frame blobs not used, {other} is the frame feature")
-        else:
-            example = f"; e.g. {why[path]}" if path in why else ""
-            notes.append(f"{path}: no frame feature (a loadable {list(FRAME_SHAPE)} .npy frame in {ok[path]} of "
-                         f"{n} episodes; needs {need}{example})")
-    return None if chosen is None else FrameFeature(chosen, FRAME_SHAPE, "blob")
+            continue
+        example = f"; e.g. {why[path]}" if path in why else ""
+        notes.append(f"{path}: not stored (frames decode in {ok[path]} of {n} episodes; needs {need}{example})")
+    return frame, cameras
 
 
 def _sizes(counter: Counter) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +17,10 @@ import numpy as np
 
 from hope_models.data.features import (
     DEFAULT_COVERAGE,
+    DEFAULT_FRAME_SIZE,
     DEFAULT_STD_FLOOR,
-    FRAME_SHAPE,
+    FRAME_KINDS,
+    FRAME_SIZES,
     FRAME_SOURCES,
     SPEC_FORMAT,
     FeatureField,
@@ -26,6 +28,7 @@ from hope_models.data.features import (
     FeatureSpec,
     FeatureSpecError,
     FrameFeature,
+    frame_shape,
     is_number,
 )
 
@@ -55,6 +58,8 @@ class SpecRequest:
     frame: FrameFeature | None = None
     frame_given: bool = False  # "frame": null in a file means "no frame feature", not "infer"
     std_floor: float = DEFAULT_STD_FLOOR
+    cameras: list[FrameFeature] = field(default_factory=list)  # with a given frame: the others stored
+    frame_size: int = DEFAULT_FRAME_SIZE
 
     @classmethod
     def from_json_obj(cls, obj: Any, where: str) -> "SpecRequest":
@@ -63,7 +68,8 @@ class SpecRequest:
         fmt = obj.get("format", SPEC_FORMAT)
         if fmt != SPEC_FORMAT:
             raise FeatureSpecError(f"{where}: format {fmt!r} is not {SPEC_FORMAT!r}")
-        unknown = set(obj) - {"format", "observation", "action", "frame", "std_floor", "notes"}
+        unknown = set(obj) - {"format", "observation", "action", "frame", "cameras", "frame_size", "std_floor",
+                              "notes"}
         if unknown:
             raise FeatureSpecError(f"{where}: unknown keys {sorted(unknown)}")
         req = cls()
@@ -74,9 +80,26 @@ class SpecRequest:
         for name in ("observation", "action"):
             if obj.get(name) is not None:
                 setattr(req, name, _parse_group(obj[name], name, f"{where}: {name}", req.std_floor))
+        size = obj.get("frame_size", DEFAULT_FRAME_SIZE)
+        if size not in FRAME_SIZES or isinstance(size, bool):
+            raise FeatureSpecError(f"{where}: frame_size must be one of {', '.join(map(str, FRAME_SIZES))}, "
+                                   f"got {size!r}")
+        req.frame_size = size
         if "frame" in obj:
             req.frame_given = True
             req.frame = _parse_frame(obj["frame"], f"{where}: frame")
+            if req.frame is not None and req.frame.kind != "rgb":
+                raise FeatureSpecError(f"{where}: frame: the tokenizer reads a colour camera, not {req.frame.kind}")
+        cameras = obj.get("cameras", [])
+        if not isinstance(cameras, list):
+            raise FeatureSpecError(f"{where}: cameras must be a list of {{'path', 'shape', 'source', 'kind'}}")
+        if cameras and not req.frame_given:
+            raise FeatureSpecError(f"{where}: cameras given without a frame: give both, or neither to infer them")
+        for i, cam in enumerate(cameras):
+            parsed = _parse_frame(cam, f"{where}: cameras[{i}]")
+            if parsed is None:
+                raise FeatureSpecError(f"{where}: cameras[{i}]: must be an object, not null")
+            req.cameras.append(parsed)
         return req
 
     @classmethod
@@ -91,7 +114,10 @@ class SpecRequest:
                            "frame": None if self.frame is None else [self.frame.path, list(self.frame.shape),
                                                                      self.frame.source],
                            "frame_given": self.frame_given, "std_floor": self.std_floor,
-                           "coverage": DEFAULT_COVERAGE}, sort_keys=True)
+                           "coverage": DEFAULT_COVERAGE,
+                           **({"cameras": [c.to_json_obj() for c in self.cameras]} if self.cameras else {}),
+                           **({"frame_size": self.frame_size} if self.frame_size != DEFAULT_FRAME_SIZE else {})},
+                          sort_keys=True)
 
     @property
     def needs_inference(self) -> bool:
@@ -156,19 +182,27 @@ def _parse_frame(obj: Any, where: str) -> FrameFeature | None:
         obj = {"path": obj}
     if not isinstance(obj, dict) or not isinstance(obj.get("path"), str):
         raise FeatureSpecError(f"{where}: must be null, a path string or {{'path', 'shape', 'source'}}")
-    unknown = set(obj) - {"path", "shape", "source"}
+    unknown = set(obj) - {"path", "shape", "source", "kind"}
     if unknown:
         raise FeatureSpecError(f"{where}: unknown keys {sorted(unknown)}")
     if not obj["path"].startswith("observation."):
         raise FeatureSpecError(f"{where}: path {obj['path']!r} must start with 'observation.'")
-    shape = obj.get("shape", list(FRAME_SHAPE))
+    kind = obj.get("kind", "rgb")  # absent in specs written before depth cameras existed
+    if kind not in FRAME_KINDS:
+        raise FeatureSpecError(f"{where}: kind must be one of {', '.join(FRAME_KINDS)}, got {kind!r}")
+    channels = frame_shape(DEFAULT_FRAME_SIZE, kind)[2]
+    shape = obj.get("shape", list(frame_shape(DEFAULT_FRAME_SIZE, kind)))
     if (not isinstance(shape, list) or len(shape) != 3
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in shape) or shape[2] != 3):
-        raise FeatureSpecError(f"{where}: shape must be [height, width, 3], got {shape!r}")
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in shape)
+            or shape[2] != channels):
+        raise FeatureSpecError(f"{where}: shape must be [height, width, {channels}] for a {kind} camera, "
+                               f"got {shape!r}")
     source = obj.get("source", "inline")  # absent in specs written before frame blobs existed
     if source not in FRAME_SOURCES:
         raise FeatureSpecError(f"{where}: source must be one of {', '.join(FRAME_SOURCES)}, got {source!r}")
-    return FrameFeature(obj["path"], (shape[0], shape[1], shape[2]), source)
+    if source == "inline" and kind != "rgb":
+        raise FeatureSpecError(f"{where}: an inline frame is colour floats; a {kind} camera is a file (source blob)")
+    return FrameFeature(obj["path"], (shape[0], shape[1], shape[2]), source, kind)
 
 
 def spec_from_json_obj(obj: Any, where: str = "feature spec") -> FeatureSpec:
@@ -183,7 +217,8 @@ def spec_from_json_obj(obj: Any, where: str = "feature spec") -> FeatureSpec:
     if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
         raise FeatureSpecError(f"{where}: notes must be a list of strings")
     return FeatureSpec(observation=partial.observation.resolved(), action=partial.action.resolved(),
-                       frame=partial.frame, std_floor=partial.std_floor, notes=list(notes))
+                       frame=partial.frame, std_floor=partial.std_floor, notes=list(notes),
+                       cameras=list(partial.cameras))
 
 
 def load_spec(path: str | Path) -> FeatureSpec:
@@ -195,4 +230,5 @@ def spec_from_request(request: SpecRequest) -> FeatureSpec:
     """The spec an override file fully determines (every field sized, frame stated)."""
     if request.needs_inference:
         raise FeatureSpecError("the spec request leaves fields to infer from the data")
-    return FeatureSpec(request.observation.resolved(), request.action.resolved(), request.frame, request.std_floor)
+    return FeatureSpec(request.observation.resolved(), request.action.resolved(), request.frame, request.std_floor,
+                       cameras=list(request.cameras))

@@ -11,7 +11,7 @@ once, the manifest the record of every episode), with three differences:
   may run at once in different processes, and each one reads the manifest, changes it and writes
   it back whole;
 * each episode's manifest record also says what it can train (`trainable`, `not_trainable`:
-  data/trainable.py), its `tags`, its `origin` (who brought it: "app:episode_handoff",
+  intake/trainable.py), what each camera gives (`cameras`) and what the tokenizer reads (`reads`), its `tags`, its `origin` (who brought it: "app:episode_handoff",
   "upload", "cli:ingest", ...) and its `warnings` (the first WARNINGS_KEPT validation warnings).
   Tags live only in the manifest, never in the episode's content, so tagging changes neither its
   content hash nor what dedupes against it.
@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from hope_models.intake.trainable import COMPONENTS, trainable
+from hope_models.intake.trainable import COMPONENTS, VERDICT_EXTRAS, trainable_json
 from hope_models.rlds.app_record import AppRecordError, episode_from_record
 from hope_models.rlds.ingest import (
     IngestDiskFull,
@@ -104,14 +104,17 @@ def _annotate(inbox: Path, manifest: Manifest, entry: dict[str, Any], tags: list
         record = manifest.rejected.get(entry["source"])
         can: list[str] = []
         cannot = {c: "the episode was rejected" for c in COMPONENTS}
+        seen: dict[str, Any] = {}
     else:
         record = manifest.episodes.get(entry["episode_id"])
         if record is None:  # pragma: no cover - ingest records every episode it places
             return entry
         verdict = _with_verdict(inbox, record)  # a known episode's verdict does not change
         can, cannot = verdict["trainable"], verdict["not_trainable"]
+        seen = {k: verdict[k] for k in VERDICT_EXTRAS if k in verdict}
     if record is not None:
         record["trainable"], record["not_trainable"] = can, cannot
+        record.update(seen)
         record["tags"], left_out = _merge_tags(record.get("tags"), tags)
         record.setdefault("origin", origin)
         if entry["action"] != "rejected":
@@ -120,7 +123,7 @@ def _annotate(inbox: Path, manifest: Manifest, entry: dict[str, Any], tags: list
             entry = dict(entry, warnings=list(entry.get("warnings", [])) + [
                 f"tags: {', '.join(map(repr, left_out))} not added: the episode holds {MAX_TAGS_PER_EPISODE} "
                 f"tags, the most it may"])
-    return dict(entry, trainable=can, not_trainable=cannot,
+    return dict(entry, trainable=can, not_trainable=cannot, **seen,
                 tags=record.get("tags", tags) if record else tags,
                 origin=record.get("origin", origin) if record else origin)
 
@@ -220,11 +223,12 @@ def list_inbox(inbox_dir: str | os.PathLike) -> list[dict[str, Any]]:
 def _with_verdict(inbox: Path, record: dict[str, Any]) -> dict[str, Any]:
     """A record written by a plain ingest (the command line into the inbox dir) has no verdict yet:
     it is worked out here, for this answer (stored when an inbox ingest brings that episode again)."""
-    if "trainable" in record:
+    if "trainable" in record and "cameras" in record:
         return record
     eps = read_episode_dir(inbox / record["episode_id"]).episodes
-    can, cannot = trainable(eps[0]) if eps else ([], {c: "unreadable" for c in COMPONENTS})
-    return dict(record, trainable=can, not_trainable=cannot)
+    if not eps:
+        return dict(record, trainable=[], not_trainable={c: "unreadable" for c in COMPONENTS})
+    return dict(record, **trainable_json(eps[0]))
 
 
 def _entry(record: dict[str, Any]) -> dict[str, Any]:
@@ -232,6 +236,7 @@ def _entry(record: dict[str, Any]) -> dict[str, Any]:
     return {"episode_id": record["episode_id"], "steps": record.get("steps", 0), "status": _status(record),
             "errors": [], "warnings": warnings if isinstance(warnings, list) else [],
             "trainable": list(record.get("trainable", [])), "not_trainable": dict(record.get("not_trainable", {})),
+            **{k: record[k] for k in VERDICT_EXTRAS if k in record},
             "tags": list(record.get("tags", [])), "source": record.get("source"), "origin": record.get("origin")}
 
 

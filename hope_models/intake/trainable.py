@@ -7,8 +7,10 @@ the first and the last step, and the `.npy` frames that load):
 * every component's dataset needs a feature spec, and a spec has a numeric observation group and
   a numeric action group (`infer_spec`; empty lists and lists longer than MAX_VECTOR are left out),
   so an episode without both trains nothing, whatever its frames;
-* `vqvae`: that observation vector, or a loadable 64x64x3 frame (inline `image_rgb` or a `.npy`
-  blob, data/frames.py); a JPEG or video file is not a frame the cache can read;
+* `vqvae`: that observation vector, or a colour camera whose frames decode at every step (inline
+  `image_rgb`, or a frame file: .npy, JPEG, PNG or video, data/cameras.py); the verdict says per
+  camera what will be used ("egocentric_video: 12/12 frames, JPEG 480x640 -> 64x64") or why not,
+  and `reads` what the tokenizer will read, so a camera it cannot use is never passed over in silence;
 * `fast_loop`: the numeric observation and a non-empty numeric action, on a clock, with at least
   as many steps as its window has points (K=5 over 100 ms: its spec's window);
 * `mid_loop`: the same over at least its window (2 s) plus its furthest horizon (1 s): its target
@@ -25,7 +27,8 @@ from typing import Any
 
 from hope_models.components import COMPONENTS, TOKENIZER
 from hope_models.components.spec import EpisodeFacts
-from hope_models.data.features import FRAME_FIELD, FRAME_SHAPE, MAX_VECTOR
+from hope_models.data.cameras import CameraCheck
+from hope_models.data.features import DEFAULT_FRAME_SIZE, FRAME_FIELD, FRAME_SHAPE, MAX_VECTOR
 from hope_models.data.spec_inference import episode_signature
 from hope_models.rlds.episode import Episode
 
@@ -39,37 +42,44 @@ def _vectors(leaves: dict[str, int], root: str) -> dict[str, int]:
             if p.startswith(root + ".") and p.split(".")[-1] != FRAME_FIELD and _usable(n)}
 
 
-def _frame(leaves: dict[str, int], frame_blobs: dict[str, str]) -> tuple[bool, str | None]:
-    """(has a loadable frame, why a frame-like reference is not one)."""
-    inline = [p for p, n in leaves.items() if p.split(".")[-1] == FRAME_FIELD and n == math.prod(FRAME_SHAPE)]
-    if inline or any(status == "ok" for status in frame_blobs.values()):
-        return True, None
-    if frame_blobs:
-        path, status = sorted(frame_blobs.items())[0]
-        return False, f"{path}: {status}"
-    return False, None
+def _inline_frame(leaves: dict[str, int]) -> str | None:
+    return next((p for p, n in leaves.items() if p.split(".")[-1] == FRAME_FIELD and n == math.prod(FRAME_SHAPE)),
+                None)
 
 
-def _media_note(ep: Episode) -> str | None:
-    """A frame the app recorded as a picture file: said, so nobody wonders why it is not used."""
-    for step in ep.steps[:1]:
-        for key, value in step.observation.items():
-            uri = value.get("uri") if isinstance(value, dict) else None
-            if isinstance(uri, str) and uri and not uri.lower().endswith(".npy") and "video" in key:
-                return (f"observation.{key} is a {uri.rsplit('.', 1)[-1][:8]} file; training reads frames "
-                        f"as {list(FRAME_SHAPE)} .npy blobs")
-    return None
+def _reads(inline: str | None, checks: list[CameraCheck], obs: dict[str, int]) -> str:
+    """What the tokenizer will read from this episode, and which cameras it passes over and why."""
+    usable = [c for c in checks if c.ok and c.kind == "rgb"]
+    if inline:
+        what = f"frame {inline} (inline floats, 64x64)"
+    elif usable:
+        what = f"frame {usable[0].path} ({usable[0].describe(DEFAULT_FRAME_SIZE).split(', ', 1)[1]})"
+    else:
+        what = f"the observation vector ({sum(obs.values())} values)"
+    unused = [c for c in checks if not c.ok]
+    if unused:
+        what += "; not usable: " + "; ".join(c.describe(DEFAULT_FRAME_SIZE) for c in unused)
+    return what
 
 
 def trainable(ep: Episode) -> tuple[list[str], dict[str, str]]:
     """(components `ep` can train, {component: why not} for the others), each component's reason
     from its spec (components/<name>/__init__.py, cannot_train)."""
+    can, cannot, _checks, _reads_line = _verdict(ep)
+    return can, cannot
+
+
+def _verdict(ep: Episode) -> tuple[list[str], dict[str, str], list[CameraCheck], str]:
     if not ep.steps:
-        return [], {c: "the episode has no steps" for c in COMPONENTS}
-    sig = episode_signature(ep.episode_id, ep.steps, ep.blob_root)
+        return [], {c: "the episode has no steps" for c in COMPONENTS}, [], ""
+    sig = episode_signature(ep.episode_id, ep.steps, ep.blob_root, every_step=True)
     obs = _vectors(sig.leaves, "observation")
     act = _vectors(sig.leaves, "action")
-    has_frame, frame_why = _frame(sig.leaves, sig.frame_blobs)
+    checks = list(sig.cameras.values())
+    inline = _inline_frame(sig.leaves)
+    has_frame = inline is not None or any(c.ok and c.kind == "rgb" for c in checks)
+    colour = [c for c in checks if c.kind == "rgb"]
+    frame_why = None if has_frame or not colour else colour[0].describe(DEFAULT_FRAME_SIZE)
     missing = []
     if not obs:
         missing.append("no numeric observation field (a feature spec needs one, frames or not)")
@@ -79,16 +89,24 @@ def trainable(ep: Episode) -> tuple[list[str], dict[str, str]]:
     clocked = [s.timestamp_ns for s in ep.steps if s.timestamp_ns is not None]
     facts = EpisodeFacts(steps=len(ep.steps), duration_s=ep.duration_s, clocked=len(clocked) == len(ep.steps),
                          missing="; ".join(missing), has_frame=has_frame, has_obs=bool(obs),
-                         frame_note=frame_why or _media_note(ep) or "")
+                         frame_note=frame_why or "")
     why: dict[str, str] = {}
     tokenizer_reason = COMPONENTS[TOKENIZER].cannot_train(facts, None)
     for name, spec in COMPONENTS.items():
         reason = tokenizer_reason if spec.tokenizer else spec.cannot_train(facts, tokenizer_reason)
         if reason:
             why[name] = reason
-    return [c for c in COMPONENTS if c not in why], why
+    return [c for c in COMPONENTS if c not in why], why, checks, _reads(inline, checks, obs)
+
+
+VERDICT_EXTRAS = ("cameras", "reads")  # verdict keys beside trainable / not_trainable
 
 
 def trainable_json(ep: Episode) -> dict[str, Any]:
-    can, cannot = trainable(ep)
-    return {"trainable": can, "not_trainable": cannot}
+    """The verdict: what `ep` can train, why not the rest, each camera's line, what the tokenizer reads."""
+    can, cannot, checks, reads = _verdict(ep)
+    out: dict[str, Any] = {"trainable": can, "not_trainable": cannot,
+                           "cameras": [c.describe(DEFAULT_FRAME_SIZE) for c in checks]}
+    if TOKENIZER in can:
+        out["reads"] = {TOKENIZER: reads}
+    return out
