@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterator, Sequence
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,10 @@ from hope_models.media.pixels import area_resize, check_out_hw
 from hope_models.media.sniff import sniff
 
 VIDEO_KINDS = ("mp4", "webm")
+# A frame counts as at or before t up to this far after it: a requested time is a float (0.3,
+# i / 30) while a frame's is exact ticks (3072 / 10240), and the float may fall a hair short.
+# A microsecond is far below any frame interval.
+TIME_SLACK_S = 1e-6
 
 
 def sniff_video(path: Path, name: str) -> str:
@@ -102,7 +107,7 @@ class VideoFrames:
         if self._first is None:
             self.close()
             raise MediaError(f"{self.name}: {self._info.format} video stream holds no decodable frame")
-        self._t0 = self._first.time
+        self._pts0 = self._first.pts
 
     def _next(self) -> Any:
         """The next decoded frame, or None at the end; MediaError on bad bytes or a frame without time."""
@@ -112,7 +117,7 @@ class VideoFrames:
             raise MediaError(f"{self.name}: undecodable {self._info.format} frame: {type(exc).__name__}: {exc}") from None
         if frame is None:
             return None
-        if frame.time is None:
+        if frame.pts is None or frame.time_base is None:
             raise MediaError(f"{self.name}: a {self._info.format} frame has no presentation time")
         check_pixels(frame.height, frame.width, self._max_pixels, f"{self._info.format} frame", self.name)
         return frame
@@ -145,13 +150,17 @@ class VideoFrames:
                 if following is None:
                     following = self._next()
                     ended = following is None
-                if following is None or following.time - self._t0 > t:
+                if following is None or self._since_first(following) > t + TIME_SLACK_S:
                     break
                 current, following, chosen = following, None, None
             if chosen is None:
                 chosen = area_resize(self._rgb(current), out_hw)
                 current = None  # converted: the decoded frame is not needed any more
             yield chosen.copy()
+
+    def _since_first(self, frame: Any) -> float:
+        """Seconds from the first frame (ticks counted from the first frame's, then scaled once)."""
+        return float((frame.pts - self._pts0) * Fraction(frame.time_base))
 
     def _rgb(self, frame: Any) -> np.ndarray:
         try:
