@@ -14,6 +14,7 @@ import os
 import re
 import shutil
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -103,8 +104,9 @@ class _Writer:
 _FRAME_CHUNK = 64  # frames written per call: one decoded frame at a time in memory, few writes
 
 
-def _write_camera(writer: _Writer, name: str, ep, cam: FrameFeature) -> None:
-    """One episode's frames of one camera, decoded one at a time and written in chunks."""
+def _write_camera(writer: _Writer, name: str, ep, cam: FrameFeature, sources: Counter) -> None:
+    """One episode's frames of one camera, decoded one at a time and written in chunks; `sources`
+    counts them by what they were decoded from."""
     if cam.source == "inline":
         raw = field_matrix(ep.steps, FeatureField(cam.path, math.prod(FRAME_SHAPE)), np.float32)
         try:
@@ -114,10 +116,11 @@ def _write_camera(writer: _Writer, name: str, ep, cam: FrameFeature) -> None:
         if frames.shape[1:] != cam.shape:
             frames = np.stack([area_resize(f, cam.shape[:2]) for f in frames])
         writer.append(name, frames)
+        sources[f"inline floats {FRAME_SHAPE[0]}x{FRAME_SHAPE[1]}"] += len(frames)
         return
     chunk = np.empty((_FRAME_CHUNK, *cam.shape), dtype=np.dtype(cam.dtype))
     k = 0
-    for img in read_camera(ep.steps, cam, ep.blob_root):
+    for img in read_camera(ep.steps, cam, ep.blob_root, sources):
         chunk[k] = img
         k += 1
         if k == _FRAME_CHUNK:
@@ -185,6 +188,7 @@ def build_cache(dataset: Path, root: Path, key: str, data_fp: str, request: Spec
 def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | None) -> dict[str, Any]:
     writer = _Writer(tmp, spec)
     cameras = camera_arrays(spec)
+    sources: dict[str, Counter] = {name: Counter() for name, _f, _c in cameras}
     obs_stats, act_stats = RunningStats(spec.obs_dim), RunningStats(spec.act_dim)
     offsets = [0]
     imagined: list[bool] = []
@@ -208,15 +212,18 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
                                                  f"duplicate episode_id (also in {seen[ep.episode_id]})"))
                         continue
                     mark = writer.mark()
+                    counted: dict[str, Counter] = {name: Counter() for name, _f, _c in cameras}
                     try:
                         t, obs, act = _episode_rows(ep, spec)
                         for name, _file, cam in cameras:  # last: the cheap checks fail first
-                            _write_camera(writer, name, ep, cam)
+                            _write_camera(writer, name, ep, cam, counted[name])
                     except EpisodeMismatch as exc:
                         writer.rollback(mark)
                         excluded.append(Excluded(ep.episode_id, ep.source, str(exc)))
                         continue
                     seen[ep.episode_id] = ep.source
+                    for name in counted:
+                        sources[name].update(counted[name])
                     writer.append("steps", np.concatenate([obs, act], axis=1))
                     writer.append("t", t)
                     obs_stats.add(obs)
@@ -255,7 +262,8 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
         "t": {"file": "t.bin", "dtype": "<f8", "shape": [n]},
     }
     for name, file, cam in cameras:
-        arrays[name] = {"file": file, "dtype": cam.dtype, "shape": [n, *cam.shape], "path": cam.path, "kind": cam.kind}
+        arrays[name] = {"file": file, "dtype": cam.dtype, "shape": [n, *cam.shape], "path": cam.path, "kind": cam.kind,
+                        "decoded_from": dict(sources[name].most_common())}
     return {"steps": n, "episodes": len(episodes), "obs_dim": spec.obs_dim, "act_dim": spec.act_dim,
             "imagined_episodes": int(sum(imagined)), "play_episodes": int(sum(play)), "arrays": arrays,
             "excluded": [e.as_dict() for e in excluded]}

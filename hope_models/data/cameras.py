@@ -16,6 +16,7 @@ episode's frames (a 10-minute session at 30 fps is 18,000 of them).
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Iterator
 
@@ -149,9 +150,11 @@ def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck) -> st
     return None
 
 
-def read_camera(steps: list, frame: FrameFeature, blob_root: str | None) -> Iterator[np.ndarray]:
+def read_camera(steps: list, frame: FrameFeature, blob_root: str | None,
+                sources: Counter | None = None) -> Iterator[np.ndarray]:
     """Every step's frame, in step order, resized to `frame.shape`; EpisodeMismatch names the step,
-    the field and the file. Never a placeholder: one bad or missing file fails the episode."""
+    the field and the file. Never a placeholder: one bad or missing file fails the episode.
+    `sources` counts the frames by what they were decoded from ("JPEG 480x640")."""
     out_hw = frame.shape[:2]
     files = []
     for i, step in enumerate(steps):  # every reference first: the cheap checks fail before any decode
@@ -170,6 +173,9 @@ def read_camera(steps: list, frame: FrameFeature, blob_root: str | None) -> Iter
             run_end += 1
         where = repr(uri)  # the media layer adds the local path
         try:
+            if sources is not None:
+                info = probe(local, where)
+                sources[f"{info.format} {info.height}x{info.width}"] += run_end - i
             if _is_video(local, where):
                 t0 = _clock(steps[first_step[uri]])
                 times = [max(0.0, (_clock(steps[j]) - t0) / 1e9) for j in range(i, run_end)]

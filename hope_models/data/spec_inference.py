@@ -199,7 +199,7 @@ def _infer_cameras(signatures: list[EpisodeSignature], need: int, notes: list[st
                 ok[path] += 1
             else:
                 why.setdefault(path, f"{sig.episode_id}: {check.problem or 'no frame at some step'}")
-    usable = sorted((p for p in seen if ok[p] >= need), key=lambda p: (-ok[p], "rgb" not in p.lower(), p))
+    usable = sorted((p for p in seen if ok[p] >= need), key=lambda p: (-ok[p], _camera_rank(p), p))
     colour = [p for p in usable if kinds[p] == "rgb"]
     frame = inline
     if frame is None and colour:
@@ -212,6 +212,17 @@ def _infer_cameras(signatures: list[EpisodeSignature], need: int, notes: list[st
         example = f"; e.g. {why[path]}" if path in why else ""
         notes.append(f"{path}: not stored (frames decode in {ok[path]} of {n} episodes; needs {need}{example})")
     return frame, cameras
+
+
+# Which camera the tokenizer reads when several decode everywhere: the robot's own view first
+# (the app's egocentric camera, a head or front camera), then one that says it is colour.
+_MAIN_CAMERA_WORDS = (("ego", "head", "front", "main"), ("rgb", "color", "colour", "camera"))
+
+
+def _camera_rank(path: str) -> int:
+    name = path.rsplit(".", 1)[-1].lower()
+    return next((rank for rank, words in enumerate(_MAIN_CAMERA_WORDS) if any(w in name for w in words)),
+                len(_MAIN_CAMERA_WORDS))
 
 
 def _sizes(counter: Counter) -> str:

@@ -55,11 +55,33 @@ def summarise_dataset(dataset_dir: str | Path, cache_root: str | Path, spec_path
         "observation_fields": [{"path": f.path, "size": f.size} for f in spec.observation.fields],
         "action_fields": [{"path": f.path, "size": f.size} for f in spec.action.fields],
         "frame": None if spec.frame is None else spec.frame.to_json_obj(),
+        "cameras": [_camera(cache, name, i == 0 and spec.frame is not None)
+                    for i, name in enumerate(n for n in cache.manifest["arrays"] if n == "frames"
+                                             or n.startswith("camera."))],
         "spec_notes": spec.notes,
         "split": {"val_fraction": val_fraction, "train_episodes": cache.n_episodes - n_val, "val_episodes": n_val},
         "excluded": cache.manifest["excluded"],
         "access_mode": cache.mode,
     }
+
+
+def _camera(cache, array: str, tokenizer: bool) -> dict[str, Any]:
+    desc = cache.manifest["arrays"][array]
+    path = desc.get("path") or (cache.spec.frame.path if cache.spec.frame is not None else array)
+    return {"name": path.removeprefix("observation."), "path": path, "kind": desc.get("kind", "rgb"),
+            "shape": desc["shape"][1:], "frames": desc["shape"][0], "steps": cache.n_steps,
+            "decoded_from": desc.get("decoded_from", {}), "tokenizer": tokenizer}
+
+
+def _camera_line(c: dict[str, Any]) -> str:
+    """"egocentric_video: 1200/1200 frames, JPEG 480x640 -> 64x64 (the tokenizer reads it)"."""
+    size = f"{c['shape'][0]}x{c['shape'][1]}"
+    sources = ", ".join(f"{k} -> {size}" + (f" ({n})" if len(c["decoded_from"]) > 1 else "")
+                        for k, n in c["decoded_from"].items()) or size
+    use = ("the tokenizer reads it" if c["tokenizer"] else
+           "depth in metres, stored; no component reads depth yet" if c["kind"] == "depth" else
+           "stored; the tokenizer reads another camera")
+    return f"{c['name']}: {c['frames']}/{c['steps']} frames, {sources} ({use})"
 
 
 def format_summary(s: dict[str, Any]) -> str:
@@ -75,8 +97,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"/ max {d['max']:.2f} s",
         f"observation  {s['obs_dim']} dims: {fields(s['observation_fields'])}",
         f"action       {s['act_dim']} dims: {fields(s['action_fields'])}",
-        "frame        " + ("none" if s["frame"] is None else f"{s['frame']['path']} {s['frame']['shape']}"
-                            + (" (.npy frame blobs)" if s["frame"].get("source") == "blob" else "")),
+        *(["camera       none"] if not s["cameras"] else [f"camera       {_camera_line(c)}" for c in s["cameras"]]),
         f"cache        {s['cache_path']} ({'reused' if s['reused'] else 'built'}"
         + ("" if s["reused"] else f" in {s['build_seconds']:.1f} s") + f"; access {s['access_mode']})",
         f"fingerprint  {s['fingerprint']} (data {s['data_fingerprint'][:16]}..., hashed in "
