@@ -6,6 +6,7 @@ webapp both read and write, so it survives restarts and two processes agree on i
     learning.is_paused(s)              # dispatch asks this every tick (daemon/dispatch.py)
     learning.record_decision(s, ...)   # the daemon's phase, written when it changes
     learning.record_auto_run(s, ...)   # an auto chain was queued: why, and for which episodes
+    learning.reset(s)                  # the app's reset: forget the watermark, start the surprise history
     learning.status(s, settings)       # what GET /api/learning/status answers
 
 The app's pause means the robot stops learning: nothing is dispatched on the daemon's local queues
@@ -14,6 +15,14 @@ request with reason user: a running job checkpoints and stops at its next step, 
 paused at once). Those run ids are kept, so resume resumes them and no other (a run someone paused
 by hand before stays paused). Both are idempotent. Which queues are local is what the daemon
 wrote at its start; before any daemon has started, every queue counts.
+
+The app's reset forgets what continuous learning has counted, never what it made: the watermark
+(so the next auto chain counts every trainable inbox episode as new) and the record of the last auto
+run go, `reset_at` says when, and the app's surprise history (GET /api/training/metrics) starts
+after it. Runs, their checkpoints and events, the models and the inbox are untouched, a pause stays
+as it is, and a run training now goes on. Idempotent: a second reset forgets nothing more.
+The daemon keys its cached watermark on last_auto_sequence_id, so clearing it makes the daemon read
+the (now empty) watermark again on its next tick.
 
 The phase is the daemon's last decision (daemon/continuous.py), except that a pause and a run
 training now are read fresh here, so the answer never lags a tick behind them.
@@ -165,6 +174,24 @@ def record_auto_run(s: Session, sequence_id: str, reason: str, episodes: dict[st
     state.last_auto_at = now or utcnow()
 
 
+def reset(s: Session, now: datetime | None = None) -> dict[str, Any]:
+    """The app's reset (the module doc): what it forgot, and when."""
+    state = row(s)
+    marks = state.watermark or {}
+    forgot = {component: len(ids) for component, ids in marks.items()}
+    last = state.last_auto_sequence_id
+    state.watermark = None
+    state.last_auto_sequence_id = state.last_auto_at = state.last_auto_reason = None
+    state.reset_at = now or utcnow()
+    return {"reset_at": iso(state.reset_at), "forgot_watermark": forgot, "forgot_last_auto_run": last,
+            "paused": bool(state.paused)}
+
+
+def reset_at(s: Session) -> datetime | None:
+    state = read(s)
+    return state.reset_at if state is not None else None
+
+
 # -- what the app reads -------------------------------------------------------------------------
 
 def current_phase(s: Session) -> tuple[str, str | None, Run | None]:
@@ -209,6 +236,7 @@ def status(s: Session, settings: Any) -> dict[str, Any]:
         "next_components": decision.get("next_components"),
         "inbox": str(settings.inbox_dir),
         "paused_runs": list(state.paused_runs or []) if state is not None else [],
+        "reset_at": iso(state.reset_at) if state is not None else None,
         "last_auto_run": None if state is None or state.last_auto_sequence_id is None else {
             "sequence_id": state.last_auto_sequence_id, "at": iso(state.last_auto_at),
             "reason": state.last_auto_reason},
@@ -216,4 +244,5 @@ def status(s: Session, settings: Any) -> dict[str, Any]:
 
 
 __all__ = ["HOST_PAUSES", "PAUSE_HOLD", "active_runs", "current_phase", "hold_active", "is_paused", "local_queues", "pause",
-           "read", "record_auto_run", "record_decision", "resume", "row", "set_local_queues", "status", "watermark"]
+           "read", "record_auto_run", "record_decision", "reset", "reset_at", "resume", "row", "set_local_queues",
+           "status", "watermark"]

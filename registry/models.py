@@ -252,6 +252,8 @@ class LearningState(Base):
     last_auto_sequence_id: Mapped[str | None] = mapped_column(String(64))
     last_auto_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     last_auto_reason: Mapped[str | None] = mapped_column(Text)
+    # the app's last reset (registry/learning.reset): the watermark forgotten, surprise history after it
+    reset_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
 
     def __repr__(self) -> str:

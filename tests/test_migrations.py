@@ -290,6 +290,8 @@ def test_0004_learning_state_up_and_down(engine):
                           "VALUES ('r1', 'fast_loop', '{}', 'queued', 5, '/r', '2026-01-01', '2026-01-01')")
     assert "learning_state" not in tables(engine)
     migrate(engine, "0004")
+    assert "learning_state" in tables(engine)
+    migrate(engine)  # the ORM's models are head's (0006 added reset_at): read and write the row through them
     with Session(engine) as s, s.begin():
         learning.pause(s)
         learning.record_auto_run(s, "s-1", "auto-train: because", {"fast_loop": ["ep-a", "ep-b"]})
@@ -300,5 +302,30 @@ def test_0004_learning_state_up_and_down(engine):
     assert "learning_state" not in tables(engine)
     with engine.begin() as c:
         assert c.exec_driver_sql("SELECT id, state FROM runs").all() == [("r1", "queued")]
+    migrate(engine)
+    assert diffs(engine, Base.metadata) == []
+
+
+def test_0006_reset_at_keeps_the_learning_row(engine):
+    """0006 adds learning_state.reset_at (the app's reset, registry/learning.reset): a row written
+    before reads as never reset, and a downgrade drops only the column, keeping the row."""
+    from registry import learning
+    from sqlalchemy.orm import Session
+
+    migrate(engine, "0005")
+    with engine.begin() as c:
+        c.exec_driver_sql("INSERT INTO learning_state (id, paused, phase, watermark, last_auto_sequence_id, updated_at) "
+                          "VALUES (1, 1, 'idle', '{\"fast_loop\": [\"ep-a\"]}', 's-1', '2026-01-01')")
+    migrate(engine, "0006")
+    with Session(engine) as s, s.begin():
+        assert learning.reset_at(s) is None and learning.watermark(s) == {"fast_loop": {"ep-a"}}
+        out = learning.reset(s)
+        assert out["forgot_watermark"] == {"fast_loop": 1} and out["forgot_last_auto_run"] == "s-1"
+    with Session(engine) as s:
+        assert learning.reset_at(s) is not None and learning.watermark(s) == {} and learning.is_paused(s)
+    downgrade(engine, "0005")
+    with engine.begin() as c:
+        assert c.exec_driver_sql("SELECT id, paused FROM learning_state").all() == [(1, 1)]
+        assert "reset_at" not in [r[1] for r in c.exec_driver_sql("PRAGMA table_info(learning_state)").all()]
     migrate(engine)
     assert diffs(engine, Base.metadata) == []

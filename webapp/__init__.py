@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from webapp import cors
 from webapp.commands import ChildProcesses
 from webapp.hosts import HostAllowlist, HostPolicy
 from webapp.socket_guard import SocketGuard
@@ -113,9 +114,11 @@ def create_app(settings: Settings, *, token: str, daemon: Any = None, registry: 
 
     app.register_blueprint(pages_bp)  # the Robot Editor: "/" and its pages (webapp/pages.py)
     # Outermost, around Socket.IO's middleware too: no route or handshake answers a foreign Host.
+    # Inside it, CORS for the origins in cors_origins (none by default: not installed), so a listed
+    # origin's preflight is answered before the token check and before any view (webapp/cors.py).
     # Flask's documented middleware hook; its stubs declare wsgi_app a method, so mypy refuses the assignment.
     app.wsgi_app = HostAllowlist(  # type: ignore[method-assign]
-        app.extensions["hope"].socket_guard.middleware(app.wsgi_app), hosts)
+        cors.install(app.extensions["hope"].socket_guard.middleware(app.wsgi_app), settings.cors_origins), hosts)
 
     return app, socketio
 

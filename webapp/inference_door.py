@@ -16,6 +16,9 @@ port with its own threads and its own connection cap:
 Everything else is 404 here (no Socket.IO, no editor pages, no uploads) and a WebSocket upgrade is
 refused, so every request on this door is answered in milliseconds and nothing can park on it.
 The editor's port keeps /api/brain/* too: the Robot Editor's Inference page calls it there.
+The door is not for browsers: it has no CORS (cors_origins applies to the editor's port only,
+webapp/cors.py), so a browser's preflight here gets 405 without Access-Control-* headers and a
+page of another origin can neither call it with the token nor read its answers.
 With `inference_socket` set, the same door also listens on that Unix socket (0600, under $HOPE_HOME
 when relative): a robot runtime on this machine then needs no TCP port at all.
 """

@@ -1,5 +1,6 @@
 """The JSON API blueprints: health, runs (+ metrics, series, provenance, artifacts), training, brain,
-system, workers, sim, and the Continuon app's calls (handoff, episodes, learning, app_models, app_metrics)."""
+system, workers, sim, and the Continuon app's calls (handoff, episodes, learning, app_models, app_metrics,
+ownership, training_queue)."""
 from __future__ import annotations
 
 from importlib import import_module
@@ -7,7 +8,7 @@ from importlib import import_module
 from flask import Flask
 
 BLUEPRINTS = ("health", "runs", "run_series", "run_artifacts", "training", "brain", "system", "workers", "sim",
-              "handoff", "episodes", "learning", "app_models", "app_metrics")
+              "handoff", "episodes", "learning", "app_models", "app_metrics", "ownership", "training_queue")
 
 
 def register(app: Flask) -> None:

@@ -26,6 +26,8 @@ What each number is (webapp/api/app_measures.py and docs/app.md say it exactly):
   curiosity: surprise / ln(number of codes an observation can take), 0 = fully predictable, 1 = no
   better than chance.
   Both null until a mid_loop has completed with a validation split: never a made-up 0;
+  surprise_history and curiosity_history hold only the runs finished after the app's last
+  POST /api/learning/reset (registry/learning.reset);
 - total_steps: optimizer steps of every run in the registry; total_episodes: the distinct
   episodes in the ingest manifests of the inbox and of the datasets runs trained on;
   learning_updates: models ever promoted; avg_parameter_change: the mean over components of the
@@ -38,12 +40,14 @@ What each number is (webapp/api/app_measures.py and docs/app.md say it exactly):
 """
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any
 
 from flask import Blueprint, current_app, jsonify
 from sqlalchemy import select
 
 from hope_models.components import ACTOR
+from registry import learning
 from registry.models import Model
 from webapp.api import app_measures as measures
 from webapp.api.validation import query_args, query_int
@@ -75,7 +79,12 @@ def training_metrics():
                      "total_steps": r.total_steps} for r in runs]
         loss = [p for run in runs for p in measures.loss_points(run)]
         validations = measures.mid_loop_validations(s, min(limit, VALIDATIONS_MAX))
+        reset_at = learning.reset_at(s)
     last = validations[-1] if validations else None
+    # The charts start at the app's last reset (registry/learning.reset); the current figure stays the
+    # newest one measured, which a reset does not make untrue.
+    if reset_at is not None:
+        validations = [v for v in validations if v["finished_at"] and datetime.fromisoformat(v["finished_at"]) > reset_at]
     return jsonify({
         "success": True,
         "loss_history": measures.thin(loss, limit),
