@@ -108,7 +108,7 @@ def lying_zip(real_size: int, declared: int) -> bytes:
 
 @pytest.fixture
 def client(tmp_path):
-    c = make_client(tmp_path / "home")
+    c = make_client(tmp_path / "home", HOPE_UPLOAD_UNPACK_MAX_MB="4", HOPE_UPLOAD_MAX_MEMBERS="10000")
     yield c
     c.close()
 
@@ -227,16 +227,17 @@ BAD = {
     "tar-symlink": (lambda p: tar_gz([tar_file("ep/episode.json"), tar_link("ep/blobs", "/etc")]),
                     400, "'ep/blobs': symlink"),
     "tar-bad-checksum": (_corrupt_checksum, 400, "episode.json: sha256"),
-    "gzip-bomb": (lambda p: tar_gz([tar_file("ep/episode.json", b"\0" * (3 << 20))]), 400, "gzip bomb"),
+    "gzip-bomb": (lambda p: tar_gz([tar_file("ep/episode.json", b"\0" * (8 << 20))]), 413,
+                  "more than 4194304 bytes uncompressed (upload_unpack_max_mb=4)"),
     "zip-traversal": (lambda p: zip_of([("metadata.json", b"{}"), ("steps/../../evil.jsonl", b"{}")]),
                       400, "'steps/../../evil.jsonl'"),
     "zip-absolute": (lambda p: zip_of([("/etc/evil.json", b"{}")]), 400, "'/etc/evil.json'"),
     "zip-symlink": (lambda p: zip_of([("metadata.json", b"{}")], symlink="steps"), 400, "'steps': symlink"),
-    "zip-bomb": (lambda p: zip_of([("steps/000000.jsonl", b"\0" * (3 << 20))]), 400,
-                 "'steps/000000.jsonl': declares 3145728 bytes"),
+    "zip-bomb": (lambda p: zip_of([("steps/000000.jsonl", b"\0" * (8 << 20))]), 413,
+                 "8388608 bytes uncompressed, more than 4194304 (upload_unpack_max_mb=4)"),
     "zip-lying-header": (lambda p: lying_zip(3 << 20, 1000), 400, "'metadata.json'"),
     "zip-too-many-members": (lambda p: zip_of([(f"{i}", b"") for i in range(10_001)]),
-                             400, "more than 10000 members"),
+                             413, "more than 10000 members (upload_max_members=10000)"),
     "zip-too-large-uncompressed": (lambda p: zip_of([("blobs/a.bin", _low_entropy(5 << 20))]),
                                    413, "uncompressed, more than 4194304"),
     "tar-too-large-uncompressed": (lambda p: tar_gz([tar_file("ep/blobs/a.bin", _low_entropy(5 << 20))]),

@@ -150,10 +150,11 @@ def test_a_tar_of_99991_directories_is_refused_by_count_at_once(server, many_dir
 
 def test_a_tar_of_more_members_than_a_long_episode_has_is_refused(server):
     files = hp.tar_gz_of([("ep", None)] + [(f"ep/step_{i:05d}_rgb.npy", b"") for i in range(10_000)])
-    s = server()
+    s = server(HOPE_UPLOAD_MAX_MEMBERS="10000")
     with PeakRss() as cost:
         status, answer = s.upload(files)
     assert status == 413 and "more than 10000 members" in answer["error"], answer
+    assert "upload_max_members=10000" in answer["error"]
     assert cost.seconds < 5.0
     assert s.tmp_entries() == []
 

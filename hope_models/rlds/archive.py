@@ -22,8 +22,9 @@ from ..durable import file_sha256
 from .export_cloud import EPISODE_FILE, UPLOAD_MANIFEST
 
 # The Pi runtime writes per step an rgb and a depth .npy (and a .wav with audio) beside one
-# episode.json: its recorder's default of 500 steps is ~1,500 files, 3,000 steps ~9,000
-MAX_MEMBERS = 10_000
+# episode.json: its recorder's default of 500 steps is ~1,500 files, 3,000 steps ~9,000. The
+# default of settings.upload_max_members, which the upload path passes.
+MAX_MEMBERS = 20_000
 MAX_DIRS = 1_000  # the recorder writes its files flat in the episode dir; the exporter adds blobs/...
 MAX_TOTAL_BYTES = 8 << 30
 NAME_MAX = 255  # bytes of one path component (the filesystem's limit)
@@ -94,10 +95,10 @@ def _check_member_type(tar_path: Path, member: tarfile.TarInfo, path: PurePosixP
         raise ArchiveError(f"{tar_path}: member {member.name!r}: device, FIFO or special file refused")
 
 
-def _plan(tar_path: Path, members: list[tarfile.TarInfo], max_total_bytes: int) -> str:
+def _plan(tar_path: Path, members: list[tarfile.TarInfo], max_total_bytes: int, max_members: int) -> str:
     """Checks every member before anything is written; returns the package's top dir."""
-    if len(members) > MAX_MEMBERS:
-        raise ArchiveError(f"{tar_path}: {len(members)} members, more than {MAX_MEMBERS}")
+    if len(members) > max_members:
+        raise ArchiveError(f"{tar_path}: {len(members)} members, more than {max_members}")
     tops, seen, total, kinds = set(), set(), 0, []
     for member in members:
         path = _member_path(tar_path, member)
@@ -180,7 +181,8 @@ def verify_package_dir(episode_dir: Path, label: str | None = None) -> dict:
 
 
 def extract_package(tar_path: str | os.PathLike, dest: str | os.PathLike,
-                    max_total_bytes: int = MAX_TOTAL_BYTES, budget: Any = None) -> Path:
+                    max_total_bytes: int = MAX_TOTAL_BYTES, budget: Any = None,
+                    max_members: int = MAX_MEMBERS) -> Path:
     """Extracts <episode_id>.tar.gz into <dest>/<episode_id>/ and returns that dir.
 
     Raises ArchiveError when the package is unsafe or its checksums do not match, and
@@ -197,7 +199,7 @@ def extract_package(tar_path: str | os.PathLike, dest: str | os.PathLike,
             members = tar.getmembers()
         except (tarfile.TarError, OSError, EOFError) as exc:
             raise ArchiveError(f"{tar_path}: corrupt archive: {exc}") from None
-        top = _plan(tar_path, members, max_total_bytes)
+        top = _plan(tar_path, members, max_total_bytes, max_members)
         final = dest / top
         if final.exists():
             raise FileExistsError(f"{final}: already exists")

@@ -12,8 +12,10 @@ decompressor here streams, counts what actually comes out, and stops past its ca
 
 An upload also carries a `Budget` (ReadLimits.budget): the bytes all its nested decompressors may
 produce together (a ratio of what the client actually sent, so a zip of a file of compressed
-chunks cannot multiply the ratios), and a deadline for its whole unpacking (the upload holds a
-lock while it unpacks). Past either, `BudgetError`: the upload is refused as a whole, never read
+chunks cannot multiply the ratios; kept as a ratio because these inflate into memory while a file
+is read, which the absolute caps on what a package unpacks to disk do not bound), and a deadline
+for its whole unpacking (the upload holds a lock while it unpacks), extended by what each package
+is found to unpack to (`unpacking`). Past either, `BudgetError`: the upload is refused as a whole, never read
 in part. Without a budget (the command line), a bomb is one file's error and the others are read.
 """
 from __future__ import annotations
@@ -48,10 +50,20 @@ class Budget:
     """What one upload's unpacking may spend: `max_bytes` inflated by nested decompressors, and
     time until `deadline_s` seconds after it was made. Not thread-safe: one per request."""
 
-    def __init__(self, max_bytes: int, deadline_s: float, *, setting: str = "upload_extract_s"):
+    def __init__(self, max_bytes: int, deadline_s: float, *, setting: str = "upload_extract_s",
+                 per_unpacked_mb_s: float = 0.0):
         self.max_bytes, self.seconds, self.setting = int(max_bytes), float(deadline_s), setting
         self.deadline = time.monotonic() + self.seconds
         self.inflated = 0
+        self.per_unpacked_mb_s = float(per_unpacked_mb_s)
+
+    def unpacking(self, nbytes: int) -> None:
+        """A package was found to unpack to `nbytes` (within its absolute cap): writing, reading and
+        storing them may take per_unpacked_mb_s per MB more. A package of mostly zeros is small to
+        send and large to store (the Pi's frames from a dropped camera inflate ~740x)."""
+        extra = self.per_unpacked_mb_s * nbytes / (1 << 20)
+        self.seconds += extra
+        self.deadline += extra
 
     def check(self, where: str) -> None:
         if time.monotonic() > self.deadline:

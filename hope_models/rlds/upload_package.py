@@ -8,11 +8,18 @@
 The kind comes from the magic bytes (gzip, a ustar header, a zip local header), never from the
 file name or the Content-Type a client chose. A tar is first read once as a stream, counting,
 before archive.py's extraction reads it: tarfile skips over member data by inflating it, so a
-small gzip of zeros would otherwise cost minutes of CPU before any size check; the stream must
-stay within MAX_RATIO of its compressed size, the members' declared sizes within the limit, and
-their count within archive.MAX_MEMBERS (sized for the Pi runtime's long episodes; a tar of
-~100,000 empty directories once held the upload lock for minutes). PackageError carries the HTTP
-status (400 unsafe or corrupt, naming the member; 413 too large).
+small gzip of zeros would otherwise cost minutes of CPU before any size check.
+
+What a package may cost is judged by absolute caps, never by how well it compressed:
+`max_total_bytes` unpacked (the caller's: settings.upload_unpack_max_mb, never more than the room
+left in $HOPE_HOME/tmp) and `max_members` (settings.upload_max_members; a tar of ~100,000 empty
+directories once held the upload lock for minutes). The scan writes nothing and stops inflating as
+soon as the stream passes the cap, so a gzip of 20 GB of zeros costs at most the cap's worth of
+inflating, and a member's pax or GNU long-name header (the one thing tarfile reads into memory)
+may hold at most MAX_HEADER_BYTES. There is no ratio check: deflate cannot exceed ~1032:1, so a
+ratio cap refuses only honest packages that are mostly zeros (the Pi's frames from a dropped or
+mock camera inflate ~740x) and protects nothing the byte cap does not. PackageError carries the
+HTTP status (400 unsafe or corrupt, naming the member; 413 past a cap, naming it and its value).
 """
 from __future__ import annotations
 
@@ -25,15 +32,21 @@ from typing import BinaryIO
 
 from ..durable import file_sha256
 from .archive import MAX_DIRS, MAX_MEMBERS, ArchiveError, extract_package
-from .inflate import MAX_RATIO, Budget, ratio_limit
+from .inflate import Budget
 from .zip_package import ZipPackageError, extract_zip
 
 GZIP_MAGIC = b"\x1f\x8b"
 ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header; an empty archive's end record
 USTAR_OFFSET, USTAR_MAGIC = 257, b"ustar"
-# a tar stream holds, beyond its members' data, a 512-byte header and up to 511 bytes of padding per
-# member (at most archive.MAX_MEMBERS of them) and the end blocks
-TAR_OVERHEAD = MAX_MEMBERS * 1024 + (20 << 10)
+MAX_HEADER_BYTES = 1 << 20  # a pax or GNU long-name header: a path and a few numbers, held in memory
+
+
+def tar_overhead(max_members: int) -> int:
+    """What a tar stream holds beyond its members' data: a 512-byte header and up to 511 bytes of
+    padding per member, and the end blocks."""
+    return max_members * 1024 + (20 << 10)
+
+
 KINDS = {"pi": "the Pi runtime's upload package (tar.gz)", "xr": "the XR app's episode zip"}
 
 
@@ -56,43 +69,61 @@ def package_kind(path: str | os.PathLike, label: str) -> str:
 
 
 class _Inflation:
-    """The tar stream as tarfile reads it, counted: past the ratio or the size, PackageError."""
+    """The tar stream as tarfile reads it, counted: past the cap, PackageError (413)."""
 
-    def __init__(self, source: BinaryIO, label: str, by_ratio: int | None, limit: int, budget: Budget | None):
-        self.source, self.label, self.by_ratio, self.limit, self.inflated = source, label, by_ratio, limit, 0
+    def __init__(self, source: BinaryIO, label: str, limit: int, cap_words: str, budget: Budget | None):
+        self.source, self.label, self.limit, self.cap_words, self.inflated = source, label, limit, cap_words, 0
         self.budget = budget
 
     def read(self, size: int = -1) -> bytes:
         data = self.source.read(size if size is not None and size > 0 else 1 << 20)
         self.inflated += len(data)
-        if self.by_ratio is not None and self.inflated > self.by_ratio:
-            raise PackageError(f"{self.label}: the gzip stream inflates more than {MAX_RATIO} times its size "
-                               f"(a gzip bomb?)")
         if self.inflated > self.limit:
-            raise PackageError(f"{self.label}: the tar stream is larger than {self.limit} bytes", 413)
+            raise PackageError(f"{self.label}: the tar stream inflates to more than {self.limit} bytes "
+                               f"({self.cap_words}); refused before it was unpacked", 413)
         if self.budget is not None:
             self.budget.check(self.label)
         return data
 
 
-def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None = None) -> None:
-    """One streaming pass over the tar (inflated as it is read, nothing kept): the members' declared
-    sizes against max_total_bytes (413), the inflated stream against MAX_RATIO and the size (a bomb
-    is refused after at most ratio_limit bytes of work, before tarfile's own random-access pass)."""
+class _HeaderGuard(tarfile.TarInfo):
+    """tarfile reads a pax or GNU long-name header's body whole into memory: its size is checked first."""
+
+    def _check_header(self, label: str) -> None:
+        if self.size > MAX_HEADER_BYTES:
+            raise PackageError(f"{label}: a {self.size}-byte extended header (pax or long name), more than "
+                               f"{MAX_HEADER_BYTES}", 413)
+
+    def _proc_pax(self, tarfile):  # type: ignore[no-untyped-def]  # tarfile's own hook
+        self._check_header(getattr(tarfile, "hope_label", "package"))
+        return super()._proc_pax(tarfile)  # type: ignore[misc]
+
+    def _proc_gnulong(self, tarfile):  # type: ignore[no-untyped-def]
+        self._check_header(getattr(tarfile, "hope_label", "package"))
+        return super()._proc_gnulong(tarfile)  # type: ignore[misc]
+
+
+def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None = None, *,
+             max_members: int = MAX_MEMBERS, cap_words: str | None = None) -> None:
+    """One streaming pass over the tar (inflated as it is read, nothing kept or written): the
+    members' count against max_members, their declared sizes against max_total_bytes, the inflated
+    stream against max_total_bytes plus the tar's own overhead (a lying or padded stream). 413
+    naming the file and the cap (`cap_words`, e.g. "upload_unpack_max_mb=4096")."""
+    cap_words = cap_words or f"at most {max_total_bytes} bytes unpacked"
     with open(path, "rb") as raw:
         gzipped = raw.read(2) == GZIP_MAGIC
         raw.seek(0)
         source = gzip.GzipFile(fileobj=raw, mode="rb") if gzipped else raw
-        stream = _Inflation(source, label, ratio_limit(path.stat().st_size) if gzipped else None,
-                            max_total_bytes + TAR_OVERHEAD, budget)
+        stream = _Inflation(source, label, max_total_bytes + tar_overhead(max_members), cap_words, budget)
         total = count = dirs = 0
         try:
-            with tarfile.open(fileobj=stream, mode="r|") as tar:
+            with tarfile.open(fileobj=stream, mode="r|", tarinfo=_HeaderGuard) as tar:  # type: ignore[call-overload]
+                tar.hope_label = label
                 for member in tar:
                     count += 1
-                    if count > MAX_MEMBERS:
-                        raise PackageError(f"{label}: more than {MAX_MEMBERS} members (files and directories); "
-                                           f"an episode package holds far fewer", 413)
+                    if count > max_members:
+                        raise PackageError(f"{label}: more than {max_members} members, files and directories "
+                                           f"(upload_max_members={max_members})", 413)
                     dirs += member.isdir()
                     if dirs > MAX_DIRS:
                         raise PackageError(f"{label}: more than {MAX_DIRS} directories; an episode package keeps "
@@ -102,9 +133,11 @@ def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None
                     total += member.size if member.isfile() else 0
                     if total > max_total_bytes:
                         raise PackageError(f"{label}: member {member.name!r}: the members hold more than "
-                                           f"{max_total_bytes} bytes uncompressed", 413)
+                                           f"{max_total_bytes} bytes uncompressed ({cap_words})", 413)
         except (tarfile.TarError, OSError, EOFError, zlib.error) as exc:
             raise PackageError(f"{label}: not a readable tar archive: {exc}") from None
+    if budget is not None:
+        budget.unpacking(total)
 
 
 def xr_dir_name(path: Path) -> str:
@@ -119,20 +152,22 @@ def _relabel(message: str, path: Path, label: str) -> str:
 
 
 def extract_upload(path: str | os.PathLike, dest: str | os.PathLike, *, label: str,
-                   max_total_bytes: int, budget: Budget | None = None) -> tuple[str, Path]:
+                   max_total_bytes: int, budget: Budget | None = None, max_members: int = MAX_MEMBERS,
+                   cap_words: str | None = None) -> tuple[str, Path]:
     """Extracts one package under `dest` (an empty dir of the caller's, one per package); returns
     (kind, the dir to ingest). Raises PackageError (or the budget's BudgetError), having left
-    nothing of this package behind."""
+    nothing of this package behind. `cap_words` names where max_total_bytes comes from."""
     path, dest = Path(path), Path(dest)
     kind = package_kind(path, label)
     if kind == "xr":
         try:
             return kind, extract_zip(path, dest / xr_dir_name(path), label=label, max_total_bytes=max_total_bytes,
-                                     budget=budget)
+                                     max_members=max_members, budget=budget, cap_words=cap_words)
         except ZipPackageError as exc:
             raise PackageError(str(exc), exc.status) from None
-    scan_tar(path, label, max_total_bytes, budget)
+    scan_tar(path, label, max_total_bytes, budget, max_members=max_members, cap_words=cap_words)
     try:
-        return kind, extract_package(path, dest, max_total_bytes=max_total_bytes, budget=budget)
+        return kind, extract_package(path, dest, max_total_bytes=max_total_bytes, budget=budget,
+                                     max_members=max_members)
     except ArchiveError as exc:
         raise PackageError(_relabel(str(exc), path, label)) from None

@@ -8,10 +8,12 @@ member, only stored or deflated data, no name twice, no file that is also a dire
 archive.MAX_DIRS directories, archive.py's name and path lengths; at most `max_members` members
 (counted in the central directory itself, at most MAX_CENTRAL_DIR_BYTES, before zipfile reads it
 whole and builds an object per entry: a small archive may declare millions), at most
-`max_total_bytes` uncompressed, and no member or archive that inflates more than MAX_RATIO times
-(a zip bomb). The headers can lie, so the sizes are checked twice: as declared, and as actually
-inflated while writing (zipfile also stops a member at its declared size, and its CRC then
-fails). Files are created with O_EXCL|O_NOFOLLOW in a dir of our own, removed again when any
+`max_total_bytes` uncompressed (413 naming the cap). The headers can lie, so the sizes are checked
+twice: as declared, and as actually inflated while writing (a member stops at its declared size and
+at what is left of the cap; zipfile's CRC then fails). There is no ratio check: each member is
+inflated straight to disk, so the byte cap bounds what a zip bomb (overlapping members included:
+each one's declared size counts) can cost, and a ratio cap would only refuse honest members that are
+mostly zeros. Files are created with O_EXCL|O_NOFOLLOW in a dir of our own, removed again when any
 member is refused, so a refused zip leaves nothing.
 """
 from __future__ import annotations
@@ -25,10 +27,8 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
-from .archive import ArchiveError, check_tree, member_name_path
-from .inflate import MAX_RATIO, ratio_limit
+from .archive import MAX_MEMBERS, ArchiveError, check_tree, member_name_path
 
-MAX_MEMBERS = 10_000  # an XR episode dir holds a metadata file, a steps file and its media
 MAX_CENTRAL_DIR_BYTES = 16 << 20  # MAX_MEMBERS entries with long names and extras fit many times over
 CHUNK = 1 << 20
 METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
@@ -63,7 +63,7 @@ def _count_members(fp: BinaryIO, label: str, max_members: int) -> None:
             break  # zipfile reports the corruption with its own words
         count += 1
         if count > max_members:
-            raise ZipPackageError(f"{label}: more than {max_members} members")
+            raise ZipPackageError(f"{label}: more than {max_members} members (upload_max_members={max_members})", 413)
         name_len, extra_len, comment_len = struct.unpack("<HHH", head[28:34])
         fp.seek(name_len + extra_len + comment_len, os.SEEK_CUR)
         left -= zipfile.sizeCentralDir + name_len + extra_len + comment_len
@@ -84,14 +84,11 @@ def _member_kind(label: str, info: zipfile.ZipInfo) -> str:
     if info.compress_type not in METHODS:
         raise ZipPackageError(f"{label}: member {name!r}: compression method {info.compress_type} "
                               f"refused (only {', '.join(METHODS.values())})")
-    if info.file_size > ratio_limit(info.compress_size):
-        raise ZipPackageError(f"{label}: member {name!r}: declares {info.file_size} bytes from "
-                              f"{info.compress_size} compressed, a ratio over {MAX_RATIO}:1 (a zip bomb?)")
     return "file"
 
 
-def _plan(label: str, zf: zipfile.ZipFile, archive_bytes: int,
-          max_total_bytes: int) -> list[tuple[zipfile.ZipInfo, PurePosixPath, str]]:
+def _plan(label: str, zf: zipfile.ZipFile, max_total_bytes: int,
+          cap_words: str) -> list[tuple[zipfile.ZipInfo, PurePosixPath, str]]:
     """Every member checked before anything is written; returns (info, relative path, kind)."""
     plan, seen, total = [], set(), 0
     for info in zf.infolist():
@@ -111,17 +108,14 @@ def _plan(label: str, zf: zipfile.ZipFile, archive_bytes: int,
     except ArchiveError as exc:
         raise ZipPackageError(str(exc)) from None
     if total > max_total_bytes:
-        raise ZipPackageError(f"{label}: {total} bytes uncompressed, more than {max_total_bytes}", 413)
-    if total > ratio_limit(archive_bytes):
-        raise ZipPackageError(f"{label}: {total} bytes uncompressed from {archive_bytes}, a ratio over "
-                              f"{MAX_RATIO}:1 (a zip bomb?)")
+        raise ZipPackageError(f"{label}: {total} bytes uncompressed, more than {max_total_bytes} ({cap_words})", 413)
     return plan
 
 
 def _write_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, label: str, budget: int) -> int:
     """Inflates one member, counting what actually comes out; returns the bytes written."""
     target.parent.mkdir(parents=True, exist_ok=True)
-    cap = min(info.file_size, ratio_limit(info.compress_size), budget)
+    cap = min(info.file_size, budget)
     fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     written = 0
     with os.fdopen(fd, "wb") as out, zf.open(info) as source:
@@ -137,14 +131,15 @@ def _write_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, labe
 
 
 def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, label: str | None = None,
-                max_members: int = MAX_MEMBERS, max_total_bytes: int = 8 << 30, budget: Any = None) -> Path:
+                max_members: int = MAX_MEMBERS, max_total_bytes: int = 8 << 30, budget: Any = None,
+                cap_words: str | None = None) -> Path:
     """Extracts the zip into `dest_dir` (created here; it must not exist) and returns it.
 
     Raises ZipPackageError (nothing left behind) when the zip is unsafe, corrupt or too large;
     `budget` (rlds/inflate.Budget) is checked between members (its deadline: BudgetError)."""
     zip_path, dest = Path(zip_path), Path(dest_dir)
     label = label or str(zip_path)
-    archive_bytes = zip_path.stat().st_size
+    cap_words = cap_words or f"at most {max_total_bytes} bytes unpacked"
     with open(zip_path, "rb") as fp:
         try:
             _count_members(fp, label, max_members)
@@ -154,7 +149,9 @@ def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, lab
                 raise
             raise ZipPackageError(f"{label}: not a readable zip archive: {exc}") from None
         with zf:
-            plan = _plan(label, zf, archive_bytes, max_total_bytes)
+            plan = _plan(label, zf, max_total_bytes, cap_words)
+            if budget is not None:
+                budget.unpacking(sum(info.file_size for info, _, kind in plan if kind == "file"))
             dest.mkdir(mode=0o700)
             try:
                 total = 0

@@ -17,7 +17,10 @@ $HOPE_HOME/tmp/package-<sha of its bytes> (one upload at a time extracts and ing
 after) before any is ingested, so one refused package (400 naming the member, 413 too large,
 507 no room in $HOPE_HOME/tmp) means nothing is written at all. Extracting and reading share one
 budget (rlds/inflate.Budget: 200 times the bytes sent may be inflated by the compressed data
-inside the packages, in upload_extract_s plus SECONDS_PER_MB per MB sent); a bomb found while
+inside the packages' files as they are read, in upload_extract_s plus SECONDS_PER_MB per MB sent
+and per MB a package unpacks to); a package unpacks to at most upload_unpack_max_mb (never past
+the room in $HOPE_HOME/tmp) and holds at most upload_max_members members (413 naming the file and
+the cap, found by a streaming pass that writes nothing, so a bomb never fills the disk); a bomb found while
 reading is a 413 naming the file, and episodes of the request ingested before it stay (sent
 again, they are answered "unchanged"). Accepted ones go into the
 inbox (hope_models/data/inbox.py: validated with the train profile, blobs confined to the episode's
@@ -57,7 +60,7 @@ from hope_models.rlds.inflate import Budget, InflateError, ratio_limit
 from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
 from webapp.api.validation import get_str, json_body, query_args
 from webapp.errors import ApiError
-from webapp.uploads import TMP_DIR, Received, TmpRoom, large_body, received, upload_limit
+from webapp.uploads import TMP_DIR, Received, TmpRoom, large_body, received
 
 log = logging.getLogger(__name__)
 bp = Blueprint("episodes", __name__)
@@ -68,7 +71,6 @@ MAX_PACKAGES = 20  # one drop of a browser; more is a client gone wrong
 # ingest's verdicts in the words of the inbox's list (and of the app's handoff answer)
 STATUS = {"accepted": "ok", "accepted_with_warnings": "warnings"}
 EXTRACTED = "package-"
-UNPACK_FACTOR = 4  # what a package may hold uncompressed, in upload limits: bounds $HOPE_HOME/tmp
 # time to unpack, read and ingest a MB sent, on top of upload_extract_s: a big real package is
 # written twice (tmp, then the inbox) to an SD card at ~10 MB/s; a small bomb gets the base only
 SECONDS_PER_MB = 0.5
@@ -149,11 +151,14 @@ def _extraction_area(settings: Any) -> Iterator[Path]:
         os.close(fd)
 
 
-def _extract(area: Path, packages: list[tuple[str, Path]], limit: int, budget: Budget, room: TmpRoom,
+def _extract(area: Path, packages: list[tuple[str, Path]], settings: Any, budget: Budget, room: TmpRoom,
              into: list[tuple[str, str, Path, Path]]) -> None:
     """Every package extracted before any is ingested: (label, kind, what to ingest, its dir)
     appended to `into` as each dir is made, so the caller removes them whatever happens. What
-    they unpack to is counted in $HOPE_HOME/tmp's room (TmpRoom) while they are there."""
+    they unpack to is counted in $HOPE_HOME/tmp's room (TmpRoom) while they are there: one package
+    unpacks to at most upload_unpack_max_mb, and never to more than that room."""
+    limit = int(settings.upload_unpack_max_mb) << 20
+    cap_words = f"upload_unpack_max_mb={settings.upload_unpack_max_mb}"
     seen = set()
     for label, path in packages:
         sha = file_sha256(path)[:16]
@@ -165,14 +170,14 @@ def _extract(area: Path, packages: list[tuple[str, Path]], limit: int, budget: B
         dest.mkdir()
         into.append((label, "", dest, dest))
         room_left = room.available()
+        room_words = f"$HOPE_HOME/tmp has room for {room_left} bytes now: upload_tmp_max_mb, disk_floor_mb"
         try:
             kind, where = extract_upload(path, dest, label=label, max_total_bytes=min(limit, room_left),
-                                         budget=budget)
+                                         budget=budget, max_members=int(settings.upload_max_members),
+                                         cap_words=cap_words if room_left >= limit else room_words)
         except PackageError as exc:
-            if exc.status == 413 and room_left < limit:
-                raise ApiError(f"{exc.message} ($HOPE_HOME/tmp has room for {room_left} bytes now: "
-                               "upload_tmp_max_mb, disk_floor_mb)", 507) from None
-            raise ApiError(exc.message, exc.status) from None
+            # past the room rather than the cap: the same package may fit once other uploads are done
+            raise ApiError(exc.message, 507 if room_words in exc.message else exc.status) from None
         into[-1] = (label, kind, where, dest)
         room.take(sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()), label)
 
@@ -203,10 +208,11 @@ def _ingest_locked(settings: Any, packages: list[tuple[str, Path]], tags: list[s
         extracted: list[tuple[str, str, Path, Path]] = []
         # started once the lock is ours: what the request sent, times the ratio, may be inflated
         sent = sum(p.stat().st_size for _, p in packages)
-        budget = Budget(ratio_limit(sent), settings.upload_extract_s + SECONDS_PER_MB * sent / (1 << 20))
+        budget = Budget(ratio_limit(sent), settings.upload_extract_s + SECONDS_PER_MB * sent / (1 << 20),
+                        per_unpacked_mb_s=SECONDS_PER_MB)
         label = packages[0][0] if packages else "upload"
         try:
-            _extract(area, packages, UNPACK_FACTOR * upload_limit(settings), budget, room, extracted)
+            _extract(area, packages, settings, budget, room, extracted)
             out = []
             for label, kind, where, _ in extracted:
                 try:
