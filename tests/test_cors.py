@@ -193,3 +193,38 @@ def test_a_value_that_is_no_origin_is_refused_naming_the_setting(tmp_path, value
     (home / "config.toml").write_text(f"cors_origins = [{json.dumps(value)}]\n")
     with pytest.raises(SettingsError, match="config.toml: setting 'cors_origins'"):
         load_settings(home, env={})
+
+
+def test_through_the_real_server_as_a_browser_sends_it(listed):
+    """The preflight and the call over a socket (webapp/server.py's guards in front), with the
+    headers Chrome sends for the web build's TrainingQueueService.enqueueEpisode."""
+    import http.client
+
+    from test_app_calls import youtube_record
+
+    from webapp.server import HttpServer
+
+    server = HttpServer(listed.application, "127.0.0.1", 0)
+    server.start()
+    try:
+        def send(method, headers, body=None):
+            conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+            try:
+                conn.request(method, "/api/training/queue/episodes", body=body,
+                             headers={"Host": f"127.0.0.1:{server.port}", "Origin": WEB_APP, **headers})
+                resp = conn.getresponse()
+                return resp.status, {k.lower(): v for k, v in resp.getheaders()}, resp.read()
+            finally:
+                conn.close()
+
+        status, headers, body = send("OPTIONS", {"Access-Control-Request-Method": "POST",
+                                                 "Access-Control-Request-Headers": "authorization,content-type"})
+        assert status == 204 and body == b"" and headers["access-control-allow-origin"] == WEB_APP
+        assert listed.seen == []
+        payload = json.dumps({"episode": youtube_record(), "request_public_listing": False}).encode()
+        status, headers, body = send("POST", {"Content-Type": "application/json",
+                                              "authorization": f"Bearer {listed.token}"}, payload)
+        assert status == 200 and headers["access-control-allow-origin"] == WEB_APP, body
+        assert json.loads(body)["action"] == "written" and "origin" in headers["vary"].lower()
+    finally:
+        server.stop()
