@@ -9,12 +9,13 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from hope_models.media.errors import DEFAULT_MAX_PIXELS, MediaError, label
 from hope_models.media.image import probe_image, read_image
 from hope_models.media.info import FrameInfo
 from hope_models.media.npy import load_npy, probe_npy
-from hope_models.media.pixels import area_resize, check_out_hw
+from hope_models.media.pixels import area_resize, area_resize_image, check_out_hw
 from hope_models.media.sniff import SNIFF_BYTES, sniff_bytes
 from hope_models.media.video import VIDEO_KINDS, open_video
 
@@ -82,10 +83,10 @@ def decode_still(path: str | os.PathLike, out_hw: tuple[int, int], kind: str = "
             fmt = _kind(f, name)
             if fmt in VIDEO_KINDS:
                 raise MediaError(f"{name}: a {fmt} video, not a still frame; read it with VideoFrames")
-            if fmt == "npy":
-                frame = load_npy(f, size, name, kind, max_pixels)
-            else:
-                frame = read_image(f, fmt, name, hw, kind, max_pixels)
+            frame: Image.Image | np.ndarray = (load_npy(f, size, name, kind, max_pixels) if fmt == "npy"
+                                               else read_image(f, fmt, name, hw, kind, max_pixels))
     except OSError as exc:
         raise MediaError(f"{name}: unreadable: {exc.strerror or exc}") from None
+    if isinstance(frame, Image.Image):  # a decoded RGB image goes straight into the same BOX resize
+        return area_resize_image(frame, hw)
     return area_resize(frame, hw)

@@ -69,9 +69,10 @@ def probe_image(f: BinaryIO, kind: str, name: str, max_pixels: int) -> FrameInfo
 
 
 def read_image(f: BinaryIO, kind: str, name: str, out_hw: tuple[int, int], frame_kind: str,
-               max_pixels: int) -> np.ndarray:
-    """The frame of an open JPEG/PNG before the area resize: uint8 RGB [h, w, 3], or float32 metres
-    [h, w, 1] for frame_kind "depth" (16-bit grey PNG, millimetres). A JPEG comes at its draft size."""
+               max_pixels: int) -> Image.Image | np.ndarray:
+    """The frame of an open JPEG/PNG before the area resize: a loaded Pillow RGB image, or float32
+    metres [h, w, 1] for frame_kind "depth" (16-bit grey PNG, millimetres). A JPEG comes at its
+    draft size."""
     fmt = PIL_FORMATS[kind]
     with pillow_errors(name, fmt):
         img = _open(f, kind, name, max_pixels)
@@ -86,7 +87,7 @@ def read_image(f: BinaryIO, kind: str, name: str, out_hw: tuple[int, int], frame
         # RGBA/LA/PA lose their alpha here: a camera frame's transparency carries nothing to learn
         rgb = img.convert("RGB") if img.mode != "RGB" else img
         rgb.load()
-        return np.asarray(rgb)
+        return rgb
 
 
 def _depth(img: Image.Image, fmt: str, name: str) -> np.ndarray:

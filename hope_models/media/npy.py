@@ -74,12 +74,13 @@ def load_npy(f, size: int, name: str, kind: str, max_pixels: int) -> np.ndarray:
     if size != expected:
         raise MediaError(f"{name}: {size} bytes, the header declares {expected} "
                          f"({list(header.shape)} {header.dtype}): {'truncated' if size < expected else 'trailing bytes'}")
-    f.seek(0)
-    try:
-        arr = np.load(f, allow_pickle=False)
-    except Exception as exc:  # untrusted bytes: whatever numpy raises means "not a usable frame"
-        raise MediaError(f"{name}: unreadable: {type(exc).__name__}: {exc}") from None
-    arr = arr.reshape(height, width, channels).astype(header.dtype.newbyteorder("="), copy=False)
+    # read once, right after the header already parsed (np.load would parse it again)
+    data = f.read(expected - header.offset)
+    if len(data) != expected - header.offset:
+        raise MediaError(f"{name}: truncated while reading ({len(data)} of {expected - header.offset} data bytes)")
+    arr = np.frombuffer(data, dtype=header.dtype).reshape((height, width, channels),
+                                                          order="F" if header.fortran else "C")
+    arr = arr.astype(header.dtype.newbyteorder("="), copy=False)
     try:
         if kind == "depth":
             if channels != 1 or arr.dtype == np.uint8:

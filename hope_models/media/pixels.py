@@ -64,10 +64,18 @@ def area_resize(img: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
         if img.shape[:2] == (height, width):
             return np.array(img, order="C", copy=True)
-        return np.array(Image.fromarray(np.ascontiguousarray(img)).resize((width, height), _BOX))
+        return area_resize_image(Image.fromarray(np.ascontiguousarray(img)), (height, width))
     if img.ndim == 3 and img.shape[2] == 1 and img.dtype == np.float32:
         return _depth_resize(img[:, :, 0], height, width)
     raise ValueError(f"area_resize takes uint8 [h, w, 3] or float32 [h, w, 1], not {img.dtype} {list(img.shape)}")
+
+
+def area_resize_image(img: Image.Image, out_hw: tuple[int, int]) -> np.ndarray:
+    """area_resize of a Pillow RGB image: what a decoder holding one skips the array round trip with."""
+    height, width = out_hw
+    if img.size != (width, height):
+        img = img.resize((width, height), _BOX)
+    return np.array(img)
 
 
 def _depth_resize(depth: np.ndarray, height: int, width: int) -> np.ndarray:
