@@ -359,7 +359,7 @@ def test_pi_mock_mode_package_of_blank_frames_is_taken_and_its_cameras_named(cli
     verdict_text = "\n".join(strings(ep))
     out = dataset(client, tmp_path / "cache")
     for camera in ("rgb", "depth"):
-        assert re.search(rf"(^|\W){camera}: ", verdict_text, re.M), (camera, ep)
+        assert re.search(rf"(^|\s){camera}: ", verdict_text, re.M), (camera, ep)
         assert re.search(rf"^\s*{camera}: ", out, re.M), (camera, out)
 
 
@@ -407,6 +407,8 @@ def test_xr_zip_without_its_frames_claims_no_camera(client, tmp_path):
     assert ep["action"] == "written", ep
     again = upload(client, xr.body, content_type="application/zip", headers=xr.headers)
     assert only_episode(again.get_json())["action"] == "unchanged"
+    # ... and says where the frames went
+    assert any(re.search(r"video_frame.*\b6 frame ids", w) for w in ep["warnings"]), ep["warnings"]
     _, steps = stored_steps(client, ep["episode_id"])
     assert all("video_frame" not in s.observation for s in steps)
     assert not any(re.search(r"\d+/\d+ frames, JPEG", s) for s in strings(ep)), ep
@@ -525,7 +527,7 @@ def test_bad_camera_media_is_named_never_a_500_and_dataset_says_why(client, tmp_
     done = cli(client, "dataset", str(client.settings.inbox_dir), "--cache-dir", str(tmp_path / "cache"))
     out = done.stdout + done.stderr
     assert "Traceback" not in out, out
-    lines = [ln for ln in out.splitlines() if re.search(rf"(^|\W){camera}: ", ln)]
+    lines = [ln for ln in out.splitlines() if re.search(rf"(^|\s){camera}: ", ln)]
     assert lines, (case, out)
     assert any(reason in ln.lower() for ln in lines), (case, lines)
     assert not any(re.search(rf"{camera}: ([1-9]\d*)/\d+ frames", ln) for ln in lines), (case, lines)

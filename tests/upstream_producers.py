@@ -59,7 +59,7 @@ def depth_mm(i: int, hw: tuple[int, int]) -> np.ndarray:
     of the rows 0 ("no reading", as a stereo camera leaves where it cannot match)."""
     h, w = hw
     y, x = np.mgrid[0:h, 0:w]
-    depth = (400 + 150 * (i % 40) + 2 * x + y).astype(np.uint16)
+    depth = (400 + 4 * (i % 5000) + 2 * x + y).astype(np.uint16)  # 4 mm further each step
     depth[: max(h // 8, 1)] = 0
     return depth
 
