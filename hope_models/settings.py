@@ -101,7 +101,7 @@ class Settings:
     # most upload_max_members members (the Pi writes an rgb and a depth .npy per step)
     # (webapp/uploads.py, hope_models/rlds/upload_package.py)
     upload_max_parts: int = 20_000
-    upload_unpack_max_mb: int = 4096
+    upload_unpack_max_mb: int = 3072
     upload_max_members: int = 20_000
     # continuous learning (daemon/continuous.py): when at least auto_train_min_new_episodes new
     # trainable episodes reached the inbox and the robot is idle, cool and has memory and disk to

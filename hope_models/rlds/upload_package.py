@@ -104,11 +104,12 @@ class _HeaderGuard(tarfile.TarInfo):
 
 
 def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None = None, *,
-             max_members: int = MAX_MEMBERS, cap_words: str | None = None) -> None:
+             max_members: int = MAX_MEMBERS, cap_words: str | None = None) -> int:
     """One streaming pass over the tar (inflated as it is read, nothing kept or written): the
     members' count against max_members, their declared sizes against max_total_bytes, the inflated
     stream against max_total_bytes plus the tar's own overhead (a lying or padded stream). 413
-    naming the file and the cap (`cap_words`, e.g. "upload_unpack_max_mb=4096")."""
+    naming the file and the cap (`cap_words`, e.g. "upload_unpack_max_mb=3072"). Returns the bytes
+    the members hold."""
     cap_words = cap_words or f"at most {max_total_bytes} bytes unpacked"
     with open(path, "rb") as raw:
         gzipped = raw.read(2) == GZIP_MAGIC
@@ -138,6 +139,7 @@ def scan_tar(path: Path, label: str, max_total_bytes: int, budget: Budget | None
             raise PackageError(f"{label}: not a readable tar archive: {exc}") from None
     if budget is not None:
         budget.unpacking(total)
+    return total
 
 
 def xr_dir_name(path: Path) -> str:
@@ -151,23 +153,33 @@ def _relabel(message: str, path: Path, label: str) -> str:
     return message.replace(str(path), label)
 
 
+def _no_room(label: str, total: int, room: int, room_words: str) -> PackageError:
+    return PackageError(f"{label}: unpacks to {total} bytes, but {room_words}; send it again when other uploads "
+                        "are done", 507)
+
+
 def extract_upload(path: str | os.PathLike, dest: str | os.PathLike, *, label: str,
                    max_total_bytes: int, budget: Budget | None = None, max_members: int = MAX_MEMBERS,
-                   cap_words: str | None = None) -> tuple[str, Path]:
+                   cap_words: str | None = None, room: int | None = None, room_words: str = "") -> tuple[str, Path]:
     """Extracts one package under `dest` (an empty dir of the caller's, one per package); returns
     (kind, the dir to ingest). Raises PackageError (or the budget's BudgetError), having left
-    nothing of this package behind. `cap_words` names where max_total_bytes comes from."""
+    nothing of this package behind: 413 past `max_total_bytes` (the cap `cap_words` names), 507
+    within it but past `room`, what may be written now (`room_words` says why: a transient refusal)."""
     path, dest = Path(path), Path(dest)
     kind = package_kind(path, label)
+    room = max_total_bytes if room is None else room
     if kind == "xr":
         try:
             return kind, extract_zip(path, dest / xr_dir_name(path), label=label, max_total_bytes=max_total_bytes,
-                                     max_members=max_members, budget=budget, cap_words=cap_words)
+                                     max_members=max_members, budget=budget, cap_words=cap_words, room=room,
+                                     room_words=room_words)
         except ZipPackageError as exc:
             raise PackageError(str(exc), exc.status) from None
-    scan_tar(path, label, max_total_bytes, budget, max_members=max_members, cap_words=cap_words)
+    total = scan_tar(path, label, max_total_bytes, budget, max_members=max_members, cap_words=cap_words)
+    if total > room:
+        raise _no_room(label, total, room, room_words)
     try:
-        return kind, extract_package(path, dest, max_total_bytes=max_total_bytes, budget=budget,
+        return kind, extract_package(path, dest, max_total_bytes=min(max_total_bytes, room), budget=budget,
                                      max_members=max_members)
     except ArchiveError as exc:
         raise PackageError(_relabel(str(exc), path, label)) from None

@@ -132,11 +132,13 @@ def _write_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, labe
 
 def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, label: str | None = None,
                 max_members: int = MAX_MEMBERS, max_total_bytes: int = 8 << 30, budget: Any = None,
-                cap_words: str | None = None) -> Path:
+                cap_words: str | None = None, room: int | None = None, room_words: str = "") -> Path:
     """Extracts the zip into `dest_dir` (created here; it must not exist) and returns it.
 
     Raises ZipPackageError (nothing left behind) when the zip is unsafe, corrupt or too large;
-    `budget` (rlds/inflate.Budget) is checked between members (its deadline: BudgetError)."""
+    `budget` (rlds/inflate.Budget) is checked between members (its deadline: BudgetError). Past
+    max_total_bytes (the cap `cap_words` names) 413; within it but past `room`, what may be written
+    now (`room_words` says why), 507."""
     zip_path, dest = Path(zip_path), Path(dest_dir)
     label = label or str(zip_path)
     cap_words = cap_words or f"at most {max_total_bytes} bytes unpacked"
@@ -150,8 +152,13 @@ def extract_zip(zip_path: str | os.PathLike, dest_dir: str | os.PathLike, *, lab
             raise ZipPackageError(f"{label}: not a readable zip archive: {exc}") from None
         with zf:
             plan = _plan(label, zf, max_total_bytes, cap_words)
+            declared = sum(info.file_size for info, _, kind in plan if kind == "file")
+            if room is not None and declared > room:
+                raise ZipPackageError(f"{label}: unpacks to {declared} bytes, but {room_words}; send it again when "
+                                      "other uploads are done", 507)
+            max_total_bytes = min(max_total_bytes, room if room is not None else max_total_bytes)
             if budget is not None:
-                budget.unpacking(sum(info.file_size for info, _, kind in plan if kind == "file"))
+                budget.unpacking(declared)
             dest.mkdir(mode=0o700)
             try:
                 total = 0

@@ -157,8 +157,12 @@ def _extract(area: Path, packages: list[tuple[str, Path]], settings: Any, budget
     appended to `into` as each dir is made, so the caller removes them whatever happens. What
     they unpack to is counted in $HOPE_HOME/tmp's room (TmpRoom) while they are there: one package
     unpacks to at most upload_unpack_max_mb, and never to more than that room."""
-    limit = int(settings.upload_unpack_max_mb) << 20
-    cap_words = f"upload_unpack_max_mb={settings.upload_unpack_max_mb}"
+    # the room in $HOPE_HOME/tmp can never exceed upload_tmp_max_mb: past that a package is as
+    # refused (413) as past its own cap; within it but past the room now, 507 (others hold it)
+    limit = min(int(settings.upload_unpack_max_mb), int(settings.upload_tmp_max_mb)) << 20
+    cap_words = (f"upload_unpack_max_mb={settings.upload_unpack_max_mb}"
+                 if settings.upload_unpack_max_mb <= settings.upload_tmp_max_mb
+                 else f"upload_tmp_max_mb={settings.upload_tmp_max_mb}")
     seen = set()
     for label, path in packages:
         sha = file_sha256(path)[:16]
@@ -170,14 +174,13 @@ def _extract(area: Path, packages: list[tuple[str, Path]], settings: Any, budget
         dest.mkdir()
         into.append((label, "", dest, dest))
         room_left = room.available()
-        room_words = f"$HOPE_HOME/tmp has room for {room_left} bytes now: upload_tmp_max_mb, disk_floor_mb"
         try:
-            kind, where = extract_upload(path, dest, label=label, max_total_bytes=min(limit, room_left),
-                                         budget=budget, max_members=int(settings.upload_max_members),
-                                         cap_words=cap_words if room_left >= limit else room_words)
+            kind, where = extract_upload(path, dest, label=label, max_total_bytes=limit, budget=budget,
+                                         max_members=int(settings.upload_max_members), cap_words=cap_words,
+                                         room=room_left, room_words=f"$HOPE_HOME/tmp has room for {room_left} "
+                                         "bytes now (upload_tmp_max_mb, disk_floor_mb)")
         except PackageError as exc:
-            # past the room rather than the cap: the same package may fit once other uploads are done
-            raise ApiError(exc.message, 507 if room_words in exc.message else exc.status) from None
+            raise ApiError(exc.message, exc.status) from None
         into[-1] = (label, kind, where, dest)
         room.take(sum(f.stat().st_size for f in dest.rglob("*") if f.is_file()), label)
 
