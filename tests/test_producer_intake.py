@@ -393,3 +393,48 @@ def test_a_stream_past_the_cap_stops_inflating_there(tmp_path):
         scan_tar(path, "file 'many.tar.gz'", 32 << 20, cap_words="cap-words")
     assert caught.value.status == 413 and time.monotonic() - t0 < 5
     assert [p.name for p in tmp_path.iterdir()] == ["many.tar.gz"]
+
+
+def test_past_the_cap_is_413_and_within_it_but_past_the_room_now_is_507(tmp_path):
+    from webapp.uploads import TmpRoom
+
+    c = make_client(tmp_path / "home", 1, HOPE_UPLOAD_UNPACK_MAX_MB="8", HOPE_UPLOAD_TMP_MAX_MB="8")
+    try:
+        def package(mb: int) -> bytes:
+            buf = io.BytesIO()
+            with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+                member = tarfile.TarInfo("ep_room/step_0000_rgb.npy")
+                member.size = mb << 20
+                tar.addfile(member, io.BytesIO(bytes(member.size)))
+            return buf.getvalue()
+
+        r = upload(c, package(10))
+        assert r.status_code == 413 and "upload_unpack_max_mb=8" in r.get_json()["error"], r.get_json()
+        other = TmpRoom(c.settings)  # another upload in progress holds 4 MB of $HOPE_HOME/tmp
+        other.take(4 << 20, "another upload")
+        try:
+            r = upload(c, package(6))
+            assert r.status_code == 507, r.get_json()
+            assert "unpacks to 6291456 bytes" in r.get_json()["error"] and "has room for" in r.get_json()["error"]
+        finally:
+            other.release()
+        r = upload(c, package(6))  # fits now; refused only for what it is (no upload_manifest.json)
+        assert r.status_code == 400 and "upload_manifest.json" in r.get_json()["error"], r.get_json()
+    finally:
+        c.close()
+
+
+def test_form_fields_are_bounded_in_all_not_only_one_by_one(tmp_path):
+    """Fields are held in memory: many just under the one-field limit must not add up unbounded."""
+    from webapp.uploads import MAX_FIELD_BYTES, MAX_FIELDS_BYTES
+
+    c = make_client(tmp_path / "home", 128)
+    try:
+        fields = {f"f{i}": "x" * (MAX_FIELD_BYTES - 1024) for i in range(MAX_FIELDS_BYTES // MAX_FIELD_BYTES + 1)}
+        body, ctype = multipart(fields, [])
+        r = c.post("/api/training/episode_handoff", data=body, content_type=ctype,
+                   headers={"authorization": f"Bearer {c.token}"})
+        assert r.status_code == 413 and f"more than {MAX_FIELDS_BYTES} bytes" in r.get_json()["error"], r.get_json()
+        assert inbox_files(c) == []
+    finally:
+        c.close()
