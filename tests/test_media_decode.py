@@ -416,7 +416,7 @@ def test_bad_media_is_a_media_error_naming_the_file(tmp_path):
             assert f"blobs/x.jpg ({tmp_path / name})" in message and why in message, (name, message)
     assert "empty file (0 bytes)" in media_error(VideoFrames, tmp_path / "empty.jpg")
     assert "not a video" in media_error(VideoFrames, tmp_path / "good.jpg")
-    assert "missing" in media_error(probe, tmp_path / "missing.jpg", where="missing")
+    assert "file not found" in media_error(probe, tmp_path / "missing.jpg", where="blobs/m.jpg")
 
 
 @pytest.mark.parametrize("dtype", ["int64", "float64", "bool", "int16", "complex64"])
