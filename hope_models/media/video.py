@@ -126,8 +126,10 @@ class VideoFrames:
         """uint8 [H, W, 3] per requested time (seconds from the first frame, non-decreasing), area-resized.
 
         A second call starts again from the first frame (the file is reopened)."""
+        if kind == "depth":  # the file, not the call, is what does not fit: a depth camera's video
+            raise MediaError(f"{self.name}: a {self.info.format} video holds colour frames, not depth")
         if kind != "rgb":
-            raise ValueError(f"kind {kind!r}: a video gives colour frames only (kind='rgb')")
+            raise ValueError(f"kind {kind!r}: expected 'rgb' (or 'depth', which no video holds)")
         hw = check_out_hw(out_hw)
         if self._container is None:
             raise ValueError(f"{self.name}: the video is closed")
