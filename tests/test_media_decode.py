@@ -216,6 +216,19 @@ def test_area_resize_dtypes_and_caller_errors():
     with pytest.raises(ValueError, match="out_hw"):
         area_resize(rgb, (0, 5))
     assert floats_to_uint8(np.array([0.0, 0.5, 1.0], np.float32)).tolist() == [0, 128, 255]
+    # depth: zeros, NaN and negatives are no reading, left out of the mean
+    holes = np.full((4, 4, 1), 3.0, np.float32)
+    holes[0, 0], holes[0, 1], holes[1, 0] = 0.0, np.nan, -1.0
+    holes[2:, 2:] = 0.0
+    assert area_resize(holes, (2, 2))[:, :, 0].tolist() == [[3.0, 3.0], [3.0, 0.0]]
+
+
+def test_probe_reads_only_the_header(tmp_path):
+    """A JPEG cut after its header probes fine (nothing decoded) and fails to decode."""
+    data = write_jpeg(tmp_path / "f.jpg", scene(480, 640)).read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[:2000])
+    assert strict(probe, tmp_path / "cut.jpg").describe(OUT) == "JPEG 480x640 -> 64x64"
+    assert "truncated" in media_error(decode_still, tmp_path / "cut.jpg", OUT)
 
 
 # -- videos ---------------------------------------------------------------------------------------

@@ -81,8 +81,9 @@ def area_resize_image(img: Image.Image, out_hw: tuple[int, int]) -> np.ndarray:
 def _depth_resize(depth: np.ndarray, height: int, width: int) -> np.ndarray:
     if depth.shape == (height, width):
         return np.array(depth, dtype=np.float32, copy=True).reshape(height, width, 1)
-    valid = (depth > 0).astype(np.float32)
-    total = np.asarray(Image.fromarray(np.ascontiguousarray(depth * valid)).resize((width, height), _BOX))
+    readings = depth > 0  # NaN and negatives are no reading either: they must not reach the mean
+    valid = readings.astype(np.float32)
+    total = np.asarray(Image.fromarray(np.where(readings, depth, np.float32(0.0))).resize((width, height), _BOX))
     share = np.asarray(Image.fromarray(valid).resize((width, height), _BOX))
     out = np.zeros((height, width), dtype=np.float32)
     # share is the valid fraction under each output pixel; below 1e-6 is rounding, not a reading
