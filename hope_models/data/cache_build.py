@@ -185,6 +185,25 @@ def build_cache(dataset: Path, root: Path, key: str, data_fp: str, request: Spec
         raise
 
 
+def _place_episode(writer: _Writer, ep, spec: FeatureSpec, cameras: list[tuple[str, str, FrameFeature]],
+                   sources: dict[str, Counter]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Appends one episode's rows and frames; on EpisodeMismatch nothing of it stays written."""
+    mark = writer.mark()
+    counted: dict[str, Counter] = {name: Counter() for name, _f, _c in cameras}
+    try:
+        t, obs, act = _episode_rows(ep, spec)
+        for name, _file, cam in cameras:  # last: the cheap checks fail first
+            _write_camera(writer, name, ep, cam, counted[name])
+    except EpisodeMismatch:
+        writer.rollback(mark)
+        raise
+    for name in counted:
+        sources[name].update(counted[name])
+    writer.append("steps", np.concatenate([obs, act], axis=1))
+    writer.append("t", t)
+    return t, obs, act
+
+
 def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | None) -> dict[str, Any]:
     writer = _Writer(tmp, spec)
     cameras = camera_arrays(spec)
@@ -211,21 +230,12 @@ def _stream_episodes(dataset: Path, tmp: Path, spec: FeatureSpec, skip: Path | N
                         excluded.append(Excluded(ep.episode_id, ep.source,
                                                  f"duplicate episode_id (also in {seen[ep.episode_id]})"))
                         continue
-                    mark = writer.mark()
-                    counted: dict[str, Counter] = {name: Counter() for name, _f, _c in cameras}
                     try:
-                        t, obs, act = _episode_rows(ep, spec)
-                        for name, _file, cam in cameras:  # last: the cheap checks fail first
-                            _write_camera(writer, name, ep, cam, counted[name])
+                        t, obs, act = _place_episode(writer, ep, spec, cameras, sources)
                     except EpisodeMismatch as exc:
-                        writer.rollback(mark)
                         excluded.append(Excluded(ep.episode_id, ep.source, str(exc)))
                         continue
                     seen[ep.episode_id] = ep.source
-                    for name in counted:
-                        sources[name].update(counted[name])
-                    writer.append("steps", np.concatenate([obs, act], axis=1))
-                    writer.append("t", t)
                     obs_stats.add(obs)
                     act_stats.add(act)
                     offsets.append(offsets[-1] + len(t))
