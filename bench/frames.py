@@ -14,7 +14,9 @@ Prints figures; it is not a test. One run:
      area resize,
   3. in a fresh pinned subprocess, decodes the long video into 64x64 frames and reports its peak
      RSS (VmHWM) and the growth over the RSS right after opening the video,
-  4. prints a table and PASS/FAIL for >= 1000 JPEG frames/s on one core.
+  4. in a fresh pinned subprocess, builds the training cache of that video as one episode (one
+     step per frame, as a producer recording a session writes it) and reports its peak RSS,
+  5. prints a table and PASS/FAIL for >= 1000 JPEG frames/s on one core and < 200 MB for the build.
 
     python bench/frames.py [--frames 200] [--minutes 10] [--out-hw 64 64] [--out DIR] [--keep]
 
@@ -208,7 +210,34 @@ def child_rss(path: str, out_h: str, out_w: str) -> dict:
     return {"core": core, **measure_video_rss(path, (int(out_h), int(out_w)))}
 
 
-CHILDREN = {"stills": measure_stills, "video": measure_video, "rss": child_rss}
+def write_video_episode(work: Path, video: Path, frames: int) -> Path:
+    """A dataset of one episode as a producer that records a session video writes it: one step per
+    video frame (30 Hz joints and command), every step naming the same file."""
+    ep = work / "video_ds" / "session"
+    ep.mkdir(parents=True, exist_ok=True)
+    os.link(video, ep / "session.mp4")  # a hard link: the episode dir must hold its files itself
+    steps = [{"observation": {"robot_state": {"joint_positions": [np.sin(i / 90), np.cos(i / 70), 0.1]},
+                              "egocentric_video": {"uri": "session.mp4"}},
+              "action": {"command": [np.sin(i / 50), 0.2]}, "timestamp_ns": 1_000_000_000 + i * 1_000_000_000 // FPS}
+             for i in range(frames)]
+    (ep / "episode.json").write_text(json.dumps({"metadata": {"episode_id": "session"}, "steps": steps}))
+    return ep.parent
+
+
+def child_cache(dataset: str, cache_root: str) -> dict:
+    """The whole cache build of a video episode (hope_models.data.cache.load_or_build: spec
+    inference, every frame decoded and resized, the arrays written), as `dataset` runs it."""
+    from hope_models.data.cache import load_or_build
+
+    core = pin_one_core()
+    started = time.perf_counter()
+    cache, _info = load_or_build(dataset, cache_root)
+    seconds = time.perf_counter() - started
+    frames = 0 if cache.frames is None else int(cache.frames.shape[0])
+    return {"core": core, "frames": frames, "seconds": seconds, "peak_rss_mb": peak_rss() / MB}
+
+
+CHILDREN = {"stills": measure_stills, "video": measure_video, "rss": child_rss, "cache": child_cache}
 
 
 def pinned_child(kind: str, *args: str) -> dict:
@@ -248,7 +277,8 @@ def main(argv: list[str] | None = None) -> int:
         stills = pinned_child("stills", str(work), out_h, out_w)
         video = pinned_child("video", str(short), out_h, out_w)
         rss = pinned_child("rss", str(long_video), out_h, out_w)
-        _report(a, stills, video, rss)
+        cache = pinned_child("cache", str(write_video_episode(work, long_video, n_long)), str(work / "cache"))
+        _report(a, stills, video, rss, cache)
     finally:
         if a.keep:
             print(f"kept {work}")
@@ -257,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _report(a, stills: dict, video: dict, rss: dict) -> None:
+def _report(a, stills: dict, video: dict, rss: dict, cache: dict) -> None:
     hw = f"{a.out_hw[0]}x{a.out_hw[1]}"
     print()
     print(f"one core (core {stills['core']}), 640x480 -> {hw}, frames/s")
@@ -273,6 +303,9 @@ def _report(a, stills: dict, video: dict, rss: dict) -> None:
     print(f"{a.minutes:g} min H.264 640x480 -> {hw}: {rss['frames']} frames in {rss['seconds']:.0f} s "
           f"({rss['frames'] / rss['seconds']:,.0f} frames/s), peak RSS {rss['peak_rss_mb']:.0f} MB, "
           f"{rss['growth_mb']:+.1f} MB over the RSS after opening ({rss['opened_rss_mb']:.0f} MB)")
+    print(f"cache build of that video as one {rss['frames']}-step episode (load_or_build, default 64x64): "
+          f"{cache['frames']} frames in {cache['seconds']:.0f} s, peak RSS {cache['peak_rss_mb']:.0f} MB "
+          f"(target < 200) {'PASS' if cache['peak_rss_mb'] < 200 else 'FAIL'}")
     verdict = "PASS" if stills["jpeg"] >= 1000 else "FAIL"
     print(f"JPEG frames/s on one core: {stills['jpeg']:,.0f} (target >= 1000) {verdict}")
 
