@@ -248,8 +248,7 @@ def test_the_verdict_names_each_camera_and_what_the_tokenizer_reads(tmp_path: Pa
     assert verdict["trainable"] == ["vqvae", "fast_loop", "mid_loop"]
     assert verdict["cameras"] == ["depth: 40/40 frames, NPY 400x640 -> 64x64 (depth, metres)",
                                   "egocentric_video: 40/40 frames, JPEG 480x640 -> 64x64",
-                                  f"wrist_rgb: 0/40 frames; step 0: 'blobs/empty.mp4' ({ep_dir / 'blobs/empty.mp4'}): "
-                                  "empty file (0 bytes)"]
+                                  "wrist_rgb: 0/40 frames; step 0: 'blobs/empty.mp4': empty file (0 bytes)"]
     reads = verdict["reads"]["vqvae"]
     assert reads.startswith("frame observation.egocentric_video (JPEG 480x640 -> 64x64); not usable: wrist_rgb")
 

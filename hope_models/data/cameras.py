@@ -142,10 +142,10 @@ def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck) -> st
             else:
                 decode_still(local, frame_shape(size, kind)[:2], kind, where)
             check.info = info
-    except MediaError as exc:
-        return str(exc)
+    except MediaError as exc:  # named by its URI alone: a verdict goes back to the producer
+        return str(exc).replace(f" ({local})", "")
     except StopIteration:
-        return f"{where} ({local}): the video has no frame"
+        return f"{where}: the video has no frame"
     check.formats.add(info.format)
     return None
 

@@ -223,7 +223,7 @@ def list_inbox(inbox_dir: str | os.PathLike) -> list[dict[str, Any]]:
 def _with_verdict(inbox: Path, record: dict[str, Any]) -> dict[str, Any]:
     """A record written by a plain ingest (the command line into the inbox dir) has no verdict yet:
     it is worked out here, for this answer (stored when an inbox ingest brings that episode again)."""
-    if "trainable" in record and "cameras" in record:
+    if "trainable" in record:  # stored by an inbox ingest (one written before cameras has none)
         return record
     eps = read_episode_dir(inbox / record["episode_id"]).episodes
     if not eps:

@@ -102,6 +102,16 @@ def _verdict(ep: Episode) -> tuple[list[str], dict[str, str], list[CameraCheck],
 VERDICT_EXTRAS = ("cameras", "reads")  # verdict keys beside trainable / not_trainable
 
 
+def verdict_fields(entry: dict[str, Any]) -> dict[str, Any]:
+    """The verdict of an inbox entry as the API answers it: trainable, not_trainable, cameras and,
+    when the tokenizer can train, what it reads."""
+    out = {"trainable": list(entry.get("trainable", [])), "not_trainable": dict(entry.get("not_trainable", {})),
+           "cameras": list(entry.get("cameras", []))}
+    if "reads" in entry:
+        out["reads"] = entry["reads"]
+    return out
+
+
 def trainable_json(ep: Episode) -> dict[str, Any]:
     """The verdict: what `ep` can train, why not the rest, each camera's line, what the tokenizer reads."""
     can, cannot, checks, reads = _verdict(ep)

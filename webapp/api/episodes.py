@@ -26,7 +26,7 @@ again, they are answered "unchanged"). Accepted ones go into the
 inbox (hope_models/data/inbox.py: validated with the train profile, blobs confined to the episode's
 own dir, idempotent); the answer lists each episode's verdict: 200 {"packages": [{"name", "kind",
 "episodes": [{"episode_id", "action", "status", "errors", "warnings", "steps", "trainable",
-"not_trainable", "tags", "origin", "source"}]}], "summary"}. A package with no episode in it is a
+"not_trainable", "cameras", "reads"?, "tags", "origin", "source"}]}], "summary"}. A package with no episode in it is a
 400. An episode validation rejects is listed (status "rejected", its errors) like the others.
 
 A list entry is hope_models/data/inbox.list_inbox's: {"episode_id", "steps", "status" (ok |
@@ -56,6 +56,7 @@ from hope_models.intake.inbox import (
     list_inbox,
     tag_episode,
 )
+from hope_models.intake.trainable import verdict_fields
 from hope_models.rlds.inflate import Budget, InflateError, ratio_limit
 from hope_models.rlds.upload_package import KINDS, PackageError, extract_upload
 from webapp.api.validation import get_str, json_body, query_args
@@ -130,8 +131,7 @@ def _episode_answer(entry: dict[str, Any], where: re.Pattern, label: str) -> dic
     entry = _entry(entry, where, label + ":")
     return {"episode_id": entry.get("episode_id"), "action": entry["action"], "status": entry["status"],
             "errors": entry.get("errors") or [], "warnings": entry.get("warnings") or [],
-            "steps": entry.get("steps", 0), "trainable": entry.get("trainable", []),
-            "not_trainable": entry.get("not_trainable", {}), "tags": entry.get("tags", []),
+            "steps": entry.get("steps", 0), **verdict_fields(entry), "tags": entry.get("tags", []),
             "origin": entry.get("origin"), "source": entry.get("source")}
 
 

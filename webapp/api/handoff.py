@@ -9,7 +9,9 @@ settings.upload_max_mb (webapp/uploads.py), read after the token check.
 The episode goes into the inbox (hope_models/data/inbox.py: validated, blobs confined to the
 episode's own dir, named by its content, so a repeated handoff is the same episode). The answer:
 200 {"remote_uris": {local_uri: path under $HOPE_HOME}, "episode_id", "action" (written |
-unchanged | duplicate), "status" (ok | warnings), "trainable", "not_trainable", "warnings"}; the
+unchanged | duplicate), "status" (ok | warnings), "trainable", "not_trainable", "cameras" (one line
+per camera: "egocentric_video: 12/12 frames, JPEG 480x640 -> 64x64" or why not), "reads" (what the
+tokenizer will read), "warnings"}; the
 app reads remote_uris. Bad JSON, a field of the wrong shape (named, e.g.
 `manifest.steps[3].action: ...`) or a file part no asset names is a 400 with nothing written; an
 episode validation rejects is a 422 with its reasons (listed as rejected in the inbox).
@@ -24,6 +26,7 @@ from typing import Any
 from flask import Blueprint, current_app, jsonify
 
 from hope_models.intake.inbox import HANDOFF_ORIGIN, InboxError, ingest_record
+from hope_models.intake.trainable import verdict_fields
 from hope_models.rlds.json_text import TextReadError, parse_json_document
 from webapp.errors import ApiError, error_response
 from webapp.uploads import large_body, received
@@ -87,5 +90,5 @@ def episode_handoff():
     if entry["action"] == "written":
         hope.wake_daemon()
     return jsonify({"remote_uris": remote, "episode_id": entry["episode_id"], "action": entry["action"],
-                    "status": "warnings" if entry["warnings"] else "ok", "trainable": entry["trainable"],
-                    "not_trainable": entry["not_trainable"], "warnings": entry["warnings"]})
+                    "status": "warnings" if entry["warnings"] else "ok", **verdict_fields(entry),
+                    "warnings": entry["warnings"]})

@@ -16,7 +16,8 @@ status and the body, which the importer shows. The answer:
 
     200 {"success": true, "queued": true, "episode_id": "app-<content hash>", "action": "written" |
          "unchanged" | "duplicate", "status": "ok" | "warnings", "trainable": [...],
-         "not_trainable": {component: why}, "warnings": [...], "public_listing": false}
+         "not_trainable": {component: why}, "cameras": [...], "reads"?, "warnings": [...],
+         "public_listing": false}
     400 a body of the wrong shape, naming the field (`episode.steps[3].action: ...`, `share.tags: ...`)
     422 an episode validation rejects, with its reasons (listed as rejected in the inbox)
 
@@ -38,6 +39,7 @@ from typing import Any
 from flask import Blueprint, current_app, jsonify
 
 from hope_models.intake.inbox import InboxError, ingest_record
+from hope_models.intake.trainable import verdict_fields
 from webapp.api.validation import json_body
 from webapp.errors import ApiError, error_response
 
@@ -104,5 +106,5 @@ def queue_episode():
     if entry["action"] == "written":
         hope.wake_daemon()
     return jsonify({"success": True, "queued": True, "episode_id": entry["episode_id"], "action": entry["action"],
-                    "status": "warnings" if warnings else "ok", "trainable": entry["trainable"],
-                    "not_trainable": entry["not_trainable"], "warnings": warnings, "public_listing": False})
+                    "status": "warnings" if warnings else "ok", **verdict_fields(entry), "warnings": warnings,
+                    "public_listing": False})
