@@ -83,6 +83,9 @@ def resolve(name: str, spec: FeatureSpec, model_config: dict | None, vq_cfg: VQV
     "required"; ignored for one that reads none)."""
     check_keys(name, {} if model_config is None else model_config)
     component = spec_of(name)
+    if spec.act_dim == 0 and not component.tokenizer:
+        raise ValueError(f"{name} learns from actions, and this dataset has none (its feature spec's action group "
+                         f"is empty: no numeric action field); only the {TOKENIZER} trains on it")
     overrides = dict(model_config or {})
     window = window_for(name, overrides.pop("window", None))
     if not component.reads_codes:

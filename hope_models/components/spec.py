@@ -24,10 +24,11 @@ class EpisodeFacts:
     steps: int
     duration_s: float
     clocked: bool  # every step has a timestamp_ns (windows are placed in time)
-    missing: str  # why it has no feature spec ("" when it has observations and actions)
+    missing: str  # why it has no feature spec ("" when it has a numeric observation)
     has_frame: bool
     has_obs: bool
     frame_note: str  # why its frames are not usable, "" if they are or there are none
+    no_action: str = ""  # why it has no numeric action ("" when it has one): only the tokenizer trains without
 
 
 # The fewest points a window has on the clock (the Fast Loop's K over 100 ms): an episode with fewer
@@ -38,8 +39,8 @@ MIN_WINDOW_POINTS = 5
 def on_a_clock(facts: EpisodeFacts) -> str | None:
     """Why an episode cannot train a loop, whose windows are placed in time: no feature spec, steps
     without a timestamp, or fewer steps than a window's points; None if it can."""
-    if facts.missing:
-        return facts.missing
+    if facts.missing or facts.no_action:
+        return "; ".join(r for r in (facts.missing, facts.no_action) if r)
     if not facts.clocked:
         return "steps without a clock (timestamp_ns): windows are placed in time"
     if facts.steps < MIN_WINDOW_POINTS:

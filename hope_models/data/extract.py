@@ -73,5 +73,7 @@ def field_matrix(steps: list, f: FeatureField | FrameFeature, dtype=np.float64) 
 
 
 def group_matrix(steps: list, group: FeatureGroup) -> np.ndarray:
+    if not group.fields:  # the empty action group of a camera dataset without actions
+        return np.zeros((len(steps), 0))
     parts = [field_matrix(steps, f) for f in group.fields]
     return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]

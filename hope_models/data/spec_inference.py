@@ -152,6 +152,7 @@ def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None =
         return FeatureGroup(fields, partial.mean, partial.std)
 
     observation = resolve(request.observation, "observation", obs_paths)
+    no_action: FeatureSpecError | None = None
     if request.action is None:
         # The documented action is the command vector; named scalars and Kotlin's tagged objects
         # (linear_mps.x, ...) are the fallback when a dataset has no usable command.
@@ -161,7 +162,10 @@ def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None =
             action = FeatureGroup(chosen)
         else:
             others = sorted(p for p in counts if p.startswith("action.") and p != "action.command")
-            action = resolve(None, "action", others)
+            try:
+                action = resolve(None, "action", others)
+            except FeatureSpecError as exc:  # fine for a camera dataset: the tokenizer needs no action
+                action, no_action = FeatureGroup([]), exc
     else:
         action = resolve(request.action, "action", [])
 
@@ -179,6 +183,13 @@ def infer_spec(signatures: list[EpisodeSignature], request: SpecRequest | None =
                 notes.append(f"{p}: no frame feature ({length} values in {c} of {n} episodes; needs "
                              f"{math.prod(FRAME_SHAPE)} in {need})")
         frame, cameras = _infer_cameras(signatures, need, notes, frame, size)
+    if no_action is not None:
+        if frame is None:  # nothing to train at all: say why the cameras could not stand in
+            unusable = [note for note in notes if ": not stored (frames decode" in note]
+            raise FeatureSpecError(str(no_action) + ("; and no camera for the tokenizer: " + "; ".join(unusable)
+                                                     if unusable else "")) from None
+        notes.append(f"action: none ({no_action}); only the tokenizer trains on this dataset, from "
+                     f"{frame.path}")
     return FeatureSpec(observation, action, frame, request.std_floor, notes, cameras)
 
 

@@ -138,7 +138,9 @@ def read_spec_json(path: Path) -> Any:
 
 
 def _parse_group(obj: Any, root: str, where: str, std_floor: float) -> PartialGroup:
-    if not isinstance(obj, dict) or not isinstance(obj.get("fields"), list) or not obj["fields"]:
+    # An empty action group is a camera dataset without actions (only the tokenizer trains on it).
+    if (not isinstance(obj, dict) or not isinstance(obj.get("fields"), list)
+            or not (obj["fields"] or root == "action")):
         raise FeatureSpecError(f"{where}: needs a non-empty 'fields' list")
     fields: list[PartialField] = []
     for i, f in enumerate(obj["fields"]):

@@ -4,9 +4,10 @@ The rules are the ones a training run applies, read off the same signature the f
 inference uses (`spec_inference.episode_signature`: the numeric leaves present with one length at
 the first and the last step, and the `.npy` frames that load):
 
-* every component's dataset needs a feature spec, and a spec has a numeric observation group and
-  a numeric action group (`infer_spec`; empty lists and lists longer than MAX_VECTOR are left out),
-  so an episode without both trains nothing, whatever its frames;
+* every component's dataset needs a feature spec, and a spec has a numeric observation group
+  (`infer_spec`; empty lists and lists longer than MAX_VECTOR are left out) and a numeric action
+  group, which may be empty when the dataset has a camera: then only the tokenizer trains (the app's
+  record screen sends an empty command);
 * `vqvae`: that observation vector, or a colour camera whose frames decode at every step (inline
   `image_rgb`, or a frame file: .npy, JPEG, PNG or video, data/cameras.py); the verdict says per
   camera what will be used ("egocentric_video: 12/12 frames, JPEG 480x640 -> 64x64") or why not,
@@ -80,15 +81,14 @@ def _verdict(ep: Episode) -> tuple[list[str], dict[str, str], list[CameraCheck],
     has_frame = inline is not None or any(c.ok and c.kind == "rgb" for c in checks)
     colour = [c for c in checks if c.kind == "rgb"]
     frame_why = None if has_frame or not colour else colour[0].describe(DEFAULT_FRAME_SIZE)
-    missing = []
-    if not obs:
-        missing.append("no numeric observation field (a feature spec needs one, frames or not)")
+    missing = "" if obs else "no numeric observation field (a feature spec needs one, frames or not)"
+    no_action = ""
     if not act:
         empty = [p for p, n in sig.leaves.items() if p.startswith("action.") and n == 0]
-        missing.append(f"{empty[0]} is always empty" if empty else "no numeric action field")
+        no_action = f"{empty[0]} is always empty" if empty else "no numeric action field"
     clocked = [s.timestamp_ns for s in ep.steps if s.timestamp_ns is not None]
     facts = EpisodeFacts(steps=len(ep.steps), duration_s=ep.duration_s, clocked=len(clocked) == len(ep.steps),
-                         missing="; ".join(missing), has_frame=has_frame, has_obs=bool(obs),
+                         missing=missing, no_action=no_action, has_frame=has_frame, has_obs=bool(obs),
                          frame_note=frame_why or "")
     why: dict[str, str] = {}
     tokenizer_reason = COMPONENTS[TOKENIZER].cannot_train(facts, None)

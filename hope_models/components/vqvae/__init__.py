@@ -33,8 +33,11 @@ def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: None) 
 
 
 def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | None:
-    if facts.missing:
-        return facts.missing + (f"; {facts.frame_note}" if facts.frame_note and not facts.has_frame else "")
+    # A dataset without actions still has a feature spec when it has a camera: its frames are
+    # what the tokenizer learns (the app's record screen sends an empty command).
+    missing = "; ".join(r for r in (facts.missing, "" if facts.has_frame else facts.no_action) if r)
+    if missing:
+        return missing + (f"; {facts.frame_note}" if facts.frame_note and not facts.has_frame else "")
     if not (facts.has_frame or facts.has_obs):
         return "no frame and no numeric observation vector"
     return None
