@@ -156,3 +156,32 @@ def test_a_camera_that_fails_mid_episode_leaves_no_frames_behind(tmp_path):
     assert cache.episode_ids == ["ep0", "ep2"] and cache.frames.shape[0] == 400
     assert "step 150: observation.rgb.uri" in cache.manifest["excluded"][0]["reason"]
     assert np.array_equal(cache.frames[200 + 7], _reference(_image(27, 48, 64), 64))
+
+
+def test_a_camera_dataset_without_actions_trains_only_the_tokenizer(tmp_path):
+    from hope_models.components.resolve import resolve
+
+    ds = tmp_path / "ds"
+    for e in range(2):
+        def cams(i, e=e):
+            (ds / f"ep{e}").mkdir(parents=True, exist_ok=True)
+            Image.fromarray(_image(e * 9 + i, 96, 128)).save(ds / f"ep{e}" / f"ego-{i}.jpg", quality=90)
+            return {"egocentric_video": {"uri": f"ego-{i}.jpg"}}
+        ep = _episode(ds, f"ep{e}", 6, cams)
+        doc = json.loads((ep / "episode.json").read_text())
+        for step in doc["steps"]:  # the app's record screen: an empty command
+            step["action"] = {"command": [], "source": "human_teleop_xr"}
+        (ep / "episode.json").write_text(json.dumps(doc))
+    cache, _ = load_or_build(ds, tmp_path / "cache")
+    assert cache.spec.act_dim == 0 and cache.spec.frame is not None and cache.n_steps == 12
+    assert any(n.startswith("action: none (") and "only the tokenizer trains" in n for n in cache.spec.notes)
+    assert resolve("vqvae", cache.spec, None).cfg.input == "frame"
+    with pytest.raises(ValueError, match="fast_loop learns from actions, and this dataset has none"):
+        resolve("fast_loop", cache.spec, None)
+
+    for e in range(2):  # the same episodes with their pictures gone: nothing to train, and it says why
+        for f in (ds / f"ep{e}").glob("ego-*.jpg"):
+            f.write_bytes(b"")
+    with pytest.raises(FeatureSpecError, match=r"no numeric action field.*no camera for the tokenizer: "
+                                         r"observation.egocentric_video: not stored \(frames decode in 0 of 2"):
+        load_or_build(ds, tmp_path / "cache2")
