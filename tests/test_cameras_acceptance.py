@@ -336,8 +336,11 @@ def test_pi_upload_package_rgb_and_depth_reach_the_trainer(client, tmp_path):
     out = dataset(client, cache)
     for line in lines:
         assert line in out, out
-    assert_cache_frames(client, cache, pkg.episode_id, "rgb", {i: ref_rgb(pkg.rgb[i], OUT_HW) for i in range(6)},
-                        tol=1.0)
+    # the runtime's OAK-D hands the recorder getCvFrame()'s BGR array (continuonbrain/sensors/
+    # oak_depth.py) and it is saved as it is: the reference says so, the cache holds RGB
+    assert step.observation["rgb"].get("channel_order") == "bgr"
+    assert_cache_frames(client, cache, pkg.episode_id, "rgb",
+                        {i: ref_rgb(np.ascontiguousarray(pkg.rgb[i][..., ::-1]), OUT_HW) for i in range(6)}, tol=1.0)
     assert train_vqvae(client, cache, tmp_path / "run")["model_config"]["input"] == "frame"
 
 
@@ -361,6 +364,8 @@ def test_pi_mock_mode_package_of_blank_frames_is_taken_and_its_cameras_named(cli
     for camera in ("rgb", "depth"):
         assert re.search(rf"(^|\s){camera}: ", verdict_text, re.M), (camera, ep)
         assert re.search(rf"(^|\s){camera}: ", out, re.M), (camera, out)
+        # taken, but never passed off as a picture: the verdict says the frames are blank
+        assert re.search(rf"(^|\s){camera}: 6/6 frames, .*; blank: ", verdict_text, re.M), (camera, ep)
 
 
 # -- the XR app: RldsEpisodeWriter + HttpRldsUploader ----------------------------------------------------------

@@ -74,6 +74,7 @@ class CameraCheck:
     info: FrameInfo | None = None  # of the first usable frame
     problem: str | None = None  # the first step's reason when a frame is not usable
     formats: set[str] = field(default_factory=set)
+    blank: bool | None = None  # every fully decoded frame was one flat value (None: none decoded)
 
     @property
     def ok(self) -> bool:
@@ -92,7 +93,20 @@ class CameraCheck:
                 line += " (depth, metres)"
         if self.problem:
             line += f"; {self.problem}"
+        if self.blank and self.usable:
+            line += ("; blank: the frames checked are one flat value (all zeros is what a recorder in mock mode "
+                     "or with a dropped camera saves)")
         return line
+
+
+CHANNEL_ORDERS = ("rgb", "bgr")
+
+
+def channel_order(step, path: str) -> str:
+    """"bgr" when the step's reference says its colour frame is stored blue first, else "rgb"."""
+    v = _get(step.observation, tuple(path.split(".")[1:]))
+    order = v.get("channel_order", "rgb") if isinstance(v, dict) else "rgb"
+    return order if order in CHANNEL_ORDERS else "rgb"
 
 
 def _step_file(step, path: str, blob_root: str | None) -> tuple[str, Any]:
@@ -116,6 +130,7 @@ def check_camera(steps: list, path: str, blob_root: str | None, size: int, every
     indices = range(len(steps)) if every_step else sorted({0, len(steps) - 1})
     check = CameraCheck(path, kind, len(indices))
     seen: dict[str, str | None] = {}  # uri -> None when usable, else why not
+    last = indices[-1] if indices else -1
     for i in indices:
         try:
             uri, local = _step_file(steps[i], path, blob_root)
@@ -123,7 +138,9 @@ def check_camera(steps: list, path: str, blob_root: str | None, size: int, every
             check.problem = check.problem or f"step {i}: {exc}"
             continue
         if uri not in seen:
-            seen[uri] = _check_file(local, uri, kind, size, check)
+            # the first usable frame and the last step's decode in full (a header can lie, and a
+            # blank camera shows at both ends); the rest only have their headers read
+            seen[uri] = _check_file(local, uri, kind, size, check, full=check.info is None or i == last)
         if seen[uri] is None:
             check.usable += 1
         else:
@@ -131,17 +148,19 @@ def check_camera(steps: list, path: str, blob_root: str | None, size: int, every
     return check
 
 
-def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck) -> str | None:
+def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck, full: bool) -> str | None:
     where = repr(uri)  # the media layer adds the local path
     try:
         info = probe(local, where)
-        if check.info is None:  # the first usable frame decodes in full: a header can lie
+        if full:
             if _is_video(local, where):
                 with VideoFrames(local, where) as video:
-                    next(iter(video.frames_at([0.0], frame_shape(size, kind)[:2], kind)))
+                    img = next(iter(video.frames_at([0.0], frame_shape(size, kind)[:2], kind)))
             else:
-                decode_still(local, frame_shape(size, kind)[:2], kind, where)
-            check.info = info
+                img = decode_still(local, frame_shape(size, kind)[:2], kind, where)
+            flat = bool(img.min() == img.max())
+            check.blank = flat if check.blank is None else (check.blank and flat)
+            check.info = check.info or info
     except MediaError as exc:  # named by its URI alone: a verdict goes back to the producer
         return str(exc).replace(f" ({local})", "")
     except StopIteration:
@@ -188,6 +207,8 @@ def read_camera(steps: list, frame: FrameFeature, blob_root: str | None,
                     raise MediaError(f"{where} ({local}): gave {got} of the {len(times)} frames asked for")
             else:
                 img = decode_still(local, out_hw, frame.kind, where)
+                if frame.kind == "rgb" and channel_order(steps[i], frame.path) == "bgr":
+                    img = np.ascontiguousarray(img[..., ::-1])
                 for _ in range(i, run_end):
                     yield img
         except MediaError as exc:

@@ -8,7 +8,9 @@ Two producers keep their frames out of the step JSON:
                  the step's position in the list (continuonbrain/aina_impl/dataset.py:
                  `ep_path / f"step_{step_idx:04d}_rgb.npy"` for `episode["steps"][step_idx]`).
                  `attach_pi_files` sets `observation.rgb` / `observation.depth` =
-                 {"uri": "step_0003_rgb.npy", "found_by": "file_name"} by that position.
+                 {"uri": "step_0003_rgb.npy", "found_by": "file_name"} by that position; the rgb
+                 reference also says `"channel_order": "bgr"`: the runtime's OAK-D camera hands it
+                 getCvFrame()'s BGR array (continuonbrain/sensors/oak_depth.py), saved as it is.
     XR app       `observation.videoFrameId` = "frame_<ms>_<i>" naming `<id>.jpg`, written to a
                  `video_frames/` dir that by default sits beside the episode dir, not in it
                  (apps/continuonxr/.../trainer/TrainerRldsExtensions.kt), so a zip of the episode
@@ -31,6 +33,7 @@ from pathlib import Path
 from .episode import Episode
 
 PI_FILES = (("rgb", "step_{:04d}_rgb.npy", "rgb_shape"), ("depth", "step_{:04d}_depth.npy", "depth_shape"))
+PI_CHANNEL_ORDER = {"rgb": "bgr"}  # what the Pi runtime's camera writes into step_*_rgb.npy
 BY_NAME = "file_name"
 XR_IDS = (("video_frame", "video_frame_id"), ("depth_frame", "depth_frame_id"))
 BY_ID = "frame_id"
@@ -67,7 +70,10 @@ def attach_pi_files(ep: Episode, root: Path) -> None:
             elif existing is not None:
                 clash.append(i)
             else:
-                step.observation[key] = {"uri": name, "found_by": BY_NAME}
+                ref = {"uri": name, "found_by": BY_NAME}
+                if key in PI_CHANNEL_ORDER:
+                    ref["channel_order"] = PI_CHANNEL_ORDER[key]
+                step.observation[key] = ref
                 attached += 1
         field = f"observation.{key}"
         if clash:
