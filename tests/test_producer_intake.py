@@ -22,7 +22,6 @@ import gzip
 import hashlib
 import io
 import json
-import shutil
 import tarfile
 import time
 import zipfile
@@ -32,6 +31,7 @@ from urllib.parse import quote
 import numpy as np
 import pytest
 from test_app_handoff import inbox_files, make_client, multipart
+from upstream_producers import create_upload_package
 
 CACHE = "/data/user/0/com.continuonxr.fluttercompanion.flutter_companion/cache"
 JPEG = b"\xff\xd8\xff\xe0\x00\x10JFIF\x00" + bytes(40) + b"\xff\xd9"
@@ -223,31 +223,6 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def create_upload_package(episode_path: Path, staging: Path) -> Path:
-    """episode_upload.EpisodeUploadPipeline.create_upload_package, step by step."""
-    metadata = json.loads((episode_path / "episode.json").read_text())["metadata"]
-    episode_id = metadata["episode_id"]
-    stage = staging / episode_id
-    stage.mkdir(parents=True)
-    shutil.copy(episode_path / "episode.json", stage / "episode.json")
-    checksums = {"episode.json": sha256(stage / "episode.json")}
-    total = (stage / "episode.json").stat().st_size
-    for file_path in episode_path.glob("step_*.npy"):
-        shutil.copy(file_path, stage / file_path.name)
-        checksums[file_path.name] = sha256(stage / file_path.name)
-        total += (stage / file_path.name).stat().st_size
-    manifest = {"episode_id": episode_id, "total_steps": metadata["total_steps"], "robot_type": metadata["robot_type"],
-                "xr_mode": metadata["xr_mode"], "action_source": metadata["action_source"],
-                "created_timestamp_ns": metadata.get("start_timestamp_ns", time.time_ns()),
-                "file_checksums": checksums, "metadata_checksum": checksums["episode.json"],
-                "total_size_bytes": total, "version": "1.0.0"}
-    (stage / "upload_manifest.json").write_text(json.dumps(manifest, indent=2))
-    tar_path = staging / f"{episode_id}.tar.gz"
-    with tarfile.open(tar_path, "w:gz") as tar:
-        tar.add(stage, arcname=episode_id)
-    return tar_path
-
-
 def upload(client, body: bytes):
     return client.post("/api/episodes/upload", data=body, content_type="application/gzip",
                        headers={"Authorization": f"Bearer {client.token}"})
@@ -267,7 +242,8 @@ def test_a_zero_frame_pi_package_of_300_steps_is_stored_with_its_frames(client, 
     assert len(steps) == 300
     for i in (0, 3, 299):
         obs = steps[i]["observation"]
-        assert obs["rgb"] == {"uri": f"blobs/step_{i:04d}_rgb.npy", "found_by": "file_name"}
+        assert obs["rgb"] == {"uri": f"blobs/step_{i:04d}_rgb.npy", "found_by": "file_name",
+                              "channel_order": "bgr"}
         assert obs["depth"] == {"uri": f"blobs/step_{i:04d}_depth.npy", "found_by": "file_name"}
         assert np.load(ep_dir / obs["rgb"]["uri"]).shape == (480, 640, 3)
     assert len(list((ep_dir / "blobs").glob("step_*_rgb.npy"))) == 300
@@ -286,7 +262,7 @@ def test_pi_frames_are_attached_by_position_and_the_missing_ones_counted(tmp_pat
     (ep_dir / "episode.json").write_text(json.dumps(doc))
     (ep,) = read_path(ep_dir / "episode.json")[0].episodes
     rgb = [s.observation.get("rgb") for s in ep.steps]
-    assert rgb[0] == {"uri": "step_0000_rgb.npy", "found_by": "file_name"} and rgb[2] is None and rgb[4] is None
+    assert rgb[0] == {"uri": "step_0000_rgb.npy", "found_by": "file_name", "channel_order": "bgr"} and rgb[2] is None and rgb[4] is None
     assert ep.steps[5].observation["depth"] == "the producer's own"
     assert ep.steps[1].observation["depth"] == {"uri": "step_0001_depth.npy", "found_by": "file_name"}
     words = [str(p) for p in ep.warnings]

@@ -27,6 +27,7 @@ import io
 import json
 import shutil
 import tarfile
+import time
 import wave
 import zipfile
 from dataclasses import dataclass, field
@@ -295,29 +296,38 @@ def pi_package(tmp: Path, n_steps: int = 6, *, mock: bool = False, episode_id: s
         np.save(src / f"step_{i:04d}_rgb.npy", rgbs[i])
         np.save(src / f"step_{i:04d}_depth.npy", depths[i])
         (src / f"step_{i:04d}_audio.wav").write_bytes(wav(seed=i))  # written, never packed
-    # create_upload_package
-    stage = tmp / "staging" / episode_id
-    stage.mkdir(parents=True)
-    shutil.copy(src / "episode.json", stage / "episode.json")
-    checksums = {"episode.json": _sha256(stage / "episode.json")}
-    total = (stage / "episode.json").stat().st_size
-    for p in src.glob("step_*.npy"):
-        shutil.copy(p, stage / p.name)
-        checksums[p.name] = _sha256(stage / p.name)
-        total += (stage / p.name).stat().st_size
-    manifest = {"episode_id": episode_id, "total_steps": n_steps, "robot_type": "SO-ARM101", "xr_mode": "trainer",
-                "action_source": "human_teleop_xr", "created_timestamp_ns": start_ns, "file_checksums": checksums,
-                "metadata_checksum": checksums["episode.json"], "total_size_bytes": total, "version": "1.0.0"}
-    with open(stage / "upload_manifest.json", "w") as f:
-        json.dump(manifest, f, indent=2)
-    tar_path = tmp / "staging" / f"{episode_id}.tar.gz"
-    with tarfile.open(tar_path, "w:gz") as tar:
-        tar.add(stage, arcname=episode_id)
+    tar_path = create_upload_package(src, tmp / "staging")
     return PiPackage(episode_id, tar_path.read_bytes(), rgbs, depths)
 
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def create_upload_package(episode_path: Path, staging: Path) -> Path:
+    """episode_upload.EpisodeUploadPipeline.create_upload_package, step by step: a stage dir
+    <episode_id>/ with episode.json, every step_*.npy (no WAVs) and upload_manifest.json, tarred."""
+    metadata = json.loads((episode_path / "episode.json").read_text())["metadata"]
+    episode_id = metadata["episode_id"]
+    stage = staging / episode_id
+    stage.mkdir(parents=True)
+    shutil.copy(episode_path / "episode.json", stage / "episode.json")
+    checksums = {"episode.json": _sha256(stage / "episode.json")}
+    total = (stage / "episode.json").stat().st_size
+    for file_path in episode_path.glob("step_*.npy"):
+        shutil.copy(file_path, stage / file_path.name)
+        checksums[file_path.name] = _sha256(stage / file_path.name)
+        total += (stage / file_path.name).stat().st_size
+    manifest = {"episode_id": episode_id, "total_steps": metadata["total_steps"], "robot_type": metadata["robot_type"],
+                "xr_mode": metadata["xr_mode"], "action_source": metadata["action_source"],
+                "created_timestamp_ns": metadata.get("start_timestamp_ns", time.time_ns()),
+                "file_checksums": checksums, "metadata_checksum": checksums["episode.json"],
+                "total_size_bytes": total, "version": "1.0.0"}
+    (stage / "upload_manifest.json").write_text(json.dumps(manifest, indent=2))
+    tar_path = staging / f"{episode_id}.tar.gz"
+    with tarfile.open(tar_path, "w:gz") as tar:
+        tar.add(stage, arcname=episode_id)
+    return tar_path
 
 
 # -- the XR app: TrainerRldsRecorder over RldsEpisodeWriter, zipped by HttpRldsUploader -------------------

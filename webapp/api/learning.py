@@ -56,37 +56,29 @@ def training_status():
     return jsonify({"status": _status()})
 
 
-@bp.post("/api/learning/pause")
-def pause():
+def _apply(action: str):
+    """One of registry/learning.py's pause, resume, reset, then the daemon woken so it acts on it
+    at once rather than at its next tick."""
     from registry import learning  # lazy: loads sqlalchemy
 
     no_body()
     state = _state()
     with state.registry.session() as s:
-        out = learning.pause(s)
+        out = getattr(learning, action)(s)
     state.wake_daemon()
     return jsonify({"success": True, **out})
+
+
+@bp.post("/api/learning/pause")
+def pause():
+    return _apply("pause")
 
 
 @bp.post("/api/learning/resume")
 def resume():
-    from registry import learning  # lazy: loads sqlalchemy
-
-    no_body()
-    state = _state()
-    with state.registry.session() as s:
-        out = learning.resume(s)
-    state.wake_daemon()
-    return jsonify({"success": True, **out})
+    return _apply("resume")
 
 
 @bp.post("/api/learning/reset")
 def reset():
-    from registry import learning  # lazy: loads sqlalchemy
-
-    no_body()
-    state = _state()
-    with state.registry.session() as s:
-        out = learning.reset(s)
-    state.wake_daemon()  # it re-reads the emptied watermark at once rather than at its next tick
-    return jsonify({"success": True, **out})
+    return _apply("reset")
