@@ -74,7 +74,7 @@ class CameraCheck:
     info: FrameInfo | None = None  # of the first usable frame
     problem: str | None = None  # the first step's reason when a frame is not usable
     formats: set[str] = field(default_factory=set)
-    blank: bool | None = None  # every fully decoded frame was one flat value (None: none decoded)
+    blank: bool | None = None  # every fully decoded frame was flat / held no depth (None: none decoded)
 
     @property
     def ok(self) -> bool:
@@ -94,8 +94,9 @@ class CameraCheck:
         if self.problem:
             line += f"; {self.problem}"
         if self.blank and self.usable:
-            line += ("; blank: the frames checked are one flat value (all zeros is what a recorder in mock mode "
-                     "or with a dropped camera saves)")
+            line += ("; blank: the frames checked hold " + ("no reading (all zeros" if self.kind == "depth" else
+                                                            "one flat value (all zeros") +
+                     " is what a recorder in mock mode or with a dropped camera saves)")
         return line
 
 
@@ -158,7 +159,9 @@ def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck, full:
                     img = next(iter(video.frames_at([0.0], frame_shape(size, kind)[:2], kind)))
             else:
                 img = decode_still(local, frame_shape(size, kind)[:2], kind, where)
-            flat = bool(img.min() == img.max())
+            # blank: a colour frame of one flat value, a depth frame with no reading at all (a
+            # flat depth frame is a wall)
+            flat = bool(img.max() == 0) if kind == "depth" else bool(img.min() == img.max())
             check.blank = flat if check.blank is None else (check.blank and flat)
             check.info = check.info or info
     except MediaError as exc:  # named by its URI alone: a verdict goes back to the producer
