@@ -10,6 +10,8 @@ raised inside `atomic_open`) the temp file is removed and the old file is left a
 """
 from __future__ import annotations
 
+import ctypes
+import functools
 import hashlib
 import os
 from contextlib import contextmanager
@@ -24,6 +26,35 @@ def fsync_path(path: str | os.PathLike) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def fsync_files(paths: list[Path], anchor: str | os.PathLike) -> None:
+    """Make many new files' data durable: one syncfs(2) of the file system `anchor` is on where
+    Linux offers it (8,000 small files cost one flush, not 8,000 fsyncs: on an SD card each
+    fsync waits for the card), else one fsync each."""
+    if len(paths) > 1 and _syncfs(anchor):
+        return
+    for path in paths:
+        fsync_path(path)
+
+
+def _syncfs(anchor: str | os.PathLike) -> bool:
+    libc = _libc()
+    if libc is None or not hasattr(libc, "syncfs"):
+        return False
+    fd = os.open(anchor, os.O_RDONLY)
+    try:
+        return libc.syncfs(fd) == 0
+    finally:
+        os.close(fd)
+
+
+@functools.lru_cache(maxsize=1)
+def _libc() -> ctypes.CDLL | None:
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
 
 
 def file_sha256(path: str | os.PathLike) -> str:

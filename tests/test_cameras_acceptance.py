@@ -259,7 +259,7 @@ def test_app_handoff_of_2000_taps_with_depth_reaches_the_trainer(client, tmp_pat
     answer = r.get_json()
     eid = answer["episode_id"]
     assert answer["action"] == "written", answer
-    assert len(answer["remote_uris"]) == 4 * n
+    assert set(answer["remote_uris"]) == {a["local_uri"] for a in session.assets}  # keyed as the app sent them
     before = inbox_tree(client)
     again = handoff(client, session)
     assert again.status_code == 200 and again.get_json()["action"] == "unchanged", again.get_json()
@@ -267,6 +267,11 @@ def test_app_handoff_of_2000_taps_with_depth_reaches_the_trainer(client, tmp_pat
 
     ep_dir, steps = stored_steps(client, eid)
     assert len(steps) == n
+    for step in steps:  # every step's four media, however the app spelled them, on a stored file
+        uris = [step.observation["audio"]["device_mic"]["uri"], step.observation["audio"]["robot_mic"]["uri"],
+                step.observation["egocentric_video"]["uri"], step.observation["egocentric_depth"]["uri"]]
+        assert all(u.startswith("blobs/assets/") and (ep_dir / u).is_file() for u in uris), uris
+    assert len(list((ep_dir / "blobs" / "assets").iterdir())) == 4 * n
     sample = [0, 1, 2, 997, 998, n - 2, n - 1]
     video, depth = {}, {}
     for i in sample:

@@ -112,3 +112,31 @@ def test_a_symlinked_temp_name_is_not_followed(tmp_path, monkeypatch):
         durable.atomic_write(target, b"data")
     assert victim.read_bytes() == b"keep"
     assert not target.exists()
+
+
+def test_many_files_are_made_durable_with_one_syncfs_or_one_fsync_each(tmp_path, monkeypatch):
+    files = []
+    for i in range(5):
+        (tmp_path / f"f{i}").write_bytes(b"x")
+        files.append(tmp_path / f"f{i}")
+    calls: list[int] = []
+    libc = durable._libc()
+    assert libc is not None and hasattr(libc, "syncfs")  # Linux: the one-flush path is the one taken
+
+    class Spy:
+        def syncfs(self, fd):
+            calls.append(fd)
+            return libc.syncfs(fd)
+
+    monkeypatch.setattr(durable, "_libc", lambda: Spy())
+    fsynced = _fsynced_paths(monkeypatch)
+    durable.fsync_files(files, tmp_path)
+    assert len(calls) == 1 and fsynced == []
+
+    class Failing:
+        def syncfs(self, fd):
+            return -1
+
+    monkeypatch.setattr(durable, "_libc", lambda: Failing())
+    durable.fsync_files(files, tmp_path)  # syncfs failed: every file is fsynced on its own
+    assert sorted(fsynced) == sorted(str(f.resolve()) for f in files)

@@ -104,6 +104,7 @@ MEDIA = (("audio", "device_mic"), ("audio", "robot_mic"), ("egocentric_video",),
 
 
 def media_uris(step: dict) -> list[str]:
+    """The step's media URIs: its two WAVs, its still and its depth (when the session has depth)."""
     out = []
     for path in MEDIA:
         node = step["observation"]
@@ -121,27 +122,9 @@ def client(tmp_path):
     c.close()
 
 
-def test_a_2000_tap_session_with_depth_is_stored_once_with_every_step_uri_on_a_stored_file(client):
-    """8,000 file parts and 2 fields, as BrainClient.handoffEpisodeAssets sends them: once refused
-    at 1,000 parts."""
-    record, assets, files = session(2000, depth=True, empty_video=False)
-    assert len(files) == 8000
-    r = post_handoff(client, record, assets, files)
-    assert r.status_code == 200, r.get_json()
-    body = r.get_json()
-    assert body["action"] == "written"
-    assert set(body["remote_uris"]) == {a["local_uri"] for a in assets}  # keyed as the app sent them
-    ep_dir = client.settings.inbox_dir / body["episode_id"]
-    stored = stored_steps(ep_dir)
-    assert len(stored) == 2000
-    for step in stored:
-        uris = media_uris(step)
-        assert len(uris) == 4 and all(u.startswith("blobs/assets/") and (ep_dir / u).is_file() for u in uris), uris
-    assert len(list((ep_dir / "blobs" / "assets").iterdir())) == 8000
-    again = post_handoff(client, record, assets, files)  # the app retries a handoff it heard nothing of
-    assert again.status_code == 200 and again.get_json()["action"] == "unchanged"
-    episodes = [p for p in client.settings.inbox_dir.iterdir() if p.is_dir() and not p.name.startswith(".")]
-    assert [p.name for p in episodes] == [body["episode_id"]]  # stored once
+# The 2,000-tap session with depth (8,000 file parts; once refused at 1,000) is
+# tests/test_cameras_acceptance.py::test_app_handoff_of_2000_taps_with_depth_reaches_the_trainer:
+# stored once, every step's four media URIs on a stored file, its frames decoded and trained on.
 
 
 @pytest.mark.parametrize("cache", [CACHE, "/storage/emulated/0/Android/data/app/files/Mes captures/été 2026"])
