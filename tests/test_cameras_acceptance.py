@@ -303,17 +303,25 @@ def test_app_handoff_of_2000_taps_with_depth_reaches_the_trainer(client, tmp_pat
 
 # -- the Pi runtime: create_upload_package ------------------------------------------------------------------
 
-def test_pi_upload_package_rgb_and_depth_reach_the_trainer(client, tmp_path):
-    pkg = up.pi_package(tmp_path / "pi", 6)
-    r = upload(client, pkg.body, content_type="application/gzip")
+def upload_once(client, body: bytes, kind: str, content_type: str, headers: dict | None = None) -> dict:
+    """Uploads a package twice, as a producer retrying: the first answer writes its one episode,
+    the second changes nothing. Returns the first answer's episode."""
+    r = upload(client, body, content_type=content_type, headers=headers)
     assert r.status_code == 200, r.get_json()
-    assert r.get_json()["packages"][0]["kind"] == "pi"
+    assert r.get_json()["packages"][0]["kind"] == kind
     ep = only_episode(r.get_json())
-    assert ep["episode_id"] == pkg.episode_id and ep["action"] == "written", ep
+    assert ep["action"] == "written", ep
     before = inbox_tree(client)
-    again = upload(client, pkg.body, content_type="application/gzip")
+    again = upload(client, body, content_type=content_type, headers=headers)
     assert again.status_code == 200 and only_episode(again.get_json())["action"] == "unchanged"
     assert inbox_tree(client) == before
+    return ep
+
+
+def test_pi_upload_package_rgb_and_depth_reach_the_trainer(client, tmp_path):
+    pkg = up.pi_package(tmp_path / "pi", 6)
+    ep = upload_once(client, pkg.body, "pi", "application/gzip")
+    assert ep["episode_id"] == pkg.episode_id, ep
 
     ep_dir, steps = stored_steps(client, pkg.episode_id)
     assert len(steps) == 6
@@ -353,12 +361,7 @@ def test_pi_mock_mode_package_of_blank_frames_is_taken_and_its_cameras_named(cli
     """Mock mode (no OAK-D attached) saves all-zero rgb and depth: a package that compresses ~1000x,
     which is what the Pi really sends, not a bomb."""
     pkg = up.pi_package(tmp_path / "pi", 6, mock=True)
-    r = upload(client, pkg.body, content_type="application/gzip")
-    assert r.status_code == 200, r.get_json()
-    ep = only_episode(r.get_json())
-    assert ep["action"] == "written", ep
-    again = upload(client, pkg.body, content_type="application/gzip")
-    assert again.status_code == 200 and only_episode(again.get_json())["action"] == "unchanged"
+    ep = upload_once(client, pkg.body, "pi", "application/gzip")
 
     ep_dir, steps = stored_steps(client, pkg.episode_id)
     for step in steps:
@@ -377,15 +380,7 @@ def test_pi_mock_mode_package_of_blank_frames_is_taken_and_its_cameras_named(cli
 
 def test_xr_zip_with_its_video_frames_reaches_the_trainer(client, tmp_path):
     xr = up.xr_zip(6)
-    r = upload(client, xr.body, content_type="application/zip", headers=xr.headers)
-    assert r.status_code == 200, r.get_json()
-    assert r.get_json()["packages"][0]["kind"] == "xr"
-    ep = only_episode(r.get_json())
-    assert ep["action"] == "written", ep
-    before = inbox_tree(client)
-    again = upload(client, xr.body, content_type="application/zip", headers=xr.headers)
-    assert again.status_code == 200 and only_episode(again.get_json())["action"] == "unchanged"
-    assert inbox_tree(client) == before
+    ep = upload_once(client, xr.body, "xr", "application/zip", xr.headers)
 
     ep_dir, steps = stored_steps(client, ep["episode_id"])
     assert len(steps) == 6
@@ -411,12 +406,7 @@ def test_xr_zip_without_its_frames_claims_no_camera(client, tmp_path):
     """createTrainerRldsRecorder's default videoDir sits beside the episode dir, so the zip holds
     frame ids but no frame: nothing may pretend there is a camera."""
     xr = up.xr_zip(6, frames_in_episode_dir=False)
-    r = upload(client, xr.body, content_type="application/zip", headers=xr.headers)
-    assert r.status_code == 200, r.get_json()
-    ep = only_episode(r.get_json())
-    assert ep["action"] == "written", ep
-    again = upload(client, xr.body, content_type="application/zip", headers=xr.headers)
-    assert only_episode(again.get_json())["action"] == "unchanged"
+    ep = upload_once(client, xr.body, "xr", "application/zip", xr.headers)
     # ... and says where the frames went
     assert any(re.search(r"video_frame.*\b6 frame ids", w) for w in ep["warnings"]), ep["warnings"]
     _, steps = stored_steps(client, ep["episode_id"])
@@ -445,14 +435,8 @@ def _pyav_frames(video: bytes, times_s: list[float], hw: tuple[int, int] | None)
 
 def test_an_episode_over_one_h264_video_reaches_the_trainer(client, tmp_path):
     vid = up.video_episode_zip(8)
-    r = upload(client, vid.body, content_type="application/zip")
-    assert r.status_code == 200, r.get_json()
-    ep = only_episode(r.get_json())
-    assert ep["episode_id"] == vid.episode_id and ep["action"] == "written", ep
-    before = inbox_tree(client)
-    again = upload(client, vid.body, content_type="application/zip")
-    assert again.status_code == 200 and only_episode(again.get_json())["action"] == "unchanged"
-    assert inbox_tree(client) == before
+    ep = upload_once(client, vid.body, "xr", "application/zip")
+    assert ep["episode_id"] == vid.episode_id, ep
 
     ep_dir, steps = stored_steps(client, vid.episode_id)
     paths = {camera_file(ep_dir, s, vid.camera) for s in steps}
