@@ -44,6 +44,12 @@ the expert's action is a function of the wrist angle, the joint velocities and t
 the cloned policy matches the expert (docs/reflex.md, "Why the arm frame"). to_arm_frame /
 from_arm_frame convert.
 
+A robot measures its joints, not where the target is: the camera observation (OBSERVATIONS,
+`camera_observation`) keeps robot_state and replaces target_offset with the frame of the fixed
+top-down camera, a reference {"uri": ..., "width", "height", "format"} under `camera`. Nothing
+privileged (target_offset, to_target, the target's position) is in it; the simulator still scores
+the episode from its own state.
+
 OBS_FIELDS lists these paths in the order the feature spec infers them (sorted dotted paths), which
 is the order of `observation_vector`. The action is `action.command` = [shoulder, wrist] motor
 commands in [-1, 1] (gear 0.05 N m).
@@ -68,6 +74,9 @@ EPISODE_STEPS = 1000
 TASKS = ("reach", "track")
 ROBOT_MODEL = "dmc-reacher"
 FRAME_SIZE = 64
+FRAME_SIZES = (64, 96)  # what the camera observation renders (the cache's frame sizes 64 and 96)
+OBSERVATIONS = ("state", "camera")  # the engineered state (with target_offset) / what a robot has
+CAMERA_KEY = "camera"
 CAMERA = "fixed"  # top-down camera of reacher.xml
 
 LINK_LENGTHS_M = (0.12, 0.12)  # shoulder->wrist, wrist->fingertip (reacher.xml)
@@ -143,6 +152,15 @@ def observation_from_state(qpos, qvel, to_target) -> dict[str, Any]:
         },
         "target_offset": [float(to_target[0]), float(to_target[1])],
     }
+
+
+def camera_observation(obs: dict[str, Any], uri: str, size: int = FRAME_SIZE) -> dict[str, Any]:
+    """What a robot has: the joints of the state observation `obs` and the camera frame stored at
+    `uri` (relative to the episode dir), nothing about the target."""
+    rs = obs["robot_state"]
+    return {"robot_state": {"joint_positions": list(rs["joint_positions"]),
+                            "joint_velocities": list(rs["joint_velocities"])},
+            CAMERA_KEY: {"uri": uri, "width": size, "height": size, "format": "npy_uint8_hwc"}}
 
 
 def observation_vector(obs: dict[str, Any]) -> np.ndarray:

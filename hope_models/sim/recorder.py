@@ -10,7 +10,10 @@ with frames). One step per 20 ms control step, 1000 steps:
     observation  = the reacher observation block (reacher.py: robot_state.joint_positions[2],
                    robot_state.joint_velocities[2], target_offset[2]) observed before the action
                    (+ media.rgb = {"uri": "blobs/step_NNNNNN_rgb.npy", "width": 64, "height": 64,
-                   "format": "npy_uint8_hwc"} with frames: that observation's 64x64 top-down frame)
+                   "format": "npy_uint8_hwc"} with frames: that observation's 64x64 top-down frame);
+                   with observation="camera", what a robot has instead: robot_state and
+                   camera = {"uri": "blobs/step_NNNNNN_rgb.npy", ...} (64x64, or 96x96 with
+                   frame_size=96), no target_offset. The expert still acts on the state.
     action       = {"command": [shoulder, wrist] (the label: the policy's action in [-1, 1]),
                     "source": "sim_expert" | "sim_policy" | "sim_play"
                     (+ "executed_command": what was actually applied, when noise is on)}
@@ -32,7 +35,7 @@ fast_loop never clones them; noise is refused (the executed command already is t
 
 Metadata: schema_version "1.1", robot_model "dmc-reacher", environment_id "dm_control/reacher-<task>",
 provenance.origin = `origin` ("sim:dm_control"), provenance.sim = {task, seed, control_period_s,
-noise_std, policy}, tags ["sim", "dm_control", "reacher", <task>, ...tags], xr_mode "workstation",
+noise_std, policy, observation, frame_size (with frames)}, tags ["sim", "dm_control", "reacher", <task>, ...tags], xr_mode "workstation",
 control_role "sim_expert" (outside the documented human roles, so validation gives one warning:
 undocumented value kept as a string; the episode is accepted), software versions. Every episode is
 validated with the train profile before it is written; an error there is a bug and raises.
@@ -51,7 +54,17 @@ from hope_models.rlds.episode import Episode, Step
 from hope_models.rlds.validate import validate_episode
 from hope_models.rlds.write_episode_dir import safe_episode_id, write_episode_dir
 from hope_models.sim.expert import ExpertController, PlayPolicy
-from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, FRAME_SIZE, ROBOT_MODEL, TASKS, make_env
+from hope_models.sim.reacher import (
+    CONTROL_PERIOD_S,
+    EPISODE_STEPS,
+    FRAME_SIZE,
+    FRAME_SIZES,
+    OBSERVATIONS,
+    ROBOT_MODEL,
+    TASKS,
+    camera_observation,
+    make_env,
+)
 
 DEFAULT_SEED_BASE = 100_000  # demos start here; evaluation defaults to seeds 0..N-1 (held out)
 DEFAULT_ORIGIN = "sim:dm_control"
@@ -96,27 +109,40 @@ def software_versions(key: str, module: str) -> dict[str, str]:
 
 
 def rollout(env, obs, choose: Callable[[Any], tuple[Any, Any, dict, dict]], source: str, steps: int,
-            frame_dir: str | Path | None) -> tuple[list[Step], float]:
+            frame_dir: str | Path | None, observation: str = "state",
+            frame_size: int = FRAME_SIZE) -> tuple[list[Step], float]:
     """Drive `env` from `obs` for up to `steps` control steps, one canonical Step per step.
     `choose(obs)` -> (label, executed, extra action keys, step_metadata): the label is recorded as
-    action.command, the executed command is what the env gets. With frame_dir, a frame per step
-    is saved under frame_dir/blobs/ and referenced from observation.media. Returns the steps and
+    action.command, the executed command is what the env gets; `choose` always sees the full
+    state (the expert needs the target), the step records `observation`: "state" (with frame_dir,
+    a frame per step saved under frame_dir/blobs/ and referenced from observation.media) or
+    "camera" (the joints and that frame only, reacher.camera_observation). Returns the steps and
     the return (sum of the rewards of what was executed)."""
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation={observation!r} must be one of {', '.join(OBSERVATIONS)}")
+    if observation == "camera" and frame_dir is None:
+        raise ValueError("observation='camera' needs frame_dir, where the frames are written")
+    if frame_size not in FRAME_SIZES:
+        raise ValueError(f"frame_size={frame_size} must be one of {', '.join(map(str, FRAME_SIZES))}")
     if frame_dir is not None:
         (Path(frame_dir) / "blobs").mkdir(parents=True, exist_ok=True)
     out: list[Step] = []
     total = 0.0
     for t in range(steps):
-        observation = {k: (dict(v) if isinstance(v, dict) else v) for k, v in obs.items()}
         if frame_dir is not None:
-            np.save(Path(frame_dir) / (FRAME_URI % t), env.render(FRAME_SIZE), allow_pickle=False)
-            observation["media"] = {"rgb": {"uri": FRAME_URI % t, "width": FRAME_SIZE, "height": FRAME_SIZE,
-                                            "format": "npy_uint8_hwc"}}
+            np.save(Path(frame_dir) / (FRAME_URI % t), env.render(frame_size), allow_pickle=False)
+        if observation == "camera":
+            recorded = camera_observation(obs, FRAME_URI % t, frame_size)
+        else:
+            recorded = {k: (dict(v) if isinstance(v, dict) else v) for k, v in obs.items()}
+            if frame_dir is not None:
+                recorded["media"] = {"rgb": {"uri": FRAME_URI % t, "width": frame_size, "height": frame_size,
+                                             "format": "npy_uint8_hwc"}}
         label, executed, extra, meta = choose(obs)
         obs, reward, done = env.step(executed)
         total += reward
         action = {"command": [float(v) for v in label], "source": source, **extra}
-        out.append(Step(observation=observation, action=action, reward=float(reward),
+        out.append(Step(observation=recorded, action=action, reward=float(reward),
                         is_terminal=(t == steps - 1), step_metadata=meta, timestamp_ns=t * PERIOD_NS))
         if done:
             break
@@ -153,9 +179,12 @@ def _is_play(policy) -> bool:
 
 def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, noise: float | None = None,
                    origin: str = DEFAULT_ORIGIN, tags: Sequence[str] = (), episode_id: str | None = None,
-                   frame_dir: str | Path | None = None, steps: int = EPISODE_STEPS) -> tuple[Episode, float]:
+                   frame_dir: str | Path | None = None, steps: int = EPISODE_STEPS, observation: str = "state",
+                   frame_size: int = FRAME_SIZE) -> tuple[Episode, float]:
     """One episode as an in-memory canonical Episode (frames saved under frame_dir/blobs/), and its
-    return (the sum of the rewards of the executed actions). policy="play" records play."""
+    return (the sum of the rewards of the executed actions). policy="play" records play;
+    observation="camera" records the joints and the camera frame instead of the state (frames on)."""
+    frames = frames or observation == "camera"
     if noise is not None and (not np.isfinite(noise) or noise < 0):
         raise ValueError(f"noise={noise} must be a non-negative standard deviation (action units)")
     if frames and frame_dir is None:
@@ -185,16 +214,19 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
         return label, executed, {"executed_command": [float(v) for v in executed]}, {}
 
     source = "sim_play" if play else "sim_expert" if is_expert else "sim_policy"
-    out, total = rollout(env, obs, choose, source, steps, frame_dir if frames else None)
+    out, total = rollout(env, obs, choose, source, steps, frame_dir if frames else None, observation, frame_size)
     ep_id = episode_id or episode_id_for("dmc-reacher", task, seed, play)
     policy_name = getattr(policy, "version", None) or getattr(policy, "name", type(policy).__name__)
-    extra_tags = (["dart_noise"] if noisy else []) + (["play"] if play else [])
+    extra_tags = (["dart_noise"] if noisy else []) + (["play"] if play else []) + (
+        ["camera"] if observation == "camera" else [])
     metadata = sim_metadata(ep_id, task, source, [*tags, *extra_tags],
                             software_versions("recorder", "hope_models.sim.recorder"), len(out), {
                                 "origin": origin,
                                 "sim": {"domain": "reacher", "task": task, "seed": int(seed),
                                         "control_period_s": CONTROL_PERIOD_S,
                                         "noise_std": float(noise) if noisy else 0.0, "policy": str(policy_name),
+                                        "observation": observation,
+                                        **({"frame_size": frame_size} if frames else {}),
                                         **({"policy_config": policy.config()} if hasattr(policy, "config") else {}),
                                         "return": total},
                             })
@@ -207,7 +239,7 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
                    policy=None, frames: bool = False, noise: float | None = None, origin: str = DEFAULT_ORIGIN,
                    tags: Sequence[str] = (), episode_id_prefix: str = "dmc-reacher",
                    progress: Callable[[RecordedEpisode], None] | None = None,
-                   steps: int = EPISODE_STEPS) -> RecordResult:
+                   steps: int = EPISODE_STEPS, observation: str = "state", frame_size: int = FRAME_SIZE) -> RecordResult:
     """record_episodes with the per-episode returns (see the module doc); `steps` shortens the
     episodes (smoke tests), the default is the full 1000. policy="play" records play episodes."""
     if task not in TASKS:
@@ -221,6 +253,11 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
         raise NotADirectoryError(f"{out}: exists and is not a directory")
     if _is_play(policy) and noise:
         raise ValueError(f"noise={noise}: play episodes are recorded without noise")
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation={observation!r} must be one of {', '.join(OBSERVATIONS)}")
+    if frame_size not in FRAME_SIZES:
+        raise ValueError(f"frame_size={frame_size} must be one of {', '.join(map(str, FRAME_SIZES))}")
+    frames = frames or observation == "camera"
     ids = [episode_id_for(episode_id_prefix, task, seed + i, _is_play(policy)) for i in range(episodes)]
     taken = [i for i in ids if (out / i).exists()]
     if taken:
@@ -232,7 +269,8 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
         s = seed + i
         with tempfile.TemporaryDirectory(prefix=".frames-", dir=out) as tmp:
             ep, ret = record_episode(task, s, policy, frames=frames, noise=noise, origin=origin, tags=tags,
-                                     episode_id=ep_id, frame_dir=tmp if frames else None, steps=steps)
+                                     episode_id=ep_id, frame_dir=tmp if frames else None, steps=steps,
+                                     observation=observation, frame_size=frame_size)
             errors = [p for p in validate_episode(ep, "train") if p.severity == "error"]
             if errors:
                 raise RuntimeError(f"recorded episode {ep_id} fails the train profile: "
