@@ -5,6 +5,7 @@ decodes as the PNG it is, a .npy holding anything else is refused.
 """
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -90,3 +91,17 @@ def decode_still(path: str | os.PathLike, out_hw: tuple[int, int], kind: str = "
     if isinstance(frame, Image.Image):  # a decoded RGB image goes straight into the same BOX resize
         return area_resize_image(frame, hw)
     return area_resize(frame, hw)
+
+
+def decode_image_bytes(data: bytes, out_hw: tuple[int, int], name: str,
+                       max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """A JPEG or PNG held in memory (a request body's image) as uint8 RGB [H, W, 3], area-resized to
+    out_hw exactly as decode_still does a file; MediaError naming `name` for anything else."""
+    hw = check_out_hw(out_hw)
+    if not data:
+        raise MediaError(f"{name}: empty image (0 bytes)")
+    fmt = sniff_bytes(data[:SNIFF_BYTES])
+    if fmt not in ("jpeg", "png"):
+        raise MediaError(f"{name}: not a JPEG or PNG image (its first bytes match {fmt or 'no known format'})")
+    frame = read_image(io.BytesIO(data), fmt, name, hw, "rgb", max_pixels)
+    return area_resize_image(frame, hw) if isinstance(frame, Image.Image) else area_resize(frame, hw)
