@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/reflex_imagined.py     # --demos 5 --imagined 50 --method dart --steps 2000 --seeds 0,1,2
 
-1. Record `--demos` expert demonstrations (`sim-demos`: task seeds 100000.., the recorder's default).
+1. Record `--demos` clean expert demonstrations (`sim-demos --noise 0`: task seeds 100000.., the
+   recorder's default; clean, so the rollouts' noise is the only DART in the comparison).
 2. Imagine `--imagined` rollouts into a copy of the demo dir (`imagine`: task seeds 200000.., `--method`
    dart or cem; `--demos` makes imagine refuse any demo start state).
 3. For each training seed, train two fast_loops with the same seed, steps and hyperparameters
@@ -84,7 +85,10 @@ def main() -> int:
         for d in (demos, mixed, work / "runs"):
             if d.exists():
                 shutil.rmtree(d)
-        rec = sh(["sim-demos", "--out", str(demos), "--episodes", str(args.demos), "--task", args.task], log, q)
+        # --noise 0: sim-demos records DART demos by default; the figures measure what imagined rollouts
+        # add to demos without noise
+        rec = sh(["sim-demos", "--out", str(demos), "--episodes", str(args.demos), "--task", args.task,
+                  "--noise", "0"], log, q)
         shutil.copytree(demos, mixed)  # the very same demo episodes, byte for byte
         imag_cmd = ["imagine", "--out", str(mixed), "--episodes", str(args.imagined), "--method", args.method,
                     "--task", args.task, "--demos", str(demos)]

@@ -5,13 +5,16 @@
 
 Episode i uses seed S+i (default S = 100000, away from eval-reflex's default held-out seeds 0..N-1).
 --noise SIGMA drives the env with the expert's action plus N(0, SIGMA^2) while the recorded
-action.command stays the expert's (DART); --frames adds a 64x64 top-down frame per step as
+action.command stays the expert's (DART); expert demos default to 1.0, the recipe docs/reflex.md
+measures (50 demos without noise clone into a reflex that misses the target on some seeds);
+--noise 0 records clean demos. --frames adds a 64x64 top-down frame per step as
 blobs/step_NNNNNN_rgb.npy (needs MUJOCO_GL=egl, set automatically unless you set MUJOCO_GL).
 --policy play records play instead: smooth random exploration with no expert label (recorder.py,
 expert.PlayPolicy), episode ids <prefix>-<task>-play-s<seed>, tagged "play"; world models and the
-VQ-VAE learn from it, the fast_loop never clones it. --noise with play is a usage error.
+VQ-VAE learn from it, the fast_loop never clones it. Play records no noise; an explicit --noise
+above 0 with play is a usage error (the expert's default noise does not apply to it).
 Exit 0 on success, 2 for a usage error (an episode dir that already exists, a bad value, frames
-without a GL backend, --noise with --policy play).
+without a GL backend, a --noise above 0 with --policy play).
 """
 from __future__ import annotations
 
@@ -23,6 +26,10 @@ import time
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.cli.argtypes import non_negative_float, non_negative_int, positive_int
 
+# The recipe's DART noise for expert demos (docs/reflex.md, "What the recipe needs"): without it the
+# demos hold ~20 informative steps each and a reflex cloned from the defaults missed the 900 target.
+DEFAULT_EXPERT_NOISE = 1.0
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from hope_models.sim.reacher import TASKS  # lazy: loads numpy
@@ -33,9 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(the target moves along a circle); default reach")
     parser.add_argument("--seed", type=non_negative_int, default=None,
                         help="seed of the first episode (default 100000; eval-reflex evaluates seeds 0..N-1 by default)")
-    parser.add_argument("--noise", type=non_negative_float, default=0.0, metavar="SIGMA",
+    parser.add_argument("--noise", type=non_negative_float, default=None, metavar="SIGMA",
                         help="DART noise: std of the Gaussian added to the executed action (the recorded label stays "
-                             "the expert's); 0 = none (default). 1.0 is the documented recipe")
+                             f"the expert's); default {DEFAULT_EXPERT_NOISE:g} for expert demos (the documented "
+                             "recipe), 0 = clean demos; play takes none")
     parser.add_argument("--policy", choices=("expert", "play"), default="expert",
                         help="expert: demonstrations (default); play: smooth random exploration without labels, "
                              "for the world model and the VQ-VAE (the fast_loop never clones it)")
@@ -59,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps({"ok": False, "error": msg}))
         print(f"error: {msg}", file=sys.stderr)
         return 2
+    # None = not given: the recipe's noise for the expert, none for play (which has no label to keep)
+    noise = args.noise if args.noise is not None else (0.0 if play else DEFAULT_EXPERT_NOISE)
     started = time.perf_counter()
 
     def progress(rec) -> None:
@@ -67,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = record_dataset(args.out, args.episodes, seed=seed, task=args.task, frames=args.frames,
-                                noise=args.noise or None, progress=progress, policy="play" if play else None,
+                                noise=noise or None, progress=progress, policy="play" if play else None,
                                 **({} if args.steps is None else {"steps": args.steps}))
     except (FileExistsError, NotADirectoryError, ValueError, RuntimeError) as exc:
         write_result(args.result_file, {"ok": False, "error": str(exc)})
@@ -81,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         "task": args.task,
         "seeds": [seed, seed + args.episodes - 1],
         "policy": args.policy,
-        "noise": args.noise,
+        "noise": noise,
         "frames": bool(args.frames),
         "mean_return": round(result.mean_return, 3),
         "episodes": [{"episode_id": e.episode_id, "path": str(e.path), "seed": e.seed, "return": e.ret,
@@ -94,6 +104,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         kind = f"{args.task} play" if play else args.task
         print(f"recorded {len(result.episodes)} {kind} episodes (seeds {seed}-{seed + args.episodes - 1}, "
-              f"noise {args.noise:g}{', frames' if args.frames else ''}) into {result.out_dir}; "
+              f"noise {noise:g}{', frames' if args.frames else ''}) into {result.out_dir}; "
               f"mean return {result.mean_return:.1f}")
     return 0
