@@ -81,3 +81,19 @@ def test_96_pixel_frames_and_a_bad_observation_or_size_is_named(tmp_path):
         record_dataset(tmp_path / "x", 1, observation="pixels")
     with pytest.raises(ValueError, match="frame_size=80 must be one of 64, 96"):
         record_dataset(tmp_path / "x", 1, observation="camera", frame_size=80)
+
+
+def test_sim_demos_records_the_camera_observation_from_the_command_line(tmp_path):
+    out = tmp_path / "cam"
+    proc = subprocess.run([sys.executable, "run_trainer.py", "sim-demos", "--episodes", "1", "--steps", "5",
+                           "--observation", "camera", "--frame-size", "96", "--out", str(out), "--json"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env={k: v for k, v in os.environ.items() if k != "MUJOCO_GL"})  # set by the command
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["observation"] == "camera" and result["frame_size"] == 96 and result["noise"] == 1.0
+    (step,) = _steps(result["episodes"][0]["path"])[:1]
+    assert set(step["observation"]) == {"robot_state", "camera"} and step["observation"]["camera"]["width"] == 96
+    bad = subprocess.run([sys.executable, "run_trainer.py", "sim-demos", "--episodes", "1", "--out", str(out),
+                          "--observation", "pixels"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--observation: invalid choice: 'pixels'" in bad.stderr

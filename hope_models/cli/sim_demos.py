@@ -1,7 +1,8 @@
 """`run_trainer.py sim-demos`: record reacher episodes (expert demonstrations or play) as canonical RLDS.
 
     run_trainer.py sim-demos --episodes 50 --out ~/datasets/reach50 [--task reach|track]
-        [--seed 100000] [--policy expert|play] [--noise 1.0] [--frames] [--json]
+        [--seed 100000] [--policy expert|play] [--noise 1.0] [--frames]
+        [--observation state|camera] [--frame-size 64|96] [--json]
 
 Episode i uses seed S+i (default S = 100000, away from eval-reflex's default held-out seeds 0..N-1).
 --noise SIGMA drives the env with the expert's action plus N(0, SIGMA^2) while the recorded
@@ -9,6 +10,9 @@ action.command stays the expert's (DART); expert demos default to 1.0, the recip
 measures (50 demos without noise clone into a reflex that misses the target on some seeds);
 --noise 0 records clean demos. --frames adds a 64x64 top-down frame per step as
 blobs/step_NNNNNN_rgb.npy (needs MUJOCO_GL=egl, set automatically unless you set MUJOCO_GL).
+--observation camera records what a robot has instead of the engineered state: the joints and the
+camera frame (observation.camera, 64x64 or --frame-size 96), no target_offset; the expert still
+acts on the state and the simulator still scores the episode (reacher.camera_observation).
 --policy play records play instead: smooth random exploration with no expert label (recorder.py,
 expert.PlayPolicy), episode ids <prefix>-<task>-play-s<seed>, tagged "play"; world models and the
 VQ-VAE learn from it, the fast_loop never clones it. Play records no noise; an explicit --noise
@@ -50,6 +54,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=positive_int, default=None,
                         help="steps per episode (default and maximum 1000 = 20 s; fewer for a quick look)")
     parser.add_argument("--frames", action="store_true", help="also store a 64x64 RGB frame per step (MUJOCO_GL=egl)")
+    parser.add_argument("--observation", choices=("state", "camera"), default="state",
+                        help="state: joints + target_offset (the engineered state, default); camera: what a robot "
+                             "has, the joints and the camera frame, nothing about the target (MUJOCO_GL=egl)")
+    parser.add_argument("--frame-size", type=int, choices=(64, 96), default=64,
+                        help="side of the camera frames in pixels (default 64)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     add_result_argument(parser)
 
@@ -78,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = record_dataset(args.out, args.episodes, seed=seed, task=args.task, frames=args.frames,
                                 noise=noise or None, progress=progress, policy="play" if play else None,
+                                observation=args.observation, frame_size=args.frame_size,
                                 **({} if args.steps is None else {"steps": args.steps}))
     except (FileExistsError, NotADirectoryError, ValueError, RuntimeError) as exc:
         write_result(args.result_file, {"ok": False, "error": str(exc)})
@@ -92,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
         "seeds": [seed, seed + args.episodes - 1],
         "policy": args.policy,
         "noise": noise,
-        "frames": bool(args.frames),
+        "frames": bool(args.frames) or args.observation == "camera",
+        "observation": args.observation,
+        **({"frame_size": args.frame_size} if args.frames or args.observation == "camera" else {}),
         "mean_return": round(result.mean_return, 3),
         "episodes": [{"episode_id": e.episode_id, "path": str(e.path), "seed": e.seed, "return": e.ret,
                       "steps": e.steps} for e in result.episodes],
@@ -104,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         kind = f"{args.task} play" if play else args.task
         print(f"recorded {len(result.episodes)} {kind} episodes (seeds {seed}-{seed + args.episodes - 1}, "
-              f"noise {noise:g}{', frames' if args.frames else ''}) into {result.out_dir}; "
+              f"noise {noise:g}{', frames' if args.frames else ''}"
+              f"{', camera observation' if args.observation == 'camera' else ''}) into {result.out_dir}; "
               f"mean return {result.mean_return:.1f}")
     return 0
