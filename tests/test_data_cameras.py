@@ -185,3 +185,41 @@ def test_a_camera_dataset_without_actions_trains_only_the_tokenizer(tmp_path):
     with pytest.raises(FeatureSpecError, match=r"no numeric action field.*no camera for the tokenizer: "
                                          r"observation.egocentric_video: not stored \(frames decode in 0 of 2"):
         load_or_build(ds, tmp_path / "cache2")
+
+
+def test_the_studio_recorders_absolute_frame_paths_are_read_inside_its_dir(tmp_path):
+    """continuonbrain/recording/camera_episode_recorder.py writes <out>/<id>.json whose
+    observation.media.rgb.uri is str(out_dir / f"{episode_id}_blobs" / f"{frame_id}.jpg"): an
+    absolute path when out_dir is. Inside the episode's own dir, it is read; elsewhere, refused."""
+    out = tmp_path / "studio"
+    for e in range(2):
+        episode_id = f"studio_{e}"
+        blobs = out / f"{episode_id}_blobs"
+        blobs.mkdir(parents=True)
+        steps = []
+        for i in range(8):
+            frame_id = f"{episode_id}_{i:06d}"
+            Image.fromarray(_image(e * 20 + i, 240, 320)).save(blobs / f"{frame_id}.jpg", quality=90)
+            steps.append({"observation": {"robot_state": {"joint_positions": [0.1 * i, 0.0]},
+                                          "media": {"rgb": {"uri": str(blobs / f"{frame_id}.jpg"), "frame_id": frame_id,
+                                                            "width": 320, "height": 240, "format": "jpeg"}}},
+                          "action": {"command": [0.0, 0.1 * i]}, "timestamp_ns": 1_000 + i * PERIOD_NS,
+                          "is_terminal": i == 7})
+        (out / f"{episode_id}.json").write_text(json.dumps({"metadata": {"episode_id": episode_id},
+                                                            "steps": steps}))
+    cache, _ = load_or_build(out, tmp_path / "cache")
+    assert cache.spec.frame == FrameFeature("observation.media.rgb", (64, 64, 3), "blob") and cache.n_steps == 16
+    with Image.open(out / "studio_1_blobs" / "studio_1_000003.jpg") as jpeg:
+        jpeg.draft("RGB", (64, 64))
+        want = _reference(np.asarray(jpeg.convert("RGB")), 64)
+    assert np.array_equal(cache.frames[int(cache.offsets[cache.episode_ids.index("studio_1")]) + 3], want)
+
+    elsewhere = tmp_path / "elsewhere.jpg"  # an absolute path out of the episode's dir stays refused
+    Image.fromarray(_image(1, 48, 64)).save(elsewhere)
+    doc = json.loads((out / "studio_0.json").read_text())
+    doc["steps"][2]["observation"]["media"]["rgb"]["uri"] = str(elsewhere)
+    (out / "studio_0.json").write_text(json.dumps(doc))
+    cache, _ = load_or_build(out, tmp_path / "cache")
+    (excluded,) = cache.manifest["excluded"]
+    assert excluded["episode_id"] == "studio_0" and "is an absolute path; only paths inside the episode dir" in \
+        excluded["reason"]

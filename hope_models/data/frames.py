@@ -31,13 +31,20 @@ class BlobFrameError(ValueError):
 
 
 def resolve_blob_uri(uri: str, blob_root: str | os.PathLike | None) -> Path:
-    """The local file a relative URI names inside the blob root, or BlobFrameError saying why not."""
+    """The local file a URI names inside the blob root (relative to it, or an absolute path inside
+    it), or BlobFrameError saying why not."""
     if not isinstance(uri, str) or not uri:
         raise BlobFrameError(f"blob uri {uri!r} is not a non-empty string")
     if _SCHEME.match(uri):
         raise BlobFrameError(f"blob uri {uri!r} has a scheme; only paths relative to the episode dir are read")
     norm = uri.replace("\\", "/")
     if norm.startswith("/") or os.path.isabs(uri):
+        # A recorder that writes absolute paths (the Pi's camera_episode_recorder names its JPEGs
+        # out_dir/<id>_blobs/<frame>.jpg) is read when the path lies inside the episode's own dir.
+        if blob_root is not None and os.path.isabs(uri):
+            real, root_real = os.path.realpath(uri), os.path.realpath(blob_root)
+            if real.startswith(root_real + os.sep):
+                return Path(real)
         raise BlobFrameError(f"blob uri {uri!r} is an absolute path; only paths inside the episode dir are read")
     rel = posixpath.normpath(norm)
     if rel == ".." or rel.startswith("../"):
