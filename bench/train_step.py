@@ -130,7 +130,8 @@ def bare_round(component, cache, vqvae_dir, steps, warm, threads) -> tuple[float
     sampler = AnchorSampler(cache, cfg.batch_size, seed=cfg.seed, imagined_ratio=cfg.imagined_ratio, split="train",
                             val_fraction=cfg.val_fraction, min_history_s=float(getattr(comp, "min_history_s", 0.0)),
                             horizon_s=float(getattr(comp, "horizon_s", max(win.horizons_s, default=0.0))))
-    loader = WindowLoader(cache, sampler, win, chunk=8, frames=bool(comp.wants_frames))
+    # as the trainer does: a loop over a frame tokenizer reads its codes from the cache's code table
+    loader = WindowLoader(cache, sampler, win, chunk=8, frames=bool(comp.wants_frames), codes=comp.code_table(cache))
     decay = [p for p in model.parameters() if p.requires_grad and p.dim() >= 2]
     no_decay = [p for p in model.parameters() if p.requires_grad and p.dim() < 2]
     params = decay + no_decay

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from hope_models.checkpoint_format import CONFIG_FORMAT
+from hope_models.components.code_table import frame_code_table
 from hope_models.components.ssm import count_params
 from hope_models.data.features import FeatureSpec
 from hope_models.data.windows import WindowSpec
@@ -44,9 +45,24 @@ class TrainingComponent:
         if not self.wants_frames:
             return None
         frames = getattr(batch, attr, None)
-        if frames is None and attr == "frames":
+        if frames is None and attr == "frames" and getattr(batch, "codes", None) is None:
             raise ValueError(f"{self.name} reads frames: build its windows with make_windows(..., frames=True)")
         return None if frames is None else as_tensor(frames)
+
+    def _codes(self, batch, attr: str = "codes") -> torch.Tensor | None:
+        """The batch's precomputed tokenizer codes (make_windows with a code table), long, or None."""
+        codes = getattr(batch, attr, None) if self.wants_frames else None
+        return None if codes is None else torch.from_numpy(np.asarray(codes, dtype=np.int64))
+
+    def code_table(self, cache, log=None) -> np.ndarray | None:
+        """The frozen tokenizer's codes of every frame of `cache`, computed once per (cache, tokenizer
+        weights) and kept in the cache dir (components/code_table.py); None for a component that
+        reads no frames or whose tokenizer has no recorded weights."""
+        vqvae = getattr(self._model, "vqvae", None)
+        key = (self.vqvae_ref or {}).get("weights_sha256")
+        if not self.wants_frames or vqvae is None or not isinstance(key, str):
+            return None
+        return frame_code_table(cache, vqvae, key, log)
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
         raise NotImplementedError

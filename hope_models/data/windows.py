@@ -92,6 +92,9 @@ class WindowBatch:
     future_mask: np.ndarray | None = None  # [B, H] bool, False past the episode's last step
     future_frames: np.ndarray | None = None  # [B, H, H_img, W_img, 3] uint8 frames held at anchor + horizon,
     #                                          when frames are asked for; 0 where future_mask is False
+    codes: np.ndarray | None = None  # [B, K, G] the frozen tokenizer's codes of those frames, when a code
+    #                                  table is given (then no frame is read); 0 where masked
+    future_codes: np.ndarray | None = None  # [B, H, G] likewise at anchor + horizon
 
 
 def _count_at_or_before(tb: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -110,8 +113,12 @@ def _normalised(cache: DatasetCache, j: np.ndarray, normalize: bool, first: np.n
 
 
 def make_windows(cache: DatasetCache, anchors, spec: WindowSpec, *, normalize: bool = True,
-                 frames: bool = False) -> WindowBatch:
+                 frames: bool = False, codes: np.ndarray | None = None) -> WindowBatch:
     """Windows for a batch of anchor step indices (see the module doc for the grid rule).
+
+    With `codes` (a [N, G] table of the frozen tokenizer's codes of every cache row,
+    components/code_table.py) a window that asks for frames gets their codes instead: the table's
+    rows at the same points, and no frame is read.
 
     The search for each grid point's step runs over a short block of t that ends at the anchor
     (as long as the densest stretch of the dataset needs), so it reads only memory next to the
@@ -143,17 +150,21 @@ def make_windows(cache: DatasetCache, anchors, spec: WindowSpec, *, normalize: b
     d = cache.spec.obs_dim
     act = x[..., d:]
     batch = WindowBatch(x[..., :d], act, mask, act[:, -1], a, ep)  # the anchor's point is never masked
-    if frames:
+    if frames and codes is not None:
+        batch.codes = np.asarray(codes[j])
+        if not full:
+            batch.codes[~mask] = 0
+    elif frames:
         batch.frames = cache.frame_rows(j)
         if not full:
             batch.frames[~mask] = 0
     if spec.horizons_s:
-        _add_futures(cache, batch, spec, tb[:, -1], normalize, frames)
+        _add_futures(cache, batch, spec, tb[:, -1], normalize, frames, codes)
     return batch
 
 
 def _add_futures(cache: DatasetCache, batch: WindowBatch, spec: WindowSpec, ta: np.ndarray,
-                 normalize: bool, frames: bool = False) -> None:
+                 normalize: bool, frames: bool = False, codes: np.ndarray | None = None) -> None:
     a, ep = batch.anchors, batch.episodes
     horizons = np.asarray(spec.horizons_s)
     n = cache.block_rows(float(horizons.max()), forward=True)
@@ -167,7 +178,11 @@ def _add_futures(cache: DatasetCache, batch: WindowBatch, spec: WindowSpec, ta: 
         fx[~fmask] = 0.0
     d = cache.spec.obs_dim
     batch.future_obs, batch.future_act, batch.future_mask = fx[..., :d], fx[..., d:], fmask
-    if frames:
+    if frames and codes is not None:
+        batch.future_codes = np.asarray(codes[j])
+        if not fmask.all():
+            batch.future_codes[~fmask] = 0
+    elif frames:
         batch.future_frames = cache.frame_rows(j)
         if not fmask.all():
             batch.future_frames[~fmask] = 0
@@ -182,11 +197,11 @@ class WindowLoader:
     """
 
     def __init__(self, cache: DatasetCache, sampler, spec: WindowSpec, *, chunk: int = 16,
-                 normalize: bool = True, frames: bool = False):
+                 normalize: bool = True, frames: bool = False, codes: np.ndarray | None = None):
         if chunk < 1:
             raise ValueError(f"chunk={chunk} must be >= 1")
         self.cache, self.sampler, self.spec = cache, sampler, spec
-        self.chunk, self.normalize, self.frames = chunk, normalize, frames
+        self.chunk, self.normalize, self.frames, self.codes = chunk, normalize, frames, codes
         self._ready: list[WindowBatch] = []
         self._ready_from = -1  # batch index of _ready[0]
 
@@ -203,7 +218,7 @@ class WindowLoader:
     def _fill(self, b: int) -> None:
         parts = [self.sampler.batch(i) for i in range(b, b + self.chunk)]
         big = make_windows(self.cache, np.concatenate(parts), self.spec, normalize=self.normalize,
-                           frames=self.frames)
+                           frames=self.frames, codes=self.codes)
         self._ready, self._ready_from = [], b
         lo = 0
         for p in parts:
@@ -215,5 +230,7 @@ class WindowLoader:
                 None if big.future_obs is None else big.future_obs[sl],
                 None if big.future_act is None else big.future_act[sl],
                 None if big.future_mask is None else big.future_mask[sl],
-                None if big.future_frames is None else big.future_frames[sl]))
+                None if big.future_frames is None else big.future_frames[sl],
+                None if big.codes is None else big.codes[sl],
+                None if big.future_codes is None else big.future_codes[sl]))
             lo = hi

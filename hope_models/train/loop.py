@@ -33,7 +33,7 @@ from hope_models import checkpoints as ckpt
 from hope_models import disk
 from hope_models.components import COMPONENTS
 from hope_models.durable import atomic_write
-from hope_models.train import job_setup, rng_state
+from hope_models.train import job_setup, rng_state, validation
 from hope_models.train.config import ConfigValueError, TrainConfig
 from hope_models.train.contract import Control, ControlCommand, NoControl, TrainSetupError
 from hope_models.train.job_setup import LOADER_CHUNK
@@ -331,7 +331,7 @@ class _Trainer:
             self.log(msg)
             return "completed", msg, step
         loader = WindowLoader(self.sampler.cache, self.sampler, comp.window, chunk=LOADER_CHUNK,
-                              frames=bool(comp.wants_frames))
+                              frames=bool(comp.wants_frames), codes=validation.code_table(comp, self.sampler.cache, self.log))
         self.model.train()
         pace = _Pace(verdict=self.mem.check(), log_t=time.monotonic(), log_step=step)
         try:

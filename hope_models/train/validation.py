@@ -101,11 +101,13 @@ def validation_metrics(component, cache, setup: ValidationSetup, *, anchors_from
     model = component.model
     was_training = model.training
     sums: dict[str, float] = {}
+    codes = code_table(component, cache)  # before eval(): it keeps the model's mode as it found it
     model.eval()
     try:
         with torch.no_grad():
             for b in range(setup.batches):
-                batch = make_windows(cache, val.batch(b), component.window, frames=bool(component.wants_frames))
+                batch = make_windows(cache, val.batch(b), component.window, frames=bool(component.wants_frames),
+                                     codes=codes)
                 for k, v in component.evaluate(batch).items():
                     sums[k] = sums.get(k, 0.0) + float(v)
     finally:
@@ -114,4 +116,12 @@ def validation_metrics(component, cache, setup: ValidationSetup, *, anchors_from
     return {k: v / setup.batches for k, v in sums.items()}
 
 
-__all__ = ["ValidationSetup", "NoValidationSplit", "anchor_sampler", "validation_metrics"]
+def code_table(component, cache, log=None):
+    """The component's precomputed tokenizer codes of `cache` (TrainingComponent.code_table), or
+    None: for a component that reads no frames, or one outside hope_models.components (a test's
+    stand-in that only keeps train/contract.Component) that has no table to offer."""
+    table = getattr(component, "code_table", None)
+    return None if table is None else table(cache, log)
+
+
+__all__ = ["ValidationSetup", "NoValidationSplit", "anchor_sampler", "code_table", "validation_metrics"]

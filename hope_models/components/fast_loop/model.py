@@ -95,10 +95,12 @@ class FastLoop(nn.Module):
 
     # -- pointwise parts: functions of one grid point, so the same in both forms -----------------
 
-    def _encode(self, obs: torch.Tensor, frames: torch.Tensor | None) -> torch.Tensor:
+    def _encode(self, obs: torch.Tensor, frames: torch.Tensor | None, codes: torch.Tensor | None = None) -> torch.Tensor:
         e = self.obs_in(obs)
         if self.vqvae is not None:
-            e = e + self.code_in(self.vqvae.rows(self.codes(obs, frames))).sum(-2)
+            if codes is None:  # precomputed codes (a dataset's code table) spare the frozen encoder
+                codes = self.codes(obs, frames)
+            e = e + self.code_in(self.vqvae.rows(codes)).sum(-2)
         return e + self.enc_mlp(self.enc_ln(e))
 
     def _head(self, z: torch.Tensor) -> torch.Tensor:
@@ -107,8 +109,9 @@ class FastLoop(nn.Module):
 
     # -- the two forms ---------------------------------------------------------------------------
 
-    def _trunk(self, obs: torch.Tensor, mask: torch.Tensor | None, frames: torch.Tensor | None) -> torch.Tensor:
-        x = self._encode(obs, frames)
+    def _trunk(self, obs: torch.Tensor, mask: torch.Tensor | None, frames: torch.Tensor | None,
+               codes: torch.Tensor | None = None) -> torch.Tensor:
+        x = self._encode(obs, frames, codes)
         u = self.ssm_ln(x)
         if mask is not None:  # points before the episode's start add nothing to the state
             u = u * mask[..., None].to(u.dtype)
@@ -116,11 +119,12 @@ class FastLoop(nn.Module):
         return x + y
 
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
-                frames: torch.Tensor | None = None) -> torch.Tensor:
+                frames: torch.Tensor | None = None, codes: torch.Tensor | None = None) -> torch.Tensor:
         """obs [B, K, obs_dim], mask [B, K] (True = real point; the last must be real) -> action [B, act_dim].
+        A frame tokenizer's codes come from `frames` [B, K, H, W, 3], or precomputed as `codes` [B, K, G].
 
         A window longer than K gives the action of its last K points."""
-        return self._head(self._trunk(obs, mask, frames)[:, -1])
+        return self._head(self._trunk(obs, mask, frames, codes)[:, -1])
 
     def actions(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
                 frames: torch.Tensor | None = None) -> torch.Tensor:

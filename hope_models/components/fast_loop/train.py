@@ -17,7 +17,7 @@ class FastLoopComponent(TrainingComponent):
     clones_actions = True  # behaviour cloning: play episodes' actions are no labels (validation.anchor_sampler)
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
-        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), self._frames(batch))
+        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), self._frames(batch), self._codes(batch))
         target = as_tensor(batch.target_act)
         loss = F.mse_loss(pred, target)
         # baseline: always predicting the dataset's mean action (0 once normalised)

@@ -18,11 +18,14 @@ class MidLoopComponent(TrainingComponent):
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
         model: MidLoop = self._model
-        codes = model.codes(as_tensor(batch.obs), self._frames(batch))
+        codes = self._codes(batch)  # a dataset's code table spares the frozen encoder
+        if codes is None:
+            codes = model.codes(as_tensor(batch.obs), self._frames(batch))
         future_codes = None
         if self.wants_frames:
+            future_codes = self._codes(batch, "future_codes")
             future_frames = self._frames(batch, "future_frames")  # only if the data layer provides them
-            if future_frames is not None:
+            if future_codes is None and future_frames is not None:
                 future_codes = model.codes(None, future_frames)
         elif batch.future_obs is not None:
             future_codes = model.codes(as_tensor(batch.future_obs))
