@@ -272,6 +272,9 @@ def test_the_layers_from_a_config_are_the_layers_of_the_model_built_from_it(fram
     cases = [("vqvae", {"channels": 4, "code_dim": 8, "groups": 2}, None), ("vqvae", {}, None),
              ("fast_loop", {"d_model": 24, "d_state": 12}, None), ("fast_loop", {"window": {"k": 3}}, vq),
              ("mid_loop", {"n_layers": 3, "d_model": 16, "mlp_ratio": 3}, vq), ("mid_loop", {}, vq)]
+    if frames:  # the grid layout: one code per cell, a decoder from the grid
+        cases += [("vqvae", {"layout": "grid", "patch": 8, "channels": 4}, None),
+                  ("vqvae", {"layout": "grid", "patch": 4, "channels": 4, "code_dim": 256 * 2}, None)]
     for name, model_config, vq_cfg in cases:
         r = resolve(name, spec, model_config, vq_cfg)
         model = {"vqvae": lambda: VQVAE(r.cfg), "fast_loop": lambda: FastLoop(r.cfg, vq_cfg and VQVAE(vq_cfg)),

@@ -28,7 +28,8 @@ class Layer:
 # The parameters of each kind, in the order `params` lists their shapes (torch's registration order).
 PARAM_NAMES = {"Linear": ("weight", "bias"), "LayerNorm": ("weight", "bias"), "Embedding": ("weight",),
                "WindowSSM": ("log_rate", "B", "C", "D"), "DiagonalSSM": ("log_rate", "B", "C", "D"),
-               "Conv2d": ("weight", "bias"), "ConvTranspose2d": ("weight", "bias")}
+               "Conv2d": ("weight", "bias"), "ConvTranspose2d": ("weight", "bias"),
+               "AddBackground": ("image",)}
 
 
 def expand(layers: list[Layer]) -> list[Layer]:
@@ -66,6 +67,9 @@ def ssm(kind: str, d: int, n: int, trainable: bool, name: str = "") -> Layer:
     return Layer(kind, ((n,), (n, d), (d, n), (d,)), trainable, name=name)  # log_rate, B, C, D
 
 
-def conv(kind: str, c_in: int, c_out: int, trainable: bool, name: str = "") -> Layer:
-    weight = (c_in, c_out, 4, 4) if kind.startswith("ConvTranspose") else (c_out, c_in, 4, 4)
-    return Layer(kind, (weight, (c_out,)), trainable, (c_in, c_out, 4, 2, 1, 1, 0), name=name)
+def conv(kind: str, c_in: int, c_out: int, trainable: bool, name: str = "", kernel: int = 4, stride: int = 2,
+         padding: int = 1) -> Layer:
+    """A square conv; the default is the frame models' 4x4 stride-2 (halving or doubling) one."""
+    k = kernel
+    weight = (c_in, c_out, k, k) if kind.startswith("ConvTranspose") else (c_out, c_in, k, k)
+    return Layer(kind, (weight, (c_out,)), trainable, (c_in, c_out, k, stride, padding, 1, 0), name=name)

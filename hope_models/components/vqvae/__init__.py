@@ -13,7 +13,7 @@ from typing import Any
 from hope_models.components.config_fields import make_config
 from hope_models.components.spec import ComponentSpec, EpisodeFacts
 from hope_models.components.vqvae import held_out, layers
-from hope_models.components.vqvae.config import VQVAEConfig
+from hope_models.components.vqvae.config import GRID_CELL_DIM, VQVAEConfig
 
 
 def _check_window(window: Any) -> None:
@@ -29,6 +29,13 @@ def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: None) 
         if frame is None:
             raise ValueError("model_config.input='frame' but the feature spec has no frame feature")
         derived["frame_shape"] = tuple(frame.shape)
+        if overrides.get("layout") == "grid":  # the grid fixes the groups: one per cell
+            h, w, _ = derived["frame_shape"]
+            patch = overrides.get("patch", VQVAEConfig.patch)
+            if isinstance(patch, int) and not isinstance(patch, bool) and patch > 0:
+                derived["groups"] = (h // patch) * (w // patch)
+                if "code_dim" not in overrides:
+                    derived["code_dim"] = derived["groups"] * GRID_CELL_DIM
     return make_config(VQVAEConfig, {"input": want, **derived}, overrides, "vqvae")
 
 

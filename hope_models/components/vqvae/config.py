@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 INPUTS = ("vector", "frame")  # what a VQ-VAE reads
+LAYOUTS = ("flat", "grid")  # how a frame's codes are laid out (model.py)
+GRID_CELL_DIM = 8  # a grid cell's code width when model_config does not set code_dim
 
 
 @dataclass
@@ -22,6 +24,17 @@ class VQVAEConfig:
     ema_decay: float = 0.99
     eps: float = 1e-5  # Laplace smoothing of the EMA counts
     dead_after_steps: int = 20  # codebook updates without a single assignment before a restart
+    # Frames: "flat" = the whole frame -> one code_dim vector cut into `groups` codes; "grid" = one
+    # code per patch x patch cell of the frame (groups = the cells, row-major; code_dim = cells x
+    # a cell's width). Checkpoints from before the grid have no layout: flat.
+    layout: str = "flat"
+    patch: int = 4  # grid: pixels per cell side, a power of 2 (64x64 / 4 = a 16x16 grid, 256 codes)
+    fg_weight: float = 0.0  # frames: extra loss weight of the pixels that differ from the background
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """The grid's cells (rows, columns): (H / patch, W / patch)."""
+        return self.frame_shape[0] // self.patch, self.frame_shape[1] // self.patch
 
     def validate(self) -> None:
         if self.input not in INPUTS:
@@ -32,6 +45,12 @@ class VQVAEConfig:
             h, w, c = self.frame_shape
             if c != 3 or h % 16 or w % 16 or h < 16 or w < 16:
                 raise ValueError(f"frame_shape={self.frame_shape} must be [H, W, 3] with H, W multiples of 16")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout={self.layout!r} must be one of {', '.join(LAYOUTS)}")
+        if self.layout == "grid":
+            self._validate_grid()
+        if self.fg_weight < 0:
+            raise ValueError(f"fg_weight={self.fg_weight} must be >= 0")
         if self.n_codes < 2 or self.code_dim < 1:
             raise ValueError(f"n_codes={self.n_codes} must be >= 2 and code_dim={self.code_dim} >= 1")
         if self.groups < 1 or self.code_dim % self.groups:
@@ -44,3 +63,22 @@ class VQVAEConfig:
             raise ValueError(f"ema_decay={self.ema_decay} must be within (0, 1)")
         if self.dead_after_steps < 1:
             raise ValueError(f"dead_after_steps={self.dead_after_steps} must be >= 1")
+
+    def _validate_grid(self) -> None:
+        if self.input != "frame":
+            raise ValueError("layout='grid' needs input='frame': a vector has no cells")
+        h, w, _ = self.frame_shape
+        p = self.patch
+        if p < 2 or p & (p - 1) or h % p or w % p:
+            raise ValueError(f"patch={p} must be a power of 2 >= 2 that divides the frame {h}x{w}")
+        cells = (h // p) * (w // p)
+        if self.groups != cells:
+            raise ValueError(f"groups={self.groups} must be the grid's {h // p}x{w // p}={cells} cells "
+                             f"(layout='grid', patch={p})")
+
+
+def grid_widths(cfg: VQVAEConfig) -> list[int]:
+    """The channels of the grid encoder's stride-2 convs, input first: 3, c, 2c, 2c, ... (log2(patch)
+    convs; the decoder runs them backwards)."""
+    n = cfg.patch.bit_length() - 1
+    return [3] + [cfg.channels * (1 if i == 0 else 2) for i in range(n)]
