@@ -14,6 +14,7 @@ fingertip's positions back from its codes (cm). For docs/training.md.
    the fingertip's xy (hope_models/sim/positions.py: from the simulator, never in the observation),
    scored on every held-out frame; beside it the error of always answering the training mean;
 5. writes --strip (a row of held-out frames over their reconstructions, 3x upscaled) if given.
+--checkpoint skips 1-2 and measures a trained checkpoint (e.g. on another held-out set).
 
     MUJOCO_GL=egl .venv/bin/python bench/vqvae_grid.py --train /tmp/cam/train --held /tmp/cam/held \\
         --out /tmp/cam/grid --steps 3000 --model-config '{"layout": "grid", "fg_weight": 10}'
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model-config", type=json.loads, default={}, help="the vqvae's model_config (JSON)")
     p.add_argument("--probe-frames", type=int, default=4000, help="training frames the probe is fitted on")
     p.add_argument("--strip", type=Path, default=None)
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="measure this trained checkpoint dir (run/checkpoints/<step>) instead of training")
     args = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -103,26 +106,31 @@ def main(argv: list[str] | None = None) -> int:
     for root, n, seed in ((args.train, args.train_episodes, args.train_seed), (args.held, args.held_episodes, args.held_seed)):
         if not root.is_dir():
             record_dataset(root, n, seed=seed, observation="camera", noise=1.0, steps=args.episode_steps)
-    t0 = time.monotonic()
-    result = train(TrainConfig(component="vqvae", data=str(args.train), run_dir=str(args.out / "run"),
-                               steps=args.steps, lr=args.lr, seed=args.seed, model_config=args.model_config,
-                               cache_dir=str(args.out / "cache"), thermal_zone=None, vcgencmd=None, log_every=100,
-                               threads=1))
-    wall = time.monotonic() - t0
-    if result.outcome != "completed":
-        print(f"training ended {result.outcome}: {result.message}", file=sys.stderr)
-        return 1
+    figures: dict = {}
+    checkpoint = args.checkpoint
+    if checkpoint is None:
+        t0 = time.monotonic()
+        result = train(TrainConfig(component="vqvae", data=str(args.train), run_dir=str(args.out / "run"),
+                                   steps=args.steps, lr=args.lr, seed=args.seed, model_config=args.model_config,
+                                   cache_dir=str(args.out / "cache"), thermal_zone=None, vcgencmd=None,
+                                   log_every=100, threads=1))
+        wall = time.monotonic() - t0
+        if result.outcome != "completed":
+            print(f"training ended {result.outcome}: {result.message}", file=sys.stderr)
+            return 1
+        checkpoint = Path(result.checkpoint)
+        figures.update({"train_steps": args.steps, "train_wall_s": round(wall), "steps_per_s": round(args.steps / wall, 2)})
     torch.set_num_threads(1)
-    model = component_from_checkpoint(result.checkpoint).model.eval()
+    model = component_from_checkpoint(checkpoint).model.eval()
     frames, target, tip, _ = _load(args.held)
     codes, se = _codes_and_error(model, frames)
     x = frames.astype(np.float64) / 255.0
     variance = float(x.var(0).sum()) * len(x)  # the squared error of answering the mean frame
     mse = se / x.size
-    figures: dict = {"model": model.describe(), "params": sum(q.numel() for q in model.parameters()),
-                     "train_steps": args.steps, "train_wall_s": round(wall), "steps_per_s": round(args.steps / wall, 2),
-                     "held_out_episodes": len(_episodes(args.held)), "held_out_frames": len(frames),
-                     "variance_kept": 1.0 - se / variance, "psnr_db": 10.0 * math.log10(1.0 / mse)}
+    figures.update({"checkpoint": str(checkpoint), "model": model.describe(),
+                    "params": sum(q.numel() for q in model.parameters()),
+                    "held_out_episodes": len(_episodes(args.held)), "held_out_frames": len(frames),
+                    "variance_kept": 1.0 - se / variance, "psnr_db": 10.0 * math.log10(1.0 / mse)})
     n_train = len(_episodes(args.train)) * args.episode_steps
     tr_frames, tr_target, tr_tip, tr_episode = _load(args.train, every=max(1, n_train // args.probe_frames))
     tr_codes, _ = _codes_and_error(model, tr_frames)

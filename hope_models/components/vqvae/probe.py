@@ -48,9 +48,10 @@ def distance_cm(pred: np.ndarray, xy: np.ndarray) -> float:
     return float(100.0 * np.linalg.norm(np.asarray(pred) - np.asarray(xy), axis=-1).mean())
 
 
-def _fit(codes: np.ndarray, y: np.ndarray, lam: float) -> Probe:
+def _fit(codes: np.ndarray, y: np.ndarray, lam: float, k: np.ndarray | None = None) -> Probe:
+    """k: the kernel of codes with itself, if already computed (it does not depend on lam)."""
     mean = y.mean(0)
-    k = _kernel(codes, codes)
+    k = _kernel(codes, codes) if k is None else k
     alpha = np.linalg.solve(k + lam * np.eye(len(codes)), y - mean)
     return Probe(codes, alpha, mean, lam)
 
@@ -75,8 +76,11 @@ def fit_probe(codes: np.ndarray, xy: np.ndarray, episode: np.ndarray, seed: int 
     fit_i = np.flatnonzero(~back)[_subsample(int((~back).sum()), max_fit, rng)]
     val_i = np.flatnonzero(back)[_subsample(int(back.sum()), max_fit, rng)]
     g = codes.shape[1]
-    scores = {lam: distance_cm(_fit(codes[fit_i], xy[fit_i], lam * g).predict(codes[val_i]), xy[val_i])
-              for lam in LAMBDAS}
+    k_fit, k_val = _kernel(codes[fit_i], codes[fit_i]), _kernel(codes[val_i], codes[fit_i])
+    scores = {}
+    for lam in LAMBDAS:
+        probe = _fit(codes[fit_i], xy[fit_i], lam * g, k_fit)
+        scores[lam] = distance_cm(probe.mean + k_val @ probe.alpha, xy[val_i])
     best = min(scores, key=lambda lam: scores[lam])
     every = _subsample(len(codes), max_fit, rng)
     return _fit(codes[every], xy[every], best * g)
