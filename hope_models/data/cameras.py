@@ -17,7 +17,7 @@ episode's frames (a 10-minute session at 30 fps is 18,000 of them).
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
@@ -31,7 +31,6 @@ from hope_models.media import FrameInfo, MediaError, VideoFrames, decode_still, 
 # not cameras, and neither are objects whose name says they hold no picture.
 CAMERA_SUFFIXES = (".npy", ".jpg", ".jpeg", ".png", ".mp4", ".m4v", ".mov", ".webm", ".mkv")
 _NOT_A_PICTURE = ("audio", "mic", "segment", "mask", "normal", "flow", "lidar", "point", "thermal", "gaze")
-STILL_KINDS = ("npy", "jpeg", "png")
 VIDEO_KINDS = ("mp4", "webm")
 
 
@@ -73,7 +72,6 @@ class CameraCheck:
     usable: int = 0
     info: FrameInfo | None = None  # of the first usable frame
     problem: str | None = None  # the first step's reason when a frame is not usable
-    formats: set[str] = field(default_factory=set)
     blank: bool | None = None  # every fully decoded frame was flat / held no depth (None: none decoded)
 
     @property
@@ -84,11 +82,15 @@ class CameraCheck:
     def name(self) -> str:
         return self.path.removeprefix("observation.")
 
+    def source(self, size: int) -> str | None:
+        """What its frames are decoded from and into: "JPEG 480x640 -> 64x64" (None: none decodes)."""
+        return None if self.info is None else self.info.describe(frame_shape(size, self.kind)[:2])
+
     def describe(self, size: int) -> str:
         """"egocentric_video: 12/12 frames, JPEG 480x640 -> 64x64", or why not."""
         line = f"{self.name}: {self.usable}/{self.steps} frames"
         if self.info is not None:
-            line += ", " + self.info.describe(frame_shape(size, self.kind)[:2])
+            line += f", {self.source(size)}"
             if self.kind == "depth":
                 line += " (depth, metres)"
         if self.problem:
@@ -110,18 +112,18 @@ def channel_order(step, path: str) -> str:
     return order if order in CHANNEL_ORDERS else "rgb"
 
 
-def _step_file(step, path: str, blob_root: str | None) -> tuple[str, Any]:
-    """(uri, local path) of a step's frame file; EpisodeMismatch names what is wrong."""
-    v = _get(step.observation, tuple(path.split(".")[1:]))
+def _step_file(steps: list, i: int, path: str, blob_root: str | None) -> tuple[str, Any]:
+    """(uri, local path) of step i's frame file; EpisodeMismatch names the step and what is wrong."""
+    v = _get(steps[i].observation, tuple(path.split(".")[1:]))
     if v is _MISSING or v is None:
-        raise EpisodeMismatch("no frame at this step", None, path)
+        raise EpisodeMismatch("no frame at this step", i, path)
     uri = frame_uri(v)
     if uri is None:
-        raise EpisodeMismatch(f"not a frame reference (needs a 'uri' string, got {type(v).__name__})", None, path)
+        raise EpisodeMismatch(f"not a frame reference (needs a 'uri' string, got {type(v).__name__})", i, path)
     try:
         return uri, resolve_blob_uri(uri, blob_root)
     except BlobFrameError as exc:
-        raise EpisodeMismatch(str(exc), None, f"{path}.uri") from None
+        raise EpisodeMismatch(str(exc), i, f"{path}.uri") from None
 
 
 def check_camera(steps: list, path: str, blob_root: str | None, size: int, every_step: bool = True) -> CameraCheck:
@@ -134,9 +136,9 @@ def check_camera(steps: list, path: str, blob_root: str | None, size: int, every
     last = indices[-1] if indices else -1
     for i in indices:
         try:
-            uri, local = _step_file(steps[i], path, blob_root)
+            uri, local = _step_file(steps, i, path, blob_root)
         except EpisodeMismatch as exc:
-            check.problem = check.problem or f"step {i}: {exc}"
+            check.problem = check.problem or str(exc)
             continue
         if uri not in seen:
             # the first usable frame and the last step's decode in full (a header can lie, and a
@@ -168,7 +170,6 @@ def _check_file(local, uri: str, kind: str, size: int, check: CameraCheck, full:
         return str(exc).replace(f" ({local})", "")
     except StopIteration:
         return f"{where}: the video has no frame"
-    check.formats.add(info.format)
     return None
 
 
@@ -178,12 +179,8 @@ def read_camera(steps: list, frame: FrameFeature, blob_root: str | None,
     the field and the file. Never a placeholder: one bad or missing file fails the episode.
     `sources` counts the frames by what they were decoded from ("JPEG 480x640")."""
     out_hw = frame.shape[:2]
-    files = []
-    for i, step in enumerate(steps):  # every reference first: the cheap checks fail before any decode
-        try:
-            files.append(_step_file(step, frame.path, blob_root))
-        except EpisodeMismatch as exc:
-            raise EpisodeMismatch(str(exc).split(": ", 1)[1], i, exc.field) from None
+    # every reference first: the cheap checks fail before any decode
+    files = [_step_file(steps, i, frame.path, blob_root) for i in range(len(steps))]
     first_step: dict[str, int] = {}
     for i, (uri, _local) in enumerate(files):
         first_step.setdefault(uri, i)

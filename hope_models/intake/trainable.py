@@ -54,7 +54,7 @@ def _reads(inline: str | None, checks: list[CameraCheck], obs: dict[str, int]) -
     if inline:
         what = f"frame {inline} (inline floats, 64x64)"
     elif usable:
-        what = f"frame {usable[0].path} ({usable[0].describe(DEFAULT_FRAME_SIZE).split(', ', 1)[1]})"
+        what = f"frame {usable[0].path} ({usable[0].source(DEFAULT_FRAME_SIZE)})"
     else:
         what = f"the observation vector ({sum(obs.values())} values)"
     unused = [c for c in checks if not c.ok]
