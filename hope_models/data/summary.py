@@ -55,9 +55,8 @@ def summarise_dataset(dataset_dir: str | Path, cache_root: str | Path, spec_path
         "observation_fields": [{"path": f.path, "size": f.size} for f in spec.observation.fields],
         "action_fields": [{"path": f.path, "size": f.size} for f in spec.action.fields],
         "frame": None if spec.frame is None else spec.frame.to_json_obj(),
-        "cameras": [_camera(cache, name, i == 0 and spec.frame is not None)
-                    for i, name in enumerate(n for n in cache.manifest["arrays"] if n == "frames"
-                                             or n.startswith("camera."))],
+        "cameras": [_camera(cache, name, tokenizer=name == "frames") for name in cache.manifest["arrays"]
+                    if name == "frames" or name.startswith("camera.")],
         "spec_notes": spec.notes,
         "split": {"val_fraction": val_fraction, "train_episodes": cache.n_episodes - n_val, "val_episodes": n_val},
         "excluded": cache.manifest["excluded"],
