@@ -134,6 +134,11 @@ class Home:
                              f"task {r['celery_task_id']} error {r['error']!r}")
                 for e in self.events(r["id"], ["state", "log"])[-12:]:
                     lines.append(f"      {e['time']} {e['kind']} {json.dumps(e['payload'])[:300]}")
+                # what the job itself last wrote (a child stuck between steps shows where)
+                metrics = Path(r.get("run_dir") or "/nonexistent") / "metrics.jsonl"
+                if metrics.exists():
+                    lines.append(f"    {metrics} (tail):")
+                    lines.extend(f"      {line[:300]}" for line in metrics.read_text(errors="replace").splitlines()[-8:])
         except Exception as exc:  # noqa: BLE001 - describing must not hide the real failure
             lines.append(f"  (registry unreadable: {exc})")
         for log in self.logs:

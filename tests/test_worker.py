@@ -569,7 +569,9 @@ def test_service_stop_checkpoints_requeues_and_exits(target, tmp_path, tmp_path_
             os.killpg(worker.pid, signal.SIGTERM)
         else:
             os.kill(worker.pid, signal.SIGTERM)
-        back = wait_state(home, rid, {"queued", "paused", "failed", "cancelled"}, 10)
+        # Within systemd's TimeoutStopSec (60 s in hope-worker.service) all told: a checkpoint's
+        # fsync waits for whatever else the disk is writing, seconds on a busy machine.
+        back = wait_state(home, rid, {"queued", "paused", "failed", "cancelled"}, 30)
         assert back["state"] == "queued" and back["attempt"] == 1, home.describe()
         assert checkpoint_step(back["last_checkpoint"]) == back["step"] >= 10
         last_state = home.events(rid, ["state"])[-1]["payload"]
