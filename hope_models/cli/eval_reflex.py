@@ -163,7 +163,7 @@ def _surprise_tick(args, out):
     return on_tick, summary
 
 
-def _prepare_gl() -> str | None:
+def _prepare_gl(why: str = "--stream-frames") -> str | None:
     """Choose EGL before dm_control is imported (a GL backend the user exported wins; "disabled",
     which a parent that ran the sim without frames may pass down, does not) and import it; the
     reason when that fails."""
@@ -174,8 +174,9 @@ def _prepare_gl() -> str | None:
 
         _dm_control(frames=True)
     except Exception as exc:  # noqa: BLE001 - ImportError, RuntimeError, OpenGL errors: all mean "no frames"
-        return (f"cannot render the reacher for --stream-frames (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
-                f"{type(exc).__name__}: {exc}; run without --stream-frames, or make that backend work (MUJOCO_GL=egl needs libEGL, "
+        instead = "run without --stream-frames, or " if why == "--stream-frames" else ""
+        return (f"cannot render the reacher for {why} (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
+                f"{type(exc).__name__}: {exc}; {instead}make that backend work (MUJOCO_GL=egl needs libEGL, "
                 "e.g. Mesa's libegl1)")
     return None
 
@@ -235,6 +236,10 @@ def run(args: argparse.Namespace) -> int:
         policy = ReflexPolicy.from_checkpoint(ckpt_arg)
     except ReflexPolicyError as exc:
         return _fail(args, str(exc))
+    if policy.frame is not None and args.stream_frames is None:  # a camera reflex sees rendered frames
+        problem = _prepare_gl(f"the policy's camera ({policy.frame.path})")
+        if problem is not None:
+            return _fail(args, problem)
     seeds = list(range(args.seed, args.seed + args.episodes))
     stream = on_tick = surprise = None
     if args.stream_frames is not None:

@@ -13,8 +13,12 @@ FastLoop.step with the policy's recurrent state. The normalised action is denorm
 (a * std + mean) and clipped to the action bounds. After any number of ticks the action equals
 FastLoop.forward over the last K observations of the episode (window-exact; tested).
 
+A fast_loop over a frame tokenizer also reads the camera: the observation dict carries the frame
+(uint8 [H, W, 3], the spec's size) at the spec's camera path (`observation.camera` for the
+reacher's camera observation); `frame_size` says which, and evaluate.run_episode renders it.
+
 `from_checkpoint` refuses what this runtime cannot drive, with the reason: a component that is not
-a fast_loop, a fast_loop that reads camera frames, or (by default) a spec whose fields are not the
+a fast_loop, a frame fast_loop whose spec names no camera, or (by default) a spec whose fields are not the
 dm_control reacher's observation / action (pass expect_observation=None, expect_action=None and
 action_bounds=None to use it for another robot).
 
@@ -106,6 +110,8 @@ class ReflexPolicy:
         self._act_mean = np.asarray(act_mean, dtype=np.float64)
         self._act_std = np.asarray(act_std, dtype=np.float64)
         self.action_bounds = action_bounds
+        # A camera reflex reads the frame at the spec's camera path of each observation (uint8 [H, W, 3]).
+        self.frame = spec.frame if model.wants_frames else None
         self.ticks = 0
         self._state = None
         self.reset()
@@ -134,9 +140,9 @@ class ReflexPolicy:
         where = str(ckpt / CONFIG_FILE)
         if comp.name != ACTOR:
             raise ReflexPolicyError(f"{where}: component is {comp.name!r}; a reflex policy needs a {ACTOR} checkpoint")
-        if comp.model.wants_frames:
-            raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames (its VQ-VAE encodes images); "
-                                    "the reflex runtime drives state-only fast_loops")
+        if comp.model.wants_frames and comp.spec.frame is None:
+            raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames but its feature spec names no "
+                                    "camera (frame) to read them from")
         check_spec(comp.spec, where, expect_observation, expect_action)
         return cls(comp.model, comp.spec, version, action_bounds, ckpt)
 
@@ -169,6 +175,26 @@ class ReflexPolicy:
             raise ReflexPolicyError(f"observation has non-finite values: {x.tolist()}")
         return x
 
+    @property
+    def frame_size(self) -> int | None:
+        """The side of the square camera frame each act() needs (None: no camera)."""
+        return None if self.frame is None else int(self.frame.shape[0])
+
+    def frame_of(self, obs: Any) -> np.ndarray:
+        """The camera frame of an observation dict, checked against the spec's shape -> uint8 [H, W, 3]."""
+        assert self.frame is not None
+        if not isinstance(obs, dict):
+            raise ReflexPolicyError(f"this policy reads the camera {self.frame.path}: give an observation dict")
+        try:
+            v = _lookup(obs, self.frame.path)
+        except KeyError:
+            raise ReflexPolicyError(f"observation has no {self.frame.path} (the policy's camera)") from None
+        a = np.asarray(v)
+        if a.shape != tuple(self.frame.shape) or a.dtype != np.uint8:
+            raise ReflexPolicyError(f"observation {self.frame.path} is {a.dtype} {list(a.shape)}, the policy needs "
+                                    f"uint8 {list(self.frame.shape)}")
+        return a
+
     def normalise(self, x: np.ndarray) -> np.ndarray:
         x32 = np.asarray(x, dtype=np.float32) * self._inv_std
         x32 -= self._shift
@@ -178,8 +204,9 @@ class ReflexPolicy:
         """One control tick: observation -> action (denormalised, clipped to the bounds)."""
         torch = self._torch
         xn = torch.from_numpy(self.normalise(self.observation_vector(obs))[None, :])
+        frame = None if self.frame is None else torch.from_numpy(np.ascontiguousarray(self.frame_of(obs))[None])
         with torch.inference_mode():
-            a, self._state = self.model.step(xn, self._state)
+            a, self._state = self.model.step(xn, self._state, frame)
         self.ticks += 1
         action = a[0].double().numpy() * self._act_std + self._act_mean
         if self.action_bounds is not None:

@@ -5,7 +5,8 @@
 
 Each seed is one episode of the task with that seed (reacher.make_env(task, seed)); the policy's
 reset() is called before its first step, then act(observation) once per control step for the
-1000 steps. The same policy and seeds give the same returns, bit for bit (the env is seeded, the
+1000 steps. A policy with a `frame_size` (a camera reflex) is shown the joints and the top-down
+camera frame rendered at that size, never the target's position. The same policy and seeds give the same returns, bit for bit (the env is seeded, the
 expert and the fast loop are deterministic, the random policy is seeded per episode).
 
 Success (docs/reflex.md): the fingertip is within the reward tolerance (TOLERANCE_M = 0.06 m of the
@@ -29,7 +30,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from hope_models.sim.expert import ExpertController, RandomPolicy
-from hope_models.sim.reacher import CONTROL_PERIOD_S, EPISODE_STEPS, TASKS, make_env
+from hope_models.sim.reacher import CAMERA_KEY, CONTROL_PERIOD_S, EPISODE_STEPS, TASKS, make_env
 
 REACH_DEADLINE_S = 2.0
 ON_TARGET_FRACTION = 0.8
@@ -117,7 +118,9 @@ def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames
     to the range the env applies), before the env steps: what a model watching the robot would be
     sent (eval-reflex's Mid Loop surprise), without this module knowing any model. target_jump_s:
     reacher.make_env's target jump."""
-    env = make_env(task, seed, frames=frames is not None, target_jump_s=target_jump_s)
+    # A policy with a frame_size sees what a robot has: the joints and the camera, nothing else.
+    frame_size = getattr(policy, "frame_size", None)
+    env = make_env(task, seed, frames=frames is not None or frame_size is not None, target_jump_s=target_jump_s)
     obs = env.reset()
     reset = getattr(policy, "reset", None)
     if reset is not None:
@@ -127,7 +130,8 @@ def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames
     if frames is not None:
         frames.on_step(env, episode=episode, seed=seed, step=0, return_so_far=0.0, last=False)
     for t in range(steps):
-        action = np.asarray(policy.act(obs), dtype=np.float64)
+        seen = obs if frame_size is None else {"robot_state": obs["robot_state"], CAMERA_KEY: env.render(frame_size)}
+        action = np.asarray(policy.act(seen), dtype=np.float64)
         if not np.isfinite(action).all():
             raise ValueError(f"{task} seed {seed} step {t}: the policy gave a non-finite action {action.tolist()}")
         if on_tick is not None:

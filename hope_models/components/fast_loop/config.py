@@ -17,6 +17,7 @@ class FastLoopConfig:
     min_timescale: float = 1.0  # grid steps (20 ms each in the default window)
     max_timescale: float = 16.0
     n_codes: int = 0  # codebook size of the frozen VQ-VAE whose codes are inputs; 0 = none
+    keypoints: int = 16  # a grid VQ-VAE's codes are read as this many learned keypoints (code_keypoints.py)
 
     def validate(self) -> None:
         if self.obs_dim < 1 or self.act_dim < 1:
@@ -25,4 +26,6 @@ class FastLoopConfig:
             raise ValueError(f"window_k={self.window_k} must be >= 1")
         if self.d_model < 1 or self.d_state < 1 or self.mlp_ratio < 1:
             raise ValueError("d_model, d_state and mlp_ratio must be >= 1")
+        if self.keypoints < 1:
+            raise ValueError(f"keypoints={self.keypoints} must be >= 1")
         check_timescales(self.min_timescale, self.max_timescale)

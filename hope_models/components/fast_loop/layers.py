@@ -13,7 +13,13 @@ def layers(cfg: FastLoopConfig, vq: VQVAEConfig | None) -> list[Layer]:
     d = cfg.d_model
     hidden = cfg.mlp_ratio * d
     frozen = vqvae_layers(vq, False, "vqvae.") if vq is not None else []
-    codes = [embedding(cfg.n_codes * vq.groups, d, True, "code_in")] if vq is not None else []
+    codes = []
+    if vq is not None and vq.input == "frame" and vq.layout == "grid":  # model.py's CodeKeypoints
+        c = cfg.keypoints
+        codes = [embedding(cfg.n_codes, c, True, "keypoints.score"), embedding(cfg.n_codes, 2 * c, True, "keypoints.offset"),
+                 linear(3 * c, d, True, "keypoints.out")]
+    elif vq is not None:
+        codes = [embedding(cfg.n_codes * vq.groups, d, True, "code_in")]
     return [linear(cfg.obs_dim, d, True, "obs_in"), *codes, layer_norm(d, True, "enc_ln"),
             *gated_mlp(d, hidden, True, "enc_mlp"), layer_norm(d, True, "ssm_ln"),
             ssm("WindowSSM", d, cfg.d_state, True, "ssm"), layer_norm(d, True, "head_ln"),

@@ -2,6 +2,7 @@
 
     obs [B, K, obs_dim] --Linear--+                                  per point (no mixing in time)
     codes [B, K, G] (frozen VQ-VAE, optional) --Embed, sum over G--+--> x = e + GatedMLP(LN(e))
+      (a grid VQ-VAE's cells: --CodeKeypoints-- instead, where things are, code_keypoints.py)
                                                            |
                   u = LN(x) * mask --> WindowSSM (the ONLY mixing in time: exactly the last K points)
                                                            |
@@ -37,6 +38,7 @@ import logging
 import torch
 from torch import nn
 
+from hope_models.components.code_keypoints import CodeKeypoints
 from hope_models.components.fast_loop.config import FastLoopConfig
 from hope_models.components.ssm import GatedMLP, WindowSSM, WindowState, count_params
 from hope_models.components.vqvae.model import VQVAE
@@ -56,8 +58,13 @@ class FastLoop(nn.Module):
         d, hidden = cfg.d_model, cfg.mlp_ratio * cfg.d_model
         self.obs_in = nn.Linear(cfg.obs_dim, d)
         # one embedding row per code of every group (the VQ-VAE's table rows); a point's code
-        # embedding is the sum of its G groups' rows
-        self.code_in = nn.Embedding(vqvae.codebook.shape[0], d) if vqvae is not None else None
+        # embedding is the sum of its G groups' rows. A grid's cells are read as keypoints: a sum
+        # would say what is in view, never where.
+        self.code_in = self.keypoints = None
+        if vqvae is not None and vqvae.cfg.input == "frame" and vqvae.cfg.layout == "grid":
+            self.keypoints = CodeKeypoints(vqvae.cfg.n_codes, vqvae.cfg.grid_shape, cfg.keypoints, d)
+        elif vqvae is not None:
+            self.code_in = nn.Embedding(vqvae.codebook.shape[0], d)
         self.enc_ln = nn.LayerNorm(d)
         self.enc_mlp = GatedMLP(d, hidden)
         self.ssm_ln = nn.LayerNorm(d)
@@ -100,7 +107,10 @@ class FastLoop(nn.Module):
         if self.vqvae is not None:
             if codes is None:  # precomputed codes (a dataset's code table) spare the frozen encoder
                 codes = self.codes(obs, frames)
-            e = e + self.code_in(self.vqvae.rows(codes)).sum(-2)
+            if self.keypoints is not None:
+                e = e + self.keypoints(codes)
+            else:
+                e = e + self.code_in(self.vqvae.rows(codes)).sum(-2)
         return e + self.enc_mlp(self.enc_ln(e))
 
     def _head(self, z: torch.Tensor) -> torch.Tensor:
