@@ -12,7 +12,8 @@ reconstructions for docs/training.md.
 3. measures it on the validation split (the episodes the trainer held out, the batches the gate
    scores): recon_nmse, psnr_db, perplexity, code_usage;
 4. writes --strip (default docs/img/vqvae-frames.png): the first frame of every 25th step of the
-   first held-out episode, originals on the top row, reconstructions below, 2x upscaled.
+   first held-out episode, originals on the top row, reconstructions below, upscaled (the
+   trainer's picture: components/picture.py).
 
     .venv/bin/python bench/vqvae_frames.py --out /tmp/vqvae_frames       # ~20 min on 2 cores
 
@@ -46,9 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from hope_models.components.build import component_from_checkpoint
+    from hope_models.components.picture import png
     from hope_models.data.cache import load_or_build
     from hope_models.data.sampler import split_episodes
-    from hope_models.sim.frames import png_bytes
     from hope_models.sim.recorder import record_dataset
     from hope_models.train.loop import TrainConfig, train
     from hope_models.train.validation import ValidationSetup, validation_metrics
@@ -76,12 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     model = comp.model.eval()
     with torch.no_grad():
         codes = model.encode(torch.from_numpy(originals))
-        recon = model.decode(codes).clamp(0, 1).permute(0, 2, 3, 1).numpy()
-    recon = (recon * 255.0 + 0.5).astype(np.uint8)
-    strip = np.concatenate([np.concatenate(list(originals), axis=1), np.concatenate(list(recon), axis=1)], axis=0)
-    strip = strip.repeat(2, axis=0).repeat(2, axis=1)
     args.strip.parent.mkdir(parents=True, exist_ok=True)
-    args.strip.write_bytes(png_bytes(np.ascontiguousarray(strip)))
+    args.strip.write_bytes(png(comp.picture_of(originals)))
     figures = {k: val[k] for k in ("recon_nmse", "psnr_db", "perplexity", "code_usage") if k in val}
     figures.update({"episodes": cache.n_episodes, "frames": cache.n_steps, "train_steps": args.train_steps,
                     "held_out_episodes": len(split_episodes(cache, "val", 0.1)), "strip": str(args.strip),

@@ -13,7 +13,8 @@ fingertip's positions back from its codes (cm). For docs/training.md.
 4. the probe (components/vqvae/probe.py): codes of --probe-frames training frames -> the target's and
    the fingertip's xy (hope_models/sim/positions.py: from the simulator, never in the observation),
    scored on every held-out frame; beside it the error of always answering the training mean;
-5. writes --strip (a row of held-out frames over their reconstructions, 3x upscaled) if given.
+5. writes --strip (a row of held-out frames over their reconstructions, upscaled: the trainer's
+   picture, components/picture.py) if given.
 --checkpoint skips 1-2 and measures a trained checkpoint (e.g. on another held-out set).
 
     MUJOCO_GL=egl .venv/bin/python bench/vqvae_grid.py --train /tmp/cam/train --held /tmp/cam/held \\
@@ -121,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint = Path(result.checkpoint)
         figures.update({"train_steps": args.steps, "train_wall_s": round(wall), "steps_per_s": round(args.steps / wall, 2)})
     torch.set_num_threads(1)
-    model = component_from_checkpoint(checkpoint).model.eval()
+    component = component_from_checkpoint(checkpoint)
+    model = component.model.eval()
     frames, target, tip, _ = _load(args.held)
     codes, se = _codes_and_error(model, frames)
     x = frames.astype(np.float64) / 255.0
@@ -139,15 +141,11 @@ def main(argv: list[str] | None = None) -> int:
         figures[f"probe_{name}_cm"] = probe.error_cm(codes, held_xy)
         figures[f"mean_{name}_cm"] = distance_cm(np.broadcast_to(train_xy.mean(0), held_xy.shape), held_xy)
     if args.strip is not None:
-        from hope_models.sim.frames import png_bytes
+        from hope_models.components.picture import png
 
         rows = np.linspace(0, len(frames) - 1, 10).astype(np.int64)
-        with torch.no_grad():
-            recon = model.decode(model.encode(torch.from_numpy(frames[rows]))).clamp(0, 1)
-        recon = (recon.permute(0, 2, 3, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-        strip = np.concatenate([np.concatenate(list(frames[rows]), 1), np.concatenate(list(recon), 1)], 0)
         args.strip.parent.mkdir(parents=True, exist_ok=True)
-        args.strip.write_bytes(png_bytes(np.ascontiguousarray(strip.repeat(3, 0).repeat(3, 1))))
+        args.strip.write_bytes(png(component.picture_of(frames[rows])))
         figures["strip"] = str(args.strip)
     print(json.dumps(figures, indent=1))
     return 0

@@ -36,6 +36,7 @@ from hope_models.durable import atomic_write
 from hope_models.train import job_setup, rng_state, validation
 from hope_models.train.config import ConfigValueError, TrainConfig
 from hope_models.train.contract import Control, ControlCommand, NoControl, TrainSetupError
+from hope_models.train.held_out_picture import write_held_out_picture
 from hope_models.train.job_setup import LOADER_CHUNK
 from hope_models.train.loss_history import LossHistory
 from hope_models.train.provenance import write_provenance
@@ -435,11 +436,17 @@ class _Trainer:
 
     def _validate(self, cache) -> dict[str, float]:
         """Mean evaluate() metrics over a few validation batches; the RNG is left as it was. The
-        promotion gate computes the same numbers with the same function (train/validation.py)."""
+        promotion gate computes the same numbers with the same function (train/validation.py).
+        A component with a picture of the held-out episodes leaves it in the run dir
+        (train/held_out_picture.py: the frame VQ-VAE's frames over their reconstructions)."""
         try:
-            return validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
+            val = validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
         except NoValidationSplit:
             return {}
+        picture = write_held_out_picture(self.component, cache, self.run_dir, self.cfg.val_fraction)
+        if picture is not None:
+            self.log(f"held-out picture: {picture}")
+        return val
 
 
 def _write_json_atomic(path: Path, obj: Any) -> None:

@@ -7,8 +7,10 @@ import logging
 import math
 from typing import Any
 
+import numpy as np
 import torch
 
+from hope_models.components import picture
 from hope_models.components.training_base import TrainingComponent, as_tensor
 from hope_models.components.vqvae.model import VQVAE
 
@@ -45,6 +47,26 @@ class VQVAEComponent(TrainingComponent):
         n = self._model.restart_dead_codes(z_e)
         if n:
             log.debug("vqvae step %d: restarted %d dead codes", step, n)
+
+    def held_out_picture(self, cache, episodes: np.ndarray) -> np.ndarray | None:
+        """A frame model's picture of held-out `episodes` (cache episode indices): picture.FRAMES
+        frames evenly spaced through them over their reconstructions, decoded from their codes
+        (vqvae/picture.py strip); None for a vector model or episodes without steps. The model's
+        mode is left as it was found; no state changes (encode never updates the codebook)."""
+        rows = picture.spread_rows(cache, episodes) if self.wants_frames else None
+        return None if rows is None or not len(rows) else self.picture_of(np.ascontiguousarray(cache.frame_rows(rows)))
+
+    def picture_of(self, frames: np.ndarray) -> np.ndarray:
+        """uint8 [N, H, W, 3] frames -> the strip of them over their reconstructions (uint8 image)."""
+        model: VQVAE = self._model
+        was_training = model.training
+        model.eval()
+        try:
+            with torch.no_grad():
+                recon = model.decode(model.encode(torch.from_numpy(np.asarray(frames, dtype=np.uint8))))
+        finally:
+            model.train(was_training)
+        return picture.strip(frames, picture.to_uint8(recon.permute(0, 2, 3, 1).numpy()))
 
 
 def reconstruction_quality(model: VQVAE, out) -> dict[str, float]:
