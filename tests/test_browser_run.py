@@ -8,7 +8,9 @@ preselected with every point the series API has; a second metric picked draws th
 the smoothing slider draws TensorBoard's debiased EMA (computed here in Python); log y switches the
 scale; a wheel zoom narrows x and Reset restores it; wall-time x draws the elapsed seconds; the
 config and provenance card shows batch_size and the dataset fingerprint; every artifact downloads
-(a blob download with the bearer token) with the right bytes. Compare overlays both runs' series
+(a blob download with the bearer token) with the right bytes; a run without a held-out picture shows
+none, and once held_out_frames.png is in its run dir the reopened page draws it (fetched with the
+token) with its caption. Compare overlays both runs' series
 and lists lr, and only the differing keys, in the config diff. A 100k-step run's page draws in
 under 2 s (the phone figure, with 4x CPU throttling, is printed for the docs). Screenshots at 1280
 and 390 px go to test-artifacts/browser/run/.
@@ -22,6 +24,7 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from daemon_fixtures import Home, tiny_dataset_path
@@ -262,6 +265,15 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
             check_artifact(art, got, run_dir, tmp_path)
         expect(page.locator("#run-download-status")).to_contain_text("downloaded")
         page.locator("#run-artifacts").screenshot(path=str(shots.dir / "91-downloads-card.png"))
+        # a fast_loop run leaves no picture: nothing shown, no broken image
+        expect(page.locator("#run-picture")).to_be_hidden()
+        assert page.get_attribute("#run-picture-img", "src") is None
+        # a picture as a frame VQ-VAE run leaves it (train/held_out_picture.py); the reload below shows it
+        from hope_models.components.picture import png, strip
+        from hope_models.train.held_out_picture import HELD_OUT_PICTURE
+
+        frames = np.random.default_rng(0).integers(0, 256, (8, 16, 16, 3), dtype=np.uint8)
+        (run_dir / HELD_OUT_PICTURE).write_bytes(png(strip(frames, 255 - frames)))
 
         # the Run tab alone reopens the last run read
         page.click('#nav a[data-page="jobs"]')
@@ -271,6 +283,10 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
         expect(page.locator("#page-run")).to_be_visible()
         poll(lambda: page.get_attribute("#page-run", "data-rendered-ms") != before_ms, 10, "the run page reloaded")
         rendered(page, a)
+        expect(page.locator('#run-picture img[data-loaded="1"]')).to_be_visible()
+        expect(page.locator("#run-picture figcaption")).to_contain_text("held-out episodes")
+        assert page.evaluate("document.querySelector('#run-picture-img').naturalWidth") == 8 * 16 * 12
+        page.locator("#run-picture").screenshot(path=str(shots.dir / "92-picture-card.png"))
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#run/{a}", shots, "run-phone", "run", a)
 
@@ -280,6 +296,8 @@ def check_artifact(art, got: bytes, run_dir: Path, tmp_path: Path) -> None:
         assert got == (run_dir / "metrics.jsonl").read_bytes()
     elif art["kind"] == "mcap":
         assert got.startswith(b"\x89MCAP0\r\n") and got == (run_dir / art["name"]).read_bytes()
+    elif art["kind"] == "picture":
+        assert got.startswith(b"\x89PNG") and got == (run_dir / art["name"]).read_bytes()
     elif art["kind"] in ("result", "provenance", "gate"):
         assert isinstance(json.loads(got), dict)
     elif art["kind"] == "checkpoint":

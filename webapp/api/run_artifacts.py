@@ -19,7 +19,9 @@ counts and no code version).
 Artifacts, in this order, those that exist: "metrics.jsonl" (kind "metrics"), "metrics.mcap",
 "metrics.1.mcap", ... (kind "mcap": open in Foxglove), "result.json" (kind "result", once the run
 ended), "provenance.json" (kind "provenance"), "gate.json" (kind "gate", when a gate report was
-written into the run dir; the gate today records into the registry, shown by /provenance), then
+written into the run dir; the gate today records into the registry, shown by /provenance),
+"held_out_frames.png" (kind "picture", media type image/png: a frame VQ-VAE run's held-out frames
+over their reconstructions, train/held_out_picture.py; the run page shows it), then
 "checkpoint-<step>.tar" per checkpoint dir, oldest first (kind "checkpoint", "step"; size is the
 sum of its files). `url` is the download's path. A file is sent with Content-Length (its size
 when the request opened it; Range and conditional requests work); a checkpoint as an uncompressed tar streamed from the dir, members named

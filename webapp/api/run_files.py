@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import IO, Iterator
 
 from hope_models.checkpoints import list_step_dirs
+from hope_models.train.held_out_picture import HELD_OUT_PICTURE
 
 CHUNK = 256 * 1024
 BLOCK = tarfile.BLOCKSIZE
@@ -30,6 +31,7 @@ JSONL_TYPE = "application/x-ndjson"
 MCAP_TYPE = "application/octet-stream"
 JSON_TYPE = "application/json"
 TAR_TYPE = "application/x-tar"
+PNG_TYPE = "image/png"
 
 # (file name, kind, media type, description) of the single files a run dir may hold
 SINGLE_FILES = (
@@ -37,6 +39,8 @@ SINGLE_FILES = (
     ("result.json", "result", JSON_TYPE, "how the run ended: outcome, losses, peak memory, validation figures"),
     ("provenance.json", "provenance", JSON_TYPE, "what the run was made from: config, dataset, VQ-VAE, code"),
     ("gate.json", "gate", JSON_TYPE, "the promotion gate's report"),
+    (HELD_OUT_PICTURE, "picture", PNG_TYPE, "held-out frames (top row) over the VQ-VAE's reconstructions of them "
+     "(bottom row), drawn at the end of training"),
 )
 
 

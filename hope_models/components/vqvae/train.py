@@ -51,7 +51,7 @@ class VQVAEComponent(TrainingComponent):
     def held_out_picture(self, cache, episodes: np.ndarray) -> np.ndarray | None:
         """A frame model's picture of held-out `episodes` (cache episode indices): picture.FRAMES
         frames evenly spaced through them over their reconstructions, decoded from their codes
-        (vqvae/picture.py strip); None for a vector model or episodes without steps. The model's
+        (components/picture.py strip); None for a vector model or episodes without steps. The model's
         mode is left as it was found; no state changes (encode never updates the codebook)."""
         rows = picture.spread_rows(cache, episodes) if self.wants_frames else None
         return None if rows is None or not len(rows) else self.picture_of(np.ascontiguousarray(cache.frame_rows(rows)))

@@ -2,7 +2,8 @@
 // numeric series it recorded (GET /api/runs/<id>/series; loss preselected, picks remembered per
 // component in localStorage), one chart per picked metric (metric_chart.js: EMA smoothing, linear or
 // log y per chart, zoom/pan with a reset, step or wall-time x, the held-out figures and their
-// baselines as reference lines); the config and provenance; the downloads.
+// baselines as reference lines); a frame VQ-VAE's held-out picture (run_picture.js); the config and
+// provenance; the downloads.
 //
 // DOM contract (tests/test_browser_run.py):
 //   #page-run[data-run]           the run shown; [data-rendered="1"] once every picked chart has
@@ -13,6 +14,7 @@
 //                                 [data-action=log] (aria-pressed) and [data-action=reset]
 //   #run-facts dd[data-key], #run-config tr[data-key], #run-dataset dd[data-key="fingerprint"],
 //   #run-downloads li[data-artifact] button
+//   #run-picture (hidden without a picture), #run-picture img[data-loaded="1"], figcaption
 //
 // Live: run.progress moves the header; while the run is not finished and the tab is visible, the
 // picked series are refetched every 2 s with ?after=<last step> (only the new points). run.state to
@@ -21,6 +23,7 @@ import { $, el, fillKv, num, duration } from "./util.js";
 import { MetricChart, referenceLines, fetchSeries as fetchSeriesOf } from "./metric_chart.js";
 import { MetricPicker } from "./metric_picker.js";
 import { renderProvenance, renderDownloads } from "./run_provenance.js";
+import { renderPicture, clearPicture } from "./run_picture.js";
 
 const FINISHED = new Set(["completed", "failed", "cancelled"]);
 const PICKS_KEY = (component) => `hope.run.metrics.${component}`;
@@ -84,6 +87,7 @@ async function load(arg) {
   page.dataset.run = arg || "";
   $("#run-empty").hidden = Boolean(arg);
   $("#run-body").hidden = !arg;
+  if (arg !== runId) clearPicture();  // another run's picture never stands under this one's title
   if (!arg) { clearCharts(); runId = null; return; }
   const seq = ++loadSeq;
   runId = arg;
@@ -140,6 +144,7 @@ async function loadSide(seq, enc) {
   else $("#run-code").textContent = `provenance unavailable: ${prov.reason.message}`;
   if (arts.status === "fulfilled") renderDownloads(ctx, arts.value);
   else $("#run-downloads").replaceChildren(el("li", { class: "error", text: `artifacts unavailable: ${arts.reason.message}` }));
+  await renderPicture(ctx, arts.status === "fulfilled" ? arts.value.artifacts : [], run, () => seq === loadSeq);
 }
 
 function renderHead() {
