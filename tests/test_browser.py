@@ -4,7 +4,8 @@
 One walk through, as a user would: a wrong token is refused; the right one logs in; a short
 fast_loop run is queued from the Jobs page, run.progress events move its loss chart while it runs,
 it completes with a convergence summary; it is promoted; Models shows it; Inference answers with
-its version; the reflex view reports the sim episode's return; a sequential chain is paused,
+its version, and an uploaded camera frame goes with the observation (this fast_loop reads none: the
+server's 400 is shown); the reflex view reports the sim episode's return; a sequential chain is paused,
 resumed and cancelled from the queue; a second run is promoted from Models and rolled back; System shows a throttle change live (a thermal zone file the test heats);
 a reload on a phone-sized screen keeps the login and rebuilds the run's chart from the API.
 Screenshots go to tmp_path and are copied to test-artifacts/browser/ (gitignored) for a person
@@ -15,6 +16,7 @@ for browser downloads). The test fails, naming the fix, when chromium or playwri
 """
 from __future__ import annotations
 
+import base64
 import json
 import re
 import shutil
@@ -23,9 +25,11 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from daemon_fixtures import Home, Proc, free_port, tiny_dataset_path
+from hope_models.components.picture import png
 
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts" / "browser"
@@ -215,6 +219,27 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
         action = page.text_content('#infer-result dd[data-key="action"]').split(", ")
         assert len(action) == 2 and all(float(a) == float(a) for a in action), action
         expect(page.locator('#infer-result dd[data-key="latency"]')).to_contain_text("ms")
+
+        # an uploaded camera frame goes with the observation as the request's `frame` (a data: URL);
+        # this fast_loop reads no camera, so the server refuses it (400) and the page says why
+        frame_png = png(np.full((16, 16, 3), 90, np.uint8))
+        page.set_input_files("#infer-frame", files=[{"name": "cam.png", "mimeType": "image/png", "buffer": frame_png}])
+        expect(page.locator("#infer-frame-preview")).to_be_visible()
+        with page.expect_response("**/api/brain/infer") as answered:
+            page.click("#infer-button")
+        sent = answered.value.request.post_data_json
+        assert sent["frame"] == "data:image/png;base64," + base64.b64encode(frame_png).decode(), sent["frame"][:80]
+        assert sent["observation"] == [0.1, -0.2, 0.3, 0.05] and sent["component"] == "fast_loop"
+        assert answered.value.status == 400, answered.value.text()
+        reason = answered.value.json()["error"]
+        assert "frame" in reason, reason
+        expect(page.locator("#infer-error")).to_have_text(f"The server answered HTTP 400: {reason}")
+        expect(page.locator("#infer-result dd")).to_have_count(0)
+        shots.take(page, "inference-frame-refused")
+        assert [e for e in errors if "400" not in e] == [], errors  # the browser logs the refused request itself
+        errors.clear()
+        page.click("#infer-frame-clear")
+        expect(page.locator("#infer-frame-box")).to_be_hidden()
 
         # the reflex view: a sim episode with the promoted fast_loop, its return beside the expert's
         # and random's (this fast_loop never saw the reacher: the number is low, but it is real)

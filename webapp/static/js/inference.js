@@ -1,5 +1,8 @@
 // Inference: one observation -> fast_loop's action (with the version that answered and the
-// latency), and the sim reflex: an eval-reflex job with the promoted fast_loop, polled until it
+// latency), with a camera frame when one is chosen (#infer-frame: a JPEG or PNG file, sent as the
+// request's `frame`, a data:image/...;base64 URL; the server decodes and resizes it to the served
+// model's frame, hope_models/runtime/brain_frame.py, and answers 400 saying what is wrong with it,
+// shown in #infer-error), and the sim reflex: an eval-reflex job with the promoted fast_loop, polled until it
 // finishes (POST /api/sim/reflex, GET /api/sim/reflex/<job>). The first episode's frames arrive as
 // sim.frame events {job_id, step, image, return_so_far} while it runs and are drawn on the canvas;
 // if the server could not render, the result says why ("frames").
@@ -16,9 +19,13 @@ let job = null;  // the reflex job this page follows
 let surpriseChart = null;
 let lastRecordStep = -1;  // the newest grid point already on the chart
 
+const FRAME_TYPES = ["image/jpeg", "image/png"];
+
 export function init(c) {
   ctx = c;
   $("#infer-form").addEventListener("submit", onInfer);
+  $("#infer-frame").addEventListener("change", showFrame);
+  $("#infer-frame-clear").addEventListener("click", () => { $("#infer-frame").value = ""; showFrame(); });
   $("#reflex-form").addEventListener("submit", onReflex);
 }
 
@@ -64,18 +71,53 @@ async function onInfer(event) {
     setText("#infer-error", parts.length ? `observation: "${parts[bad]}" is not a number` : "observation: type some numbers");
     return;
   }
+  const file = $("#infer-frame").files[0] || null;
+  if (file && !FRAME_TYPES.includes(file.type)) {
+    setText("#infer-error", `frame: ${file.name} is ${file.type || "of an unknown type"}, not a JPEG or PNG`);
+    return;
+  }
   $("#infer-button").disabled = true;
   try {
-    const out = await ctx.api("/api/brain/infer", { method: "POST",
-      body: { component: "fast_loop", observation, session: "robot-editor", reset: $("#infer-reset").checked } });
-    fillKv("#infer-result", [["action", out.action.map((v) => num(v)).join(", ")], ["version", out.model_version],
-                             ["latency", `${num(out.latency_ms, 3)} ms`]]);
+    const body = { component: "fast_loop", observation, session: "robot-editor", reset: $("#infer-reset").checked };
+    if (file) body.frame = await dataUrl(file);
+    const out = await ctx.api("/api/brain/infer", { method: "POST", body });
+    const rows = [["action", out.action.map((v) => num(v)).join(", ")], ["version", out.model_version],
+                  ["latency", `${num(out.latency_ms, 3)} ms`]];
+    if (file) rows.push(["frame", file.name]);
+    fillKv("#infer-result", rows);
   } catch (err) {
     $("#infer-result").replaceChildren();
-    setText("#infer-error", err.message);
+    // the server's own words (a 400 names what is wrong: the observation, or the frame and why)
+    setText("#infer-error", err.status ? `The server answered HTTP ${err.status}: ${err.message}` : err.message);
   } finally {
     $("#infer-button").disabled = false;
   }
+}
+
+// the chosen file as a data: URL, what the request's `frame` carries
+function dataUrl(file) {
+  return new Promise((resolve, reject) => {
+    const reader = new FileReader();
+    reader.onload = () => resolve(reader.result);
+    reader.onerror = () => reject(new Error(`frame: cannot read ${file.name}: ${reader.error?.message || "read error"}`));
+    reader.readAsDataURL(file);
+  });
+}
+
+let previewUrl = null;
+
+function showFrame() {
+  const file = $("#infer-frame").files[0] || null;
+  const img = $("#infer-frame-preview");
+  if (previewUrl) URL.revokeObjectURL(previewUrl);
+  previewUrl = file ? URL.createObjectURL(file) : null;
+  $("#infer-frame-box").hidden = !file;
+  img.hidden = true;  // until it has loaded: a file that is no image shows no broken one
+  img.onload = () => { img.hidden = false; };
+  if (previewUrl) img.src = previewUrl;
+  else img.removeAttribute("src");
+  setText("#infer-error", file && !FRAME_TYPES.includes(file.type)
+    ? `frame: ${file.name} is ${file.type || "of an unknown type"}, not a JPEG or PNG` : "");
 }
 
 async function onReflex(event) {
