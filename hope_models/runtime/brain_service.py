@@ -3,7 +3,7 @@ NumPy form (its folder's numpy_form.RUNTIME) and follows promotions without a re
 
     brain = BrainService(settings.home, on_swap=..., on_first_inference=..., on_error=...)
     brain.start()                                   # loads what is promoted now, then watches
-    brain.infer("fast_loop", [0.1, ...], session="arm-1")
+    brain.infer("fast_loop", [0.1, ...], session="arm-1")     # + frame="data:image/png;base64,..." for a camera
         -> {"action": [...], "model_version": "reach@2500:1a2b3c4d5e6f", "latency_ms": 0.08, "session": "arm-1",
             "code": [3, 11], "prediction": {"0.5s": [...], "1s": [...]}, "surprise": 2.1,
             "surprise_by_horizon": {"0.5s": 2.1, "1s": 3.0}, "mid_tick": 35, "mid_grid_point": 7,
@@ -46,6 +46,16 @@ kept per component in an LRU of `max_sessions`; `reset=True` starts the session'
 and a version change resets that component's sessions (a state computed by other weights means
 nothing to the new ones); a vqvae change changes only `code`.
 
+The camera: a component whose model reads a frame (a frame VQ-VAE as the tokenizer, a fast_loop over
+one: `frame_shape` not None) needs the request's `frame` (brain_frame.py: a base64 JPEG/PNG or data
+URL, resized as the training cache resized; a raw uint8 array of the model's size; nested lists).
+It is decoded once per size and encoded once per frame encoder (brain_seen.py: the tokenizer and the
+reflex carrying the same VQ-VAE share the codes), before any session moves. No frame when one is
+read, or a frame when no served component of the answer reads one, is a 400 saying so (never
+ignored: a robot sending its camera to a model that cannot see should hear it). A replacement must
+read the same frame size as the served model (fit_fields). The Mid Loop reads vector codes only, so
+far: a frame Mid Loop's codes would come from the same SeenFrame (frame_codes[PREDICTOR]).
+
 Every answer is finite. An observation value beyond +-MAX_ABS_OBSERVATION (1e6) is refused (400).
 If the fast_loop computes NaN or Inf from a valid observation, that is the model's fault: BrainError
 500 naming the version, logged and counted (status()["fast_loop"]["non_finite"]), and the session's
@@ -72,6 +82,7 @@ from hope_models.components.numpy_layers import NumpyWindowState
 from hope_models.promoted import PointerError, pointer_path, read_pointer
 from hope_models.runtime import brain_input
 from hope_models.runtime.brain_input import MAX_ABS_OBSERVATION, MAX_SESSIONS, BrainError, observation_values
+from hope_models.runtime.brain_seen import check_frame, describe_shape, frame_shape
 from hope_models.runtime.brain_status import status_extra
 from hope_models.runtime.hook_thread import HookThread
 
@@ -251,13 +262,15 @@ class BrainService:
         layout (the vqvae: observation) would fail every request, so it is refused while the old one
         keeps serving."""
         if new.fit_fields != old.fit_fields:
-            def fmt(fields):
-                return ", ".join(f"{p}[{n}]" for p, n in fields)
+            def fmt(m):
+                shape = frame_shape(m)
+                camera = "" if shape is None else f" + a {describe_shape(shape)} camera frame"
+                fields = ", ".join(f"{p}[{n}]" for p, n in m.observation_fields)
+                return f"{fields}{camera} -> " + ", ".join(f"{p}[{n}]" for p, n in m.action_fields)
 
             raise BrainError(
                 f"{new.checkpoint}: does not fit the {slot.component} being served ({old.version}): it reads "
-                f"{fmt(new.observation_fields)} -> {fmt(new.action_fields)}, the served model reads "
-                f"{fmt(old.observation_fields)} -> {fmt(old.action_fields)}; still serving {old.version} "
+                f"{fmt(new)}, the served model reads {fmt(old)}; still serving {old.version} "
                 "(restart the service to switch to a robot with another layout)")
 
     def _swap(self, slot: _Slot, served: _Served) -> None:
@@ -290,11 +303,14 @@ class BrainService:
 
     # -- inference ------------------------------------------------------------------------------
     def infer(self, component: Any, observation: Any, session: Any = None, reset: Any = False,
-              action: Any = None) -> dict[str, Any]:
+              action: Any = None, frame: Any = None) -> dict[str, Any]:
         """One tick of a session: every served component whose observation layout is `component`'s, on
         `observation` (a list of finite numbers, the spec order). `component` is the one the caller
         needs (503 while it is not served). `action`: the action taken on the previous tick (the Mid
-        Loop's input; by default the fast_loop's previous answer). mid_serving: the predictor's fields."""
+        Loop's input; by default the fast_loop's previous answer). mid_serving: the predictor's fields.
+        `frame`: the camera frame (brain_frame's forms), required when a served component of the
+        answer reads the camera and refused (400) when none does; decoded and encoded before any
+        session moves, so a bad image changes no state."""
         started = time.perf_counter()
         slot = self._slots.get(component) if isinstance(component, str) else None
         if slot is None:
@@ -315,16 +331,24 @@ class BrainService:
         peers = {name: served if name == component else self._peer(name, model.observation_fields)
                  for name in self._slots}
         fast, vq, mid = peers.get(ACTOR), peers.get(TOKENIZER), peers.get(PREDICTOR)
+        # the camera: a frame VQ-VAE's codes for each component that reads one, one encode per encoder
+        readers = {name: p.model for name, p in peers.items() if p is not None and frame_shape(p.model) is not None}
+        seen = check_frame(frame, readers, component, model)
+        frame_codes = {} if seen is None else {name: seen.codes(m.frame_vq) for name, m in readers.items()}
         given = None
         if action is not None:  # checked before any state moves: a refused request changes no session
             try:
                 given = mid_serving.action_values(action, (mid or served).model.act_dim)
             except ValueError as exc:
                 raise BrainError(str(exc)) from None
-        answered = None if fast is None else self._fast_tick(self._slots[fast.model.name], fast, values, session, reset)
+        answered = None if fast is None else self._fast_tick(self._slots[fast.model.name], fast, values, session, reset,
+                                                            frame_codes.get(ACTOR))
+        code = None if vq is None else frame_codes.get(TOKENIZER)
+        if vq is not None and code is None:
+            code = vq.model.codes_of(np.asarray(values))
         out = {"action": None if answered is None else [float(v) for v in answered],
                "model_version": served.version, "latency_ms": 0.0, "session": session,
-               "code": None if vq is None else [int(c) for c in vq.model.codes_of(np.asarray(values))]}
+               "code": None if code is None else [int(c) for c in code]}
         out.update(mid_serving.EMPTY if mid is None else
                    mid_serving.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
                                     fast.model if fast else None, self.max_sessions))
@@ -346,11 +370,12 @@ class BrainService:
         return p if p is not None and p.model.observation_fields == fields else None
 
     def _fast_tick(self, slot: _Slot, served: _Served, values: list[float], session: str | None,
-                   reset: bool) -> np.ndarray:
+                   reset: bool, codes: np.ndarray | None = None) -> np.ndarray:
+        """codes: a camera reflex's frame codes (None for one that reads no camera)."""
         model = served.model
         xn = model.normalise(np.asarray(values, dtype=np.float64))
         if session is None:
-            a, state = model.tick(xn, model.init_state())
+            a, state = model.tick(xn, model.init_state(), codes)
             action = model.denormalise(a)
             if not _finite(action, state):
                 self._non_finite(slot, served, session, values)
@@ -359,7 +384,7 @@ class BrainService:
         with sess.lock:
             if sess.version != served.version:  # a swap happened since: start afresh on these weights
                 sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
-            a, state = model.tick(xn, sess.state)
+            a, state = model.tick(xn, sess.state, codes)
             action = model.denormalise(a)
             # Committed only when finite: one bad tick must not leave NaN in the recurrent state,
             # which every later tick of the session would read (K ticks of NaN answers).
@@ -430,6 +455,7 @@ class BrainService:
                 "obs_dim": model.obs_dim if model else None,
                 "act_dim": model.act_dim if model else None,
                 "observation_fields": model.spec.observation.dim_names() if model else None,
+                "frame_shape": list(shape) if (shape := frame_shape(model)) is not None else None,
                 "action_fields": model.spec.action.dim_names() if model else None,
                 **status_extra(model, vq.model if vq else None),
             }

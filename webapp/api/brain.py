@@ -6,7 +6,7 @@
                                    "promoted": Model | null, "pointer": pointer file | null,
                                    "pointer_error": str | null, "history": [Model, ...]}}}
     POST /api/brain/infer     {"component": "fast_loop" | "mid_loop" | "vqvae", "observation": [floats],
-                               "session"?: str, "reset"?: bool, "action"?: [floats]}
+                               "session"?: str, "reset"?: bool, "action"?: [floats], "frame"?: image}
          -> {"action": [floats] | null, "model_version": str, "latency_ms": float, "session": str | null,
              "code": [ints] | null, "prediction": {"0.5s": [floats], ...} | null, "surprise": float | null,
              "surprise_by_horizon": {"0.5s": float | null, ...} | null, "mid_tick": int | null,
@@ -18,8 +18,17 @@
             503 while it is not promoted (an action needs the fast_loop; a prediction the mid_loop).
             `action`: the action the robot actually took on the previous tick (the Mid Loop's
             input; by default the fast_loop's previous answer).
+            `frame`: the camera frame, for a served model that reads the camera (status:
+            "frame_shape"): a base64 JPEG/PNG or a data:image/...;base64 URL (any size, resized to the
+            model's), {"encoding": "jpeg"|"png", "data": base64}, {"encoding": "raw", "shape": [H, W, 3],
+            "data": base64 of H*W*3 RGB bytes} at the model's size, or [H][W][3] integer lists
+            (hope_models/runtime/brain_frame.py). The whole body stays within the 1 MiB limit of
+            every request (413 beyond): a camera frame or a 640x480 JPEG (~60 kB) fits, a phone
+            photo of several MB does not (downscale it first).
             400 an observation value that is not a number, not finite or beyond +-1e6
-                (brain_service.MAX_ABS_OBSERVATION; the message gives the range)
+                (brain_service.MAX_ABS_OBSERVATION; the message gives the range); a frame that is not
+                an image, truncated, declares more than 16 MP, or a raw array of another size; no
+                frame for a model that reads the camera; a frame when no served model reads one
             500 the served model computed NaN/Inf from a valid observation (its fault, logged; the
                 session's recurrent state is left as it was before the tick)
     POST /api/brain/promote   {"run_id": "r-..." | "checkpoint": "<dir under $HOPE_HOME or a data root>",
@@ -129,7 +138,7 @@ def status():
 def infer():
     from hope_models.runtime.brain_service import BrainError  # lazy: loads numpy
 
-    body = json_body(allowed=("component", "observation", "session", "reset", "action"),
+    body = json_body(allowed=("component", "observation", "session", "reset", "action", "frame"),
                      required=("component", "observation"))
     component = get_str(body, "component", max_len=64)
     observation = get_numbers(body, "observation", max_len=MAX_OBSERVATION)
@@ -141,7 +150,9 @@ def infer():
         raise ApiError("inference is not available: BrainService is not running in this process "
                        "(start the webapp with `run_trainer.py serve` or `run_trainer.py webapp`)", 503)
     try:
-        return jsonify(brain.infer(component, observation, session=session, reset=reset, action=action))
+        # the frame's form is brain_frame's to check (its messages name what is wrong with the image)
+        return jsonify(brain.infer(component, observation, session=session, reset=reset, action=action,
+                                   frame=body.get("frame")))
     except BrainError as exc:
         raise ApiError(str(exc), int(getattr(exc, "status", 400))) from None
 

@@ -5,9 +5,9 @@
 
 config.json must describe a fast_loop (format hope.component_config/1) whose dims are integers in
 range, whose window K is the model's, whose feature spec has the model's observation and action
-sizes, and, when it reads VQ-VAE codes, a VQ-VAE of observation vectors (one that reads camera
-frames is refused: a conv stack is not worth re-implementing for a runtime that receives
-observation vectors). model.safetensors must be a safetensors file (pickle is refused unread)
+sizes, and, when it reads VQ-VAE codes, a VQ-VAE of observation vectors or of camera frames
+(vqvae/numpy_frame.frame_config: layout flat or grid, sizes bounded; its frame the feature spec's
+frame). model.safetensors must be a safetensors file (pickle is refused unread)
 holding exactly the float32 tensors of those shapes (the comparison is
 checkpoint_format.weights_misfit, which the torch loader uses too), all finite, with a trained
 codebook when there is one. Anything else is FastLoopNumpyError naming the file and the reason.
@@ -19,7 +19,7 @@ same bytes. Torch-free.
 from __future__ import annotations
 
 import math
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,8 @@ from hope_models.components.fast_loop.layers import layers
 from hope_models.components.layers import tensors
 from hope_models.components.vqvae.config import VQVAEConfig
 from hope_models.components.vqvae.layers import vqvae_layers
+from hope_models.components.vqvae.numpy_form import MAX_WIDTH, check_vqvae_tensors, frame_of
+from hope_models.components.vqvae.numpy_frame import frame_config
 from hope_models.data.features import FeatureSpec, FeatureSpecError
 from hope_models.data.spec_request import spec_from_json_obj
 from hope_models.data.windows import MAX_K
@@ -60,7 +62,7 @@ def read_fast_loop(path: str | Path, *, expected_sha256: str | None = None,
     manifest (train/checkpoint.open_checkpoint), the bytes loaded being those hashed; without it,
     a bare checkpoint dir needs no manifest (what a test or a tool wrote by hand)."""
     def tensors_ok(t: dict[str, np.ndarray], config: dict[str, Any], where: Path) -> None:
-        check_tensors(t, config["model_config"], where, groups=vqvae_groups(config))
+        check_tensors(t, config["model_config"], where, groups=vqvae_groups(config), frame=vqvae_frame(config))
 
     return read_component(path, check_config, tensors_ok, FastLoopNumpyError, expected_sha256=expected_sha256,
                           verify_manifest=verify_manifest)
@@ -85,11 +87,20 @@ def _check_model_config(mc: Any, where: Path) -> None:
                                  f"{MAX_K} points")
 
 
-def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path) -> None:
+def _check_vqvae(config: dict[str, Any], mc: dict[str, Any], where: Path, spec: FeatureSpec) -> None:
     vq = config.get("vqvae")
     vq_cfg = vq.get("model_config") if isinstance(vq, dict) else None
     if not isinstance(vq_cfg, dict):
         raise FastLoopNumpyError(f"{where}: n_codes={mc['n_codes']} but 'vqvae' does not describe the VQ-VAE")
+    if vq_cfg.get("input") == "frame":  # a camera reflex: the frame is the feature spec's camera
+        frame = frame_config(vq_cfg, where, FastLoopNumpyError, MAX_WIDTH)
+        if frame.n_codes != mc["n_codes"]:
+            raise FastLoopNumpyError(f"{where}: the VQ-VAE's n_codes ({frame.n_codes}) does not fit the fast_loop's "
+                                     f"({mc['n_codes']})")
+        if spec.frame is None or tuple(spec.frame.shape) != frame.frame_shape:
+            raise FastLoopNumpyError(f"{where}: the VQ-VAE reads {list(frame.frame_shape)} camera frames, the feature "
+                                     f"spec's frame is {None if spec.frame is None else list(spec.frame.shape)}")
+        return
     if vq_cfg.get("input") != "vector":
         raise FastLoopNumpyError(f"{where}: this fast_loop reads codes of a VQ-VAE with input "
                                  f"{vq_cfg.get('input')!r} (camera frames); the inference runtime runs "
@@ -120,16 +131,24 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
         raise FastLoopNumpyError(f"{where}: the feature spec has {spec.obs_dim} observation / {spec.act_dim} action "
                                  f"values, model_config says obs_dim={mc['obs_dim']}, act_dim={mc['act_dim']}")
     if mc["n_codes"]:
-        _check_vqvae(config, mc, where)
+        _check_vqvae(config, mc, where, spec)
     return spec
 
 
-def expected_shapes(mc: dict[str, Any], groups: int = 1) -> dict[str, tuple[int, ...]]:
+def expected_shapes(mc: dict[str, Any], groups: int = 1, frame: VQVAEConfig | None = None) -> dict[str, tuple[int, ...]]:
     """Tensor name -> shape of every weight of the fast_loop itself (its frozen VQ-VAE's apart), from
-    the same layer description the memory estimate reads (layers.py)."""
+    the same layer description the memory estimate reads (layers.py). frame: its frame VQ-VAE's
+    config (a grid's codes are read as keypoints, not summed)."""
     cfg = FastLoopConfig(**{f.name: mc[f.name] for f in fields(FastLoopConfig) if f.name in mc})
-    vq = VQVAEConfig(n_codes=mc["n_codes"], groups=groups) if mc["n_codes"] else None
+    vq = frame if frame is not None else VQVAEConfig(n_codes=mc["n_codes"], groups=groups) if mc["n_codes"] else None
     return tensors([layer for layer in layers(cfg, vq) if not layer.name.startswith(VQVAE_PREFIX)])
+
+
+def vqvae_frame(config: dict[str, Any]) -> VQVAEConfig | None:
+    """The frame VQ-VAE config of a checkpoint whose codes come from camera frames (check_config has
+    checked it), else None."""
+    vq = config.get("vqvae")
+    return frame_of(vq["model_config"]) if config["model_config"]["n_codes"] and isinstance(vq, dict) else None
 
 
 def vqvae_groups(config: dict[str, Any]) -> int:
@@ -154,12 +173,15 @@ def _vqvae_shapes(t: dict[str, np.ndarray], mc: dict[str, Any], groups: int) -> 
     return want
 
 
-def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1) -> None:
+def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, groups: int = 1,
+                  frame: VQVAEConfig | None = None) -> None:
     """The weights are exactly the float32 tensors config.json describes, finite, and a VQ-VAE
     they read codes of was trained."""
-    want = expected_shapes(mc, groups)
+    want = expected_shapes(mc, groups, frame)
     n_codes = mc["n_codes"]
-    if n_codes:
+    if frame is not None:  # the frame VQ-VAE's encoder and codebook (its own checks)
+        want.update(check_vqvae_tensors(t, asdict(frame), where, VQVAE_PREFIX, FastLoopNumpyError, encoder_only=True))
+    elif n_codes:
         want.update(_vqvae_shapes(t, mc, groups))
     # names the runtime does not read: the VQ-VAE's decoder and EMA buffers are fine, anything else
     # means the file describes another model than config.json does
@@ -170,4 +192,4 @@ def check_tensors(t: dict[str, np.ndarray], mc: dict[str, Any], where: Path, gro
 
 
 __all__ = ["FastLoopNumpyError", "MODEL_CONFIG_KEYS", "check_config", "check_tensors", "expected_shapes",
-           "read_fast_loop", "vqvae_groups"]
+           "read_fast_loop", "vqvae_frame", "vqvae_groups"]

@@ -34,14 +34,15 @@ class FastLoopNumpyAct(FastLoopNumpy):
         self._a_w_raw = np.ascontiguousarray(out_w * self._act_std[None, :])  # float64 [d, act]
         self._a_b_raw = out_b * self._act_std + self._act_mean
 
-    def act(self, values: Any, state: NumpyWindowState) -> tuple[np.ndarray, NumpyWindowState]:
+    def act(self, values: Any, state: NumpyWindowState,
+            codes: np.ndarray | None = None) -> tuple[np.ndarray, NumpyWindowState]:
         """Raw observation (obs_dim numbers) + state -> (denormalised action float64 [act_dim], state).
-        The values are checked as observation_vector checks them."""
+        The values are checked as observation_vector checks them. codes: a camera reflex's frame codes."""
         x = np.asarray(values, dtype=np.float64)
         if x.shape != (self.obs_dim,):
             x = self.observation_vector(values)  # the exact message, or a [1, obs_dim] flattened
-        if self.n_codes:  # the codes read the normalised observation itself
-            a, state = self.tick(self.normalise(self.observation_vector(x)), state)
+        if self.n_codes:  # the codes read the normalised observation itself (or the frame's, given)
+            a, state = self.tick(self.normalise(self.observation_vector(x)), state, codes)
             return self.denormalise(a), state
         if state.h.shape[0] != 1:
             raise ValueError(f"act() steps one observation; this state holds a batch of {state.h.shape[0]}")

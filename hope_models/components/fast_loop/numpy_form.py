@@ -17,7 +17,8 @@ throughout, like the torch model):
 
     e = obs_in(x) [+ code_in[code(x)]] ;  x = e + GatedMLP_enc(LN_enc(e))
     u = LN_ssm(x) ;  v = (B u) * gain ;  h_t = a h_{t-1} + v_t - a^K v_{t-K}  (ring of the last K v)
-    y = C h + D * u ;  z = x + y ;  z = z + GatedMLP_head(LN_head(z)) ;  action = out(LN_out(z))
+    y = C h + D * u ;  z = x + y [+ keypoints(codes of a grid frame)] ;  z = z + GatedMLP_head(LN_head(z))
+    action = out(LN_out(z))
 
 including WindowSSM's exact recompute of h from the ring each time the ring wraps (every K ticks),
 which bounds float32 drift for any run length. Constants are folded at load (hope_models/components/numpy_layers.py): each
@@ -29,8 +30,14 @@ forward) take the batched path. Both agree with torch within float32 rounding. (
 adds the bench's act(), which folds the normalisation in too.)
 
 A fast_loop that reads codes of a frozen vector VQ-VAE is supported (its MLP encoder, the
-parameter-free LayerNorm and the nearest codebook row are a few more products). What this runtime
-accepts as a checkpoint, and the refusals, are hope_models/components/fast_loop/checkpoint.py's.
+parameter-free LayerNorm and the nearest codebook row are a few more products), and one over a
+frame VQ-VAE (a camera reflex): the frame's codes come from vqvae/numpy_frame.py's conv encoder,
+computed by the caller (frame_codes(frame), so BrainService encodes a frame once for every model
+that reads the same encoder) and passed to tick/step/forward as `codes`. A flat frame VQ-VAE's
+codes are summed from code_in as a vector one's; a grid's are read as keypoints
+(components/numpy_keypoints.py, CodeKeypoints) added at the acting point, z = x + y + keypoints,
+before the head, their out() centred at load like obs_in. What
+this runtime accepts as a checkpoint, and the refusals, are hope_models/components/fast_loop/checkpoint.py's.
 
 Observations are normalised exactly as the dataset cache and ReflexPolicy do (float32
 x * 1/std - mean/std) and actions denormalised (a * std + mean, float64); for the dm_control
@@ -44,7 +51,8 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.components.fast_loop.checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_groups
+from hope_models.components.fast_loop.checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_frame, vqvae_groups
+from hope_models.components.numpy_keypoints import KeypointsNumpy
 from hope_models.components.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import VQVAENumpy
 from hope_models.data.features import FeatureSpec
@@ -103,7 +111,10 @@ class FastLoopNumpy:
         self.observation_fields = [(f.path, f.size) for f in spec.observation.fields]
         self.action_fields = [(f.path, f.size) for f in spec.action.fields]
         self.action_bounds = _reacher_bounds(spec)
-        self.fit_fields = (self.observation_fields, self.action_fields)  # what a replacement must read alike
+        frame = vqvae_frame(config) if self.n_codes else None
+        # a camera reflex reads the request's frame too: a replacement must read the same size of frame
+        self.frame_shape: tuple[int, ...] | None = None if frame is None else tuple(frame.frame_shape)
+        self.fit_fields = (self.observation_fields, self.action_fields, self.frame_shape)
         vq_ref = config.get("vqvae")  # the VQ-VAE it was trained with (BrainService's consistency check)
         self.vqvae_sha256 = vq_ref.get("weights_sha256") if isinstance(vq_ref, dict) else None
         self.control_period_s = _grid_step(config)
@@ -119,10 +130,17 @@ class FastLoopNumpy:
         self._out = Linear(*fold_ln(t["out_ln.weight"], t["out_ln.bias"], t["out.weight"], t["out.bias"]))
         self._mean_d = np.full(self.d_model, 1.0 / self.d_model, np.float32)  # x @ this = the mean over d
         self._code_in = t.get("code_in.weight")
+        self._kp: KeypointsNumpy | None = None
+        self.frame_vq: VQVAENumpy | None = None  # the frame VQ-VAE whose codes tick() reads
         if self.n_codes:  # the frozen VQ-VAE's encoder and codebook (hope_models/components/vqvae/numpy_form.py)
             self.groups = vqvae_groups(config)
-            self._vq = VQVAENumpy(t, groups=self.groups, n_codes=self.n_codes, prefix="vqvae.", decoder=False)
+            self._vq = VQVAENumpy(t, groups=self.groups, n_codes=self.n_codes, prefix="vqvae.", decoder=False,
+                                  frame=frame)
             self._offsets = np.arange(self.groups) * self.n_codes
+            if frame is not None:
+                self.frame_vq = self._vq
+                if frame.layout == "grid":  # model.py: a grid's cells are read as keypoints
+                    self._kp = KeypointsNumpy(t, "keypoints", frame.grid_shape)
         # The SSM: the decay constants as WindowSSM._consts computes them (float32 log_a; the powers
         # and the gain from it), the gain folded into B^T, then C^T and D.
         log_rate = np.clip(t["ssm.log_rate"], np.float32(math.log(RATE_MIN)), np.float32(math.log(RATE_MAX)))
@@ -159,6 +177,7 @@ class FastLoopNumpy:
         w_in, b_in = self._obs_in.w_t.astype(f64), self._obs_in.b.astype(f64)
         self._e_w, self._e_b = centred(w_in, b_in)  # normalised observation -> centred embedding
         self._code_in_c = None if self._code_in is None else centred(self._code_in)
+        self._kp_c = None if self._kp is None else centred(self._kp.w_t, self._kp.b)
         ln_w, ln_b = t["ssm_ln.weight"].astype(f64), t["ssm_ln.bias"].astype(f64)
         bg = t["ssm.B"].T.astype(f64) * gain.astype(f64)[None, :]  # [d, N]
         wd, bd = ln_w * t["ssm.D"].astype(f64), ln_b * t["ssm.D"].astype(f64)
@@ -217,16 +236,41 @@ class FastLoopNumpy:
     def codes(self, obs_n: np.ndarray) -> np.ndarray:
         """Nearest row of each group's codebook of the frozen vector VQ-VAE for normalised obs
         [..., obs_dim] -> group-local codes [..., G], as FastLoop.codes."""
+        if self.frame_vq is not None:
+            raise ValueError(f"{self.version} reads camera frames: its codes are frame_codes(frames)")
         return self._vq.codes(obs_n)
 
-    def _rows(self, obs_n: np.ndarray) -> np.ndarray:
-        """The rows of code_in the codes select (group g's code c is row g * n_codes + c) [..., G]."""
-        return self._vq.codes(obs_n) + self._offsets
+    def frame_codes(self, frames: np.ndarray) -> np.ndarray:
+        """A camera reflex: uint8 frames [..., H, W, 3] -> its frame VQ-VAE's codes [..., G]."""
+        if self.frame_vq is None:
+            raise ValueError(f"{self.version} reads no camera")
+        return self.frame_vq.codes(frames)
 
-    def _encode(self, obs_n: np.ndarray, norm) -> np.ndarray:
+    def _codes(self, obs_n: np.ndarray, codes: np.ndarray | None) -> np.ndarray:
+        """The codes a point reads: given (a frame's, frame_codes) or the vector VQ-VAE's of obs_n."""
+        if self.frame_vq is None:
+            return self._vq.codes(obs_n)
+        if codes is None:
+            raise ValueError(f"{self.version} reads camera frames: pass codes=frame_codes(frame)")
+        return codes
+
+    def _code_embedding(self, obs_n: np.ndarray, codes: np.ndarray | None, flat: bool = False) -> np.ndarray:
+        """What the codes add to e (not a grid's: see _keypoints): the sum of their code_in rows
+        (group g's code c is row g * n_codes + c); flat: the centred weights of the flat path."""
+        c = self._codes(obs_n, codes)
+        return (self._code_in_c if flat else self._code_in)[c + self._offsets].sum(-2)
+
+    def _keypoints(self, obs_n: np.ndarray, codes: np.ndarray | None, flat: bool = False) -> np.ndarray | None:
+        """What a grid's codes add to z at the acting point (model.py's _head), or None."""
+        if self._kp is None:
+            return None
+        c = self._codes(obs_n, codes)
+        return self._kp(c, *self._kp_c) if flat and self._kp_c is not None else self._kp(c)
+
+    def _encode(self, obs_n: np.ndarray, norm, codes: np.ndarray | None = None) -> np.ndarray:
         e = self._obs_in(obs_n)
-        if self.n_codes:
-            e += self._code_in[self._rows(obs_n)].sum(-2)
+        if self._code_in is not None:
+            e += self._code_embedding(obs_n, codes)
         x = self._enc(norm(e))
         x += e
         return x
@@ -252,17 +296,20 @@ class FastLoopNumpy:
         return NumpyWindowState(np.zeros((batch, self.d_state), np.float32),
                                 np.zeros((batch, self.window_k, self.d_state), np.float32), 0)
 
-    def step(self, obs_n: np.ndarray, state: NumpyWindowState) -> tuple[np.ndarray, NumpyWindowState]:
+    def step(self, obs_n: np.ndarray, state: NumpyWindowState,
+             codes: np.ndarray | None = None) -> tuple[np.ndarray, NumpyWindowState]:
         """One tick: normalised obs [B, obs_dim] float32, state -> (normalised action [B, act_dim], new
         state). Never mutates `state` (a request that fails half-way leaves its session untouched).
+        codes [B, G]: a camera reflex's frame codes (frame_codes).
 
         WindowSSM's recurrence: h_t = a h_{t-1} + v_t - a^K v_{t-K}, v_{t-K} from the ring; each time
         the ring wraps (every K ticks) h is recomputed exactly from it, which bounds float32 drift."""
         if obs_n.shape[0] == 1:  # one vector: the flat serving path
-            a, state = self.tick(obs_n[0], state)
+            a, state = self.tick(obs_n[0], state, None if codes is None else codes[0])
             return a[None, :], state
         norm = self._batch_norm
-        x = self._encode(obs_n, norm)
+        x = self._encode(obs_n, norm, codes)
+        kp = self._keypoints(obs_n, codes)
         u = self._ssm_in(x, norm)
         v = u.dot(self._bg_t)
         h = self._a * state.h + v - self._a_k * state.ring[:, state.pos]
@@ -271,15 +318,20 @@ class FastLoopNumpy:
         pos = (state.pos + 1) % self.window_k
         if pos == 0:
             h = (ring * self._kernel).sum(1)
-        return self._finish(x + h.dot(self._c_t) + u * self._d, norm), NumpyWindowState(h, ring, pos)
+        z = x + h.dot(self._c_t) + u * self._d
+        if kp is not None:
+            z += kp
+        return self._finish(z, norm), NumpyWindowState(h, ring, pos)
 
-    def _core(self, e: np.ndarray, ee: float, state: NumpyWindowState) -> tuple[np.ndarray, float, NumpyWindowState]:
+    def _core(self, e: np.ndarray, ee: float, state: NumpyWindowState,
+              kp: np.ndarray | None = None) -> tuple[np.ndarray, float, NumpyWindowState]:
         """step() for one vector, from the centred embedding e [d] (ee = e.e) to the centred last
         residual y [d] and its LayerNorm scale (LN_out(y) = y * scale), and the new state. At batch 1
         a tick costs what its array operations and Python calls cost, not its flops, so this is
         written flat: locals, in-place ops on fresh temporaries, LayerNorm statistics as Python
         floats, and the weights folded at load (_prepare_flat) so that no LayerNorm computes a mean.
-        WindowSSM's recurrence and its exact recompute from the ring as in step()."""
+        WindowSSM's recurrence and its exact recompute from the ring as in step(). kp: a grid's
+        keypoints (centred), added to z before the head."""
         (inv_d, eps, one, n, k, gu_w1, gu_b1, hid1, out_w1, out_b1, vd_w, vd_b, a_, a_k, kernel, c_t,
          gu_w2, gu_b2, hid2, out_w2, out_b2) = self._flat
         # encoder: x = e + GatedMLP(LN(e))  (silu(g) = g' (1 + tanh g'), g' = g / 2 folded into gu_w)
@@ -310,6 +362,8 @@ class FastLoopNumpy:
         z = h.dot(c_t)
         z += x
         z += vd[n:]
+        if kp is not None:
+            z += kp
         # head: y = z + GatedMLP(LN(z)); the caller applies out(LN(y))
         gu = (z * (1.0 / math.sqrt(float(z.dot(z)) * inv_d + eps))).dot(gu_w2)
         gu += gu_b2
@@ -323,30 +377,38 @@ class FastLoopNumpy:
         y += z
         return y, 1.0 / math.sqrt(float(y.dot(y)) * inv_d + eps), NumpyWindowState(h[None], ring, pos)
 
-    def forward(self, obs_n: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    def forward(self, obs_n: np.ndarray, mask: np.ndarray | None = None,
+                codes: np.ndarray | None = None) -> np.ndarray:
         """The whole window again: normalised obs [B, L, obs_dim] (mask [B, L], True = a real point)
         -> the last point's normalised action [B, act_dim], from the last K points (FastLoop.forward:
-        every point encoded, the state of the last point summed from its K inputs)."""
+        every point encoded, the state of the last point summed from its K inputs). codes [B, L, G]:
+        a camera reflex's frame codes."""
         norm = self._batch_norm
-        x = self._encode(obs_n, norm)
+        x = self._encode(obs_n, norm, codes)
+        kp = self._keypoints(obs_n[:, -1], None if codes is None else codes[:, -1])  # the acting point's
         u = self._ssm_in(x, norm)
         if mask is not None:
             u = u * np.asarray(mask, dtype=np.float32)[..., None]
         k = self.window_k
         v = u[:, -k:] @ self._bg_t  # [B, <=K, N]: only the last K points reach the last state
         h = (v * self._kernel[k - v.shape[1]:]).sum(1)
-        return self._finish(x[:, -1] + h.dot(self._c_t) + u[:, -1] * self._d, norm)
+        z = x[:, -1] + h.dot(self._c_t) + u[:, -1] * self._d
+        if kp is not None:
+            z += kp
+        return self._finish(z, norm)
 
-    def tick(self, obs_n: np.ndarray, state: NumpyWindowState) -> tuple[np.ndarray, NumpyWindowState]:
+    def tick(self, obs_n: np.ndarray, state: NumpyWindowState,
+             codes: np.ndarray | None = None) -> tuple[np.ndarray, NumpyWindowState]:
         """step() for one normalised observation [obs_dim] and a batch-1 state -> (normalised action
-        [act_dim], new state): the serving path, without the batch dimension's wrapping."""
+        [act_dim], new state): the serving path, without the batch dimension's wrapping. codes [G]:
+        a camera reflex's frame codes (frame_codes(frame))."""
         if state.h.shape[0] != 1:
             raise ValueError(f"tick() steps one observation; this state holds a batch of {state.h.shape[0]}")
         e = obs_n.dot(self._e_w)
         e += self._e_b
-        if self.n_codes:
-            e += self._code_in_c[self._rows(obs_n)].sum(-2)
-        y, r, state = self._core(e, float(e.dot(e)), state)
+        if self._code_in is not None:
+            e += self._code_embedding(obs_n, codes, flat=True)
+        y, r, state = self._core(e, float(e.dot(e)), state, self._keypoints(obs_n, codes, flat=True))
         a = y.dot(self._out.w_t)
         a *= r
         a += self._out.b
@@ -354,10 +416,13 @@ class FastLoopNumpy:
 
     def warm(self) -> None:
         """One tick, so the first real request after a swap pays no first-call costs."""
-        self.step(np.zeros((1, self.obs_dim), np.float32), self.init_state())
+        codes = None if self.frame_shape is None else self.frame_codes(np.zeros((1, *self.frame_shape), np.uint8))
+        self.step(np.zeros((1, self.obs_dim), np.float32), self.init_state(), codes)
 
     def __repr__(self) -> str:
         codes = f" + codes of {self.n_codes}" if self.n_codes else ""
+        if self.frame_shape is not None:
+            codes += " of a " + "x".join(map(str, self.frame_shape)) + " frame"
         return f"FastLoopNumpy({self.version}, obs {self.obs_dim}{codes} -> act {self.act_dim}, K={self.window_k})"
 
 
