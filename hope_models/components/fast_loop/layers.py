@@ -16,8 +16,7 @@ def layers(cfg: FastLoopConfig, vq: VQVAEConfig | None) -> list[Layer]:
     codes = []
     if vq is not None and vq.input == "frame" and vq.layout == "grid":  # model.py's CodeKeypoints
         c = cfg.keypoints
-        codes = [embedding(cfg.n_codes, c, True, "keypoints.score"), embedding(cfg.n_codes, 2 * c, True, "keypoints.offset"),
-                 linear(3 * c, d, True, "keypoints.out")]
+        codes = [embedding(cfg.n_codes, c, True, "keypoints.score"), linear(3 * c, d, True, "keypoints.out")]
     elif vq is not None:
         codes = [embedding(cfg.n_codes * vq.groups, d, True, "code_in")]
     return [linear(cfg.obs_dim, d, True, "obs_in"), *codes, layer_norm(d, True, "enc_ln"),

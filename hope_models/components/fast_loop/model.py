@@ -2,11 +2,11 @@
 
     obs [B, K, obs_dim] --Linear--+                                  per point (no mixing in time)
     codes [B, K, G] (frozen VQ-VAE, optional) --Embed, sum over G--+--> x = e + GatedMLP(LN(e))
-      (a grid VQ-VAE's cells: --CodeKeypoints-- instead, where things are, code_keypoints.py)
                                                            |
                   u = LN(x) * mask --> WindowSSM (the ONLY mixing in time: exactly the last K points)
                                                            |
-                  z = x + y ;  z = z + GatedMLP(LN(z)) ;  action = Linear(LN(z))   per point, last point
+                  z = x + y (+ CodeKeypoints(codes): a grid VQ-VAE's cells, where things are in view)
+                  z = z + GatedMLP(LN(z)) ;  action = Linear(LN(z))   per point, last point
 
 Trained by behaviour cloning: MSE between the predicted and the recorded action at the anchor
 (both normalised by the dataset's feature spec). Only observations are inputs: the window's
@@ -104,16 +104,20 @@ class FastLoop(nn.Module):
 
     def _encode(self, obs: torch.Tensor, frames: torch.Tensor | None, codes: torch.Tensor | None = None) -> torch.Tensor:
         e = self.obs_in(obs)
-        if self.vqvae is not None:
+        if self.code_in is not None:
             if codes is None:  # precomputed codes (a dataset's code table) spare the frozen encoder
                 codes = self.codes(obs, frames)
-            if self.keypoints is not None:
-                e = e + self.keypoints(codes)
-            else:
-                e = e + self.code_in(self.vqvae.rows(codes)).sum(-2)
+            e = e + self.code_in(self.vqvae.rows(codes)).sum(-2)
         return e + self.enc_mlp(self.enc_ln(e))
 
-    def _head(self, z: torch.Tensor) -> torch.Tensor:
+    def _head(self, z: torch.Tensor, obs: torch.Tensor, frames: torch.Tensor | None,
+              codes: torch.Tensor | None) -> torch.Tensor:
+        if self.keypoints is not None:
+            # Where things are in view enters here, at the acting point only: 256 cells x K points
+            # through the SSM cost 5x more per step and a static scene gains nothing from a window.
+            if codes is None:
+                codes = self.codes(obs, frames)
+            z = z + self.keypoints(codes)
         z = z + self.head_mlp(self.head_ln(z))
         return self.out(self.out_ln(z))
 
@@ -134,12 +138,13 @@ class FastLoop(nn.Module):
         A frame tokenizer's codes come from `frames` [B, K, H, W, 3], or precomputed as `codes` [B, K, G].
 
         A window longer than K gives the action of its last K points."""
-        return self._head(self._trunk(obs, mask, frames, codes)[:, -1])
+        last = (lambda t: None if t is None else t[:, -1])  # noqa: E731
+        return self._head(self._trunk(obs, mask, frames, codes)[:, -1], obs[:, -1], last(frames), last(codes))
 
     def actions(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
                 frames: torch.Tensor | None = None) -> torch.Tensor:
         """obs [B, L, obs_dim] -> [B, L, act_dim]: at each point, the action of the K points ending there."""
-        return self._head(self._trunk(obs, mask, frames))
+        return self._head(self._trunk(obs, mask, frames), obs, frames, None)
 
     def init_state(self, batch: int) -> WindowState:
         """A fresh state: the start of an episode (every earlier point masked)."""
@@ -150,4 +155,4 @@ class FastLoop(nn.Module):
         """One tick: obs_t [B, obs_dim] (normalised), state -> (action [B, act_dim] normalised, state)."""
         x = self._encode(obs_t, frame_t)
         y, state = self.ssm.step(self.ssm_ln(x), state)
-        return self._head(x + y), state
+        return self._head(x + y, obs_t, frame_t, None), state

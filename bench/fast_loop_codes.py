@@ -1,0 +1,71 @@
+"""Fast Loop training speed on camera frames (through the frozen tokenizer's code table) against the
+same Fast Loop on the joints alone: steps/s of the real `train` command, alternating rounds in one
+run so the shared machine's noise falls on both. Target: frames >= 80 % of vectors.
+
+    .venv/bin/python bench/fast_loop_codes.py --data DS --vqvae VQ_RUN [--steps 400 --rounds 3]
+
+DS is a camera dataset (sim-demos --observation camera), VQ_RUN a frame VQ-VAE trained on it (its
+code table is built once, before the first timed round). Steps/s are read from each run's
+metrics.jsonl between step --warm and the last step (setup, cache and code-table building and the
+end-of-job validation excluded). It prints figures (JSON); it is not a test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def steps_per_s(run_dir: Path, warm: int) -> float:
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    points = [(r["step"], r["wall_time"]) for r in rows if r.get("type") == "metric" and "steps_per_s" in r]
+    timed = [p for p in points if p[0] >= warm]
+    if len(timed) < 2:
+        raise RuntimeError(f"{run_dir}: fewer than two progress points after step {warm}")
+    (s0, t0), (s1, t1) = timed[0], timed[-1]
+    return (s1 - s0) / (t1 - t0)
+
+
+def train(data: Path, cache: Path, run_dir: Path, steps: int, threads: int, vqvae: Path | None) -> None:
+    cmd = [sys.executable, "run_trainer.py", "train", "--component", "fast_loop", "--data", str(data),
+           "--cache-dir", str(cache), "--run-dir", str(run_dir), "--steps", str(steps), "--threads", str(threads),
+           "--log-every", "10", "--checkpoint-every", str(steps)]
+    if vqvae is not None:
+        cmd += ["--vqvae", str(vqvae)]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--vqvae", type=Path, required=True)
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--warm", type=int, default=50)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="flcodes-") as tmp:
+        root = Path(tmp)
+        cache = root / "cache"
+        train(args.data, cache, root / "prime", 20, args.threads, args.vqvae)  # cache + code table, untimed
+        rates: dict[str, list[float]] = {"vectors": [], "frames": []}
+        for r in range(args.rounds):
+            for name, vq in (("vectors", None), ("frames", args.vqvae)):
+                run = root / f"{name}-{r}"
+                train(args.data, cache, run, args.steps, args.threads, vq)
+                rates[name].append(steps_per_s(run, args.warm))
+    med = {k: statistics.median(v) for k, v in rates.items()}
+    print(json.dumps({"steps_per_s": rates, "median": med, "frames_over_vectors": med["frames"] / med["vectors"],
+                      "target": 0.8, "steps": args.steps, "threads": args.threads}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
