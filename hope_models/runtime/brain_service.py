@@ -40,8 +40,8 @@ equal to its torch model.
 A request is one control tick of a session and answers from every served component that reads the
 observation's layout; `component` names the one the caller needs (503 while it is not served).
 The fast_loop's recurrent state (window-exact: FastLoop.forward over the session's last K
-observations) and the Mid Loop's grid points (mid_serving.py: when it runs, `prediction` and
-`surprise`) are per session; without one the call is stateless (a 1-point window). Sessions are
+observations; fast_sessions.py) and the Mid Loop's grid points (mid_serving.py: when it runs,
+`prediction` and `surprise`) are per session; without one the call is stateless (a 1-point window). Sessions are
 kept per component in an LRU of `max_sessions`; `reset=True` starts the session's episode again,
 and a version change resets that component's sessions (a state computed by other weights means
 nothing to the new ones); a vqvae change changes only `code`.
@@ -78,9 +78,8 @@ import numpy as np
 from hope_models.components import ACTOR, COMPONENTS, PREDICTOR, TOKENIZER
 from hope_models.components.checkpoint_checks import CheckpointRefused
 from hope_models.components.mid_loop import serving as mid_serving
-from hope_models.components.numpy_layers import NumpyWindowState
 from hope_models.promoted import PointerError, pointer_path, read_pointer
-from hope_models.runtime import brain_input
+from hope_models.runtime import brain_input, fast_sessions
 from hope_models.runtime.brain_input import MAX_ABS_OBSERVATION, MAX_SESSIONS, BrainError, observation_values
 from hope_models.runtime.brain_seen import check_frame, describe_shape, frame_shape
 from hope_models.runtime.brain_status import status_extra
@@ -112,14 +111,6 @@ class _Served:
 
 
 @dataclass(eq=False)
-class _Session:
-    version: str
-    state: NumpyWindowState
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    ticks: int = 0  # ticks committed to the state
-
-
-@dataclass(eq=False)
 class _Slot:
     """Per component: the served model (one reference, swapped whole), its sessions, the watcher's view."""
     component: str
@@ -127,7 +118,7 @@ class _Slot:
     last_error: str | None = None
     pointer_bytes: bytes | None = None  # what the pointer file held when last looked at
     pointer_version: str | None = None
-    sessions: "OrderedDict[str, _Session]" = field(default_factory=OrderedDict)
+    sessions: "OrderedDict[str, Any]" = field(default_factory=OrderedDict)  # fast_sessions.FastSession (actor)
     lock: threading.Lock = field(default_factory=threading.Lock)  # sessions and first-inference flag
     non_finite: int = 0  # answers refused because the served model computed NaN/Inf (status())
 
@@ -341,8 +332,8 @@ class BrainService:
                 given = mid_serving.action_values(action, (mid or served).model.act_dim)
             except ValueError as exc:
                 raise BrainError(str(exc)) from None
-        answered = None if fast is None else self._fast_tick(self._slots[fast.model.name], fast, values, session, reset,
-                                                            frame_codes.get(ACTOR))
+        answered = None if fast is None else fast_sessions.tick(self._slots[fast.model.name], fast, values, session,
+                                                                reset, frame_codes.get(ACTOR), self.max_sessions)
         code = None if vq is None else frame_codes.get(TOKENIZER)
         if vq is not None and code is None:
             code = vq.model.codes_of(np.asarray(values))
@@ -368,60 +359,6 @@ class BrainService:
         """The served model of `name` when it reads the observation layout `fields`, else None."""
         p = self._slots[name].served
         return p if p is not None and p.model.observation_fields == fields else None
-
-    def _fast_tick(self, slot: _Slot, served: _Served, values: list[float], session: str | None,
-                   reset: bool, codes: np.ndarray | None = None) -> np.ndarray:
-        """codes: a camera reflex's frame codes (None for one that reads no camera)."""
-        model = served.model
-        xn = model.normalise(np.asarray(values, dtype=np.float64))
-        if session is None:
-            a, state = model.tick(xn, model.init_state(), codes)
-            action = model.denormalise(a)
-            if not _finite(action, state):
-                self._non_finite(slot, served, session, values)
-            return action
-        sess = self._session(slot, session, served.version, model, reset)
-        with sess.lock:
-            if sess.version != served.version:  # a swap happened since: start afresh on these weights
-                sess.version, sess.state, sess.ticks = served.version, model.init_state(), 0
-            a, state = model.tick(xn, sess.state, codes)
-            action = model.denormalise(a)
-            # Committed only when finite: one bad tick must not leave NaN in the recurrent state,
-            # which every later tick of the session would read (K ticks of NaN answers).
-            if not _finite(action, state):
-                self._non_finite(slot, served, session, values)
-            sess.state = state
-            sess.ticks += 1
-        return action
-
-    @staticmethod
-    def _non_finite(slot: _Slot, served: _Served, session: str | None, values: list[float]) -> None:
-        """A valid observation gave NaN/Inf: the served weights' fault, not the request's, so a
-        500 (the robot should fall back to its safe behaviour and the operator look at the model),
-        logged, and never the NaN itself (JSON has none)."""
-        with slot.lock:
-            slot.non_finite += 1
-        log.error("BrainService: %s %s computed a non-finite action or state (session %r, observation range "
-                  "[%.3g, %.3g]); answered 500, the session's state left as it was", slot.component, served.version,
-                  session, min(values), max(values))
-        raise BrainError(f"{served.version} computed a non-finite action for this observation (a fault of the served "
-                         "model, not of the request); no action is given, and a session's recurrent state is left "
-                         "as it was before this tick", 500)
-
-    def _session(self, slot: _Slot, name: str, version: str, model: Any, reset: bool) -> _Session:
-        with slot.lock:
-            sess = slot.sessions.get(name)
-            if sess is None:
-                sess = _Session(version, model.init_state())
-                slot.sessions[name] = sess
-                while len(slot.sessions) > self.max_sessions:
-                    slot.sessions.popitem(last=False)  # least recently used
-            else:
-                slot.sessions.move_to_end(name)
-        if reset:
-            with sess.lock:
-                sess.version, sess.state, sess.ticks = version, model.init_state(), 0
-        return sess
 
     def _first_inference(self, slot: _Slot, served: _Served) -> None:
         with slot.lock:
@@ -464,12 +401,6 @@ class BrainService:
     def version(self, component: str) -> str | None:
         slot = self._slots.get(component)
         return slot.served.version if slot and slot.served else None
-
-
-def _finite(action: np.ndarray, state: NumpyWindowState) -> bool:
-    # The whole state, not only the action: a NaN can sit in the ring for K ticks before it
-    # reaches an action. K x N floats: about a microsecond.
-    return bool(np.isfinite(action).all() and np.isfinite(state.h).all() and np.isfinite(state.ring).all())
 
 
 __all__ = ["BrainService", "BrainError", "RUNTIMES", "MAX_ABS_OBSERVATION", "MAX_SESSIONS", "observation_values"]
