@@ -10,7 +10,7 @@ outputs spread apart (farthest-point sampling): seeded at random from a few fram
 of the cells sat within float32 rounding of two rows (the flat background gives near-equal rows),
 and torch's and NumPy's codes could not be compared; random rows are all far from the data, and
 two codes won every cell. The fast_loop's keypoint scores are sharpened (the softmax follows a few
-cells) and per-code offsets, where CodeKeypoints has them, made non-zero. Each is written
+cells). Each is written
 with the real checkpoint writer (manifest and all), so BrainService can serve it.
 """
 from __future__ import annotations
@@ -101,8 +101,6 @@ def camera_checkpoints(root: Path, layout: str, seed: int = 0) -> dict[str, Path
     with torch.no_grad():
         if kp is not None:
             kp.score.weight.mul_(3.0)  # sharper softmax: the keypoints follow single cells
-            if hasattr(kp, "offset"):
-                kp.offset.weight.normal_(0, 0.05)
     return {"vq": vq_ckpt, "fast": _save(root / f"fast-{layout}", fast)}
 
 

@@ -4,9 +4,8 @@ keypoints -> the Fast Loop's embedding, for the torch-free runtime.
     kp = KeypointsNumpy(tensors, "keypoints", grid=(16, 16), out=centred)   # at load
     kp(codes)                    # codes [..., G] (cell-local ints) -> [..., d]
 
-Per keypoint c: w = softmax over the cells of score[code]; where = sum_cells w * cell centre (x, y)
-(+ w * offset[code] when the checkpoint has a per-code offset table: an earlier form of
-CodeKeypoints had one); there = logsumexp_cells(score) - log G; out = Linear(3C -> d) of
+Per keypoint c: w = softmax over the cells of score[code]; where = sum_cells w * cell centre (x, y);
+there = logsumexp_cells(score) - log G; out = Linear(3C -> d) of
 [where_0x, where_0y, ..., where_Cx, where_Cy, there_0, ..., there_C] (torch's order). `out` may be
 given in another form (the Fast Loop's flat path centres it: numpy_form._prepare_flat). float32
 throughout. Torch-free.
@@ -31,12 +30,11 @@ class KeypointsNumpy:
     """One CodeKeypoints' arithmetic (its tensors under `prefix`). Immutable."""
 
     def __init__(self, tensors: dict[str, np.ndarray], prefix: str, grid: tuple[int, int]):
-        score, offset = tensors[f"{prefix}.score.weight"], tensors.get(f"{prefix}.offset.weight")
+        score = tensors[f"{prefix}.score.weight"]
         self.n_codes, self.keypoints = score.shape
         self.cells = int(grid[0]) * int(grid[1])
         c = self.keypoints
         self._score = np.ascontiguousarray(score, dtype=np.float32)  # [n, C]
-        self._offset = None if offset is None else np.ascontiguousarray(offset, dtype=np.float32)  # [n, 2C]
         self._centres = cell_centres(grid)  # [G, 2]
         self._log_g = np.float32(math.log(self.cells))
         self._c = c
@@ -53,9 +51,6 @@ class KeypointsNumpy:
         w = e / total  # [..., G, C]: softmax over the cells
         wt = np.swapaxes(w, -1, -2)  # [..., C, G]
         where = wt @ self._centres  # [..., C, 2]
-        if self._offset is not None:
-            off = self._offset[codes].reshape(*codes.shape, c, 2)  # [..., G, C, 2]
-            where += (w[..., None] * off).sum(-3)
         there = np.log(total[..., 0, :]) + top[..., 0, :] - self._log_g  # [..., C]
         return np.concatenate([where.reshape(*where.shape[:-2], 2 * c), there], -1)
 
