@@ -154,3 +154,38 @@ def test_a_frame_for_a_model_without_a_camera_is_400(ckpts, tmp_path):
         assert "send no frame" in res.get_json()["error"]
     finally:
         api.close()
+
+
+def test_infer_cli_sends_a_frame_file(ckpts, tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    home = tmp_path / "home"
+    promote_pointer(home, ckpts["vq"], "vqvae")
+    promote_pointer(home, ckpts["fast"], "fast_loop")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HOPE_")}
+    env["HOPE_HOME"] = str(home)
+    repo = Path(__file__).resolve().parents[1]
+    frame = moving_frames(1, seed=4)[0]
+    png, junk = tmp_path / "camera.png", tmp_path / "notes.txt"
+    Image.fromarray(frame).save(png)
+    junk.write_text("not a picture")
+
+    def infer(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, str(repo / "run_trainer.py"), "infer", "--local", "--json",
+                               "--observation", json.dumps(JOINTS), *args], cwd=repo, env=env, capture_output=True,
+                              text=True, timeout=120)
+
+    proc = infer("--frame", str(png))
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    _, vq, tick = _reference(ckpts)
+    want, _ = tick(frame, FastLoopNumpy.from_checkpoint(ckpts["fast"]).init_state())
+    assert np.abs(np.asarray(out["action"]) - want).max() < 1e-9 and out["code"] == vq.vq.codes(frame).tolist()
+    proc = infer("--frame", str(junk))
+    assert proc.returncode == 2 and "not a JPEG or PNG image" in json.loads(proc.stdout)["error"], proc.stdout
+    proc = infer()
+    assert proc.returncode == 2 and "frame is missing" in json.loads(proc.stdout)["error"], proc.stdout

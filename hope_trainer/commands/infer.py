@@ -1,7 +1,8 @@
 """`hope-trainer infer`: one tick of the promoted models, from the shell.
 
     hope-trainer infer --observation '[0.1, -0.2, 0.3, 0.05, -0.4, 0.2]' [--component fast_loop]
-                         [--session S] [--reset] [--action '[0.2, -0.1]'] [--json] [--local] [--timeout 5]
+                         [--session S] [--reset] [--action '[0.2, -0.1]'] [--frame camera.png] [--json]
+                         [--local] [--timeout 5]
 
 By default it asks the running service (`hope-trainer serve` or `webapp`): POST /api/brain/infer
 on the configured host and inference port (the robot's door, 8766, HOPE_INFERENCE_PORT; the
@@ -16,12 +17,15 @@ Prints the action, the model version that produced it and the latency, and, when
 mid_loop are promoted, the observation's code, the Mid Loop's prediction at each horizon and the
 surprise (hope_models/components/mid_loop/serving.py defines it; it needs a --session ticked for one horizon
 on the service). --action is the action the robot actually took on the previous tick (the Mid
-Loop's input; default: the fast_loop's previous answer). --json: the service's answer ("action",
+Loop's input; default: the fast_loop's previous answer). --frame: a JPEG or PNG file sent as the
+request's camera frame, for a served model that reads the camera (resized by the service to its
+frame size). --json: the service's answer ("action",
 "model_version", "latency_ms", "session", "code", "prediction", "surprise", ...) plus "via":
 "http" | "local".
 Exit 0 answered; 1 nothing could answer (no service running, no promoted model yet, or the model
 computed a non-finite action: a 500); 2 bad input (the message says what is wrong: wrong length,
-NaN, a value beyond +-1e6, not a list of numbers, unknown component).
+NaN, a value beyond +-1e6, not a list of numbers, unknown component, a frame that is not an image,
+no frame for a model that reads the camera or one for a model that does not).
 """
 from __future__ import annotations
 
@@ -68,6 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reset", action="store_true", help="start the session's episode again with this tick")
     parser.add_argument("--action", default=None, metavar="JSON",
                         help="the action taken on the previous tick, a JSON list (the Mid Loop's input)")
+    parser.add_argument("--frame", default=None, metavar="FILE",
+                        help="a camera frame (JPEG or PNG file) sent with the joints, for a model that reads the camera")
     parser.add_argument("--local", action="store_true",
                         help="answer in this process from the promoted pointer instead of asking the service")
     parser.add_argument("--timeout", type=_timeout_s, default=5.0, help="HTTP timeout in seconds (default 5)")
@@ -86,6 +92,24 @@ def _observation(text: str, flag: str = "--observation") -> list[float]:
         return observation_values(obj)
     except BrainError as exc:
         raise InferFailure(f"{flag}: {exc}", USAGE_EXIT) from None
+
+
+def _frame(path: str) -> str:
+    """The file's bytes as the request's `frame` (base64; the service decodes and checks the image)."""
+    import base64
+
+    from hope_models.runtime.brain_frame import MAX_FRAME_CHARS  # lazy: loads numpy
+
+    limit = MAX_FRAME_CHARS * 3 // 4
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(limit + 1)
+    except OSError as exc:
+        raise InferFailure(f"--frame {path}: cannot read: {exc.strerror or exc}", USAGE_EXIT) from None
+    if len(data) > limit:
+        raise InferFailure(f"--frame {path}: more than {limit} bytes; send the camera's frame, not a large photo",
+                           USAGE_EXIT)
+    return base64.b64encode(data).decode("ascii")
 
 
 def _base_url(settings: Settings) -> str:
@@ -159,7 +183,7 @@ def _via_local(settings: Settings, body: dict[str, Any]) -> dict[str, Any]:
     brain.check_now()  # load the promoted model once; no watcher thread for one answer
     try:
         return brain.infer(body["component"], body["observation"], body.get("session"), body.get("reset", False),
-                           action=body.get("action"))
+                           action=body.get("action"), frame=body.get("frame"))
     except BrainError as exc:
         raise InferFailure(str(exc), NOT_ANSWERED_EXIT if exc.status >= 500 else USAGE_EXIT) from None
     finally:
@@ -176,6 +200,8 @@ def run(args: argparse.Namespace) -> int:
             body["reset"] = True
         if args.action is not None:
             body["action"] = _observation(args.action, "--action")
+        if args.frame is not None:
+            body["frame"] = _frame(args.frame)
         via = "local" if args.local else "http"
         out = _via_local(settings, body) if args.local else _via_http(settings, body, args.timeout)
     except SettingsError as exc:
