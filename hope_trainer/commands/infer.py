@@ -30,6 +30,7 @@ no frame for a model that reads the camera or one for a model that does not).
 from __future__ import annotations
 
 import argparse
+import base64
 import json
 import sys
 import urllib.error
@@ -96,8 +97,6 @@ def _observation(text: str, flag: str = "--observation") -> list[float]:
 
 def _frame(path: str) -> str:
     """The file's bytes as the request's `frame` (base64; the service decodes and checks the image)."""
-    import base64
-
     from hope_models.runtime.brain_frame import MAX_FRAME_CHARS  # lazy: loads numpy
 
     limit = MAX_FRAME_CHARS * 3 // 4
