@@ -189,3 +189,20 @@ def test_infer_cli_sends_a_frame_file(ckpts, tmp_path):
     assert proc.returncode == 2 and "not a JPEG or PNG image" in json.loads(proc.stdout)["error"], proc.stdout
     proc = infer()
     assert proc.returncode == 2 and "frame is missing" in json.loads(proc.stdout)["error"], proc.stdout
+
+
+def test_a_reflex_that_reads_no_camera_does_not_replace_one_that_does(ckpts, tmp_path):
+    """The robot sends what the served model reads: a swap to a model without the camera (same joints)
+    would fail every request that carries a frame, so it is refused and the camera reflex keeps serving."""
+    home = tmp_path / "home"
+    promote_pointer(home, ckpts["fast"], "fast_loop")
+    with BrainService(home, components=("fast_loop",)) as brain:
+        served = brain.version("fast_loop")
+        promote_pointer(home, ckpts["joints"], "fast_loop", model_id=2)
+        brain.check_now()
+        status = brain.status()["fast_loop"]
+        assert status["version"] == served and status["frame_shape"] == [64, 64, 3]
+        assert "does not fit the fast_loop being served" in status["last_error"]
+        assert "+ a 64x64x3 camera frame" in status["last_error"]
+        out = brain.infer("fast_loop", JOINTS, frame=_raw(moving_frames(1)[0]))
+        assert out["model_version"] == served
