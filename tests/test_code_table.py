@@ -65,3 +65,30 @@ def test_the_table_is_computed_once_and_redone_when_it_does_not_fit(trained):
     assert np.array_equal(redone, first)
     assert not [p for p in path.parent.iterdir() if p.name.startswith(".codes-")]  # no temp left behind
     assert build_component("vqvae", cache.spec).code_table(cache) is None  # the tokenizer reads frames itself
+
+
+class _Untouchable:
+    """A frames array that may be described but not indexed: the table must come from pread."""
+
+    def __init__(self, arr):
+        self.shape, self.strides, self.dtype, self.nbytes = arr.shape, arr.strides, arr.dtype, arr.nbytes
+
+    def __getitem__(self, key):
+        raise AssertionError(f"the frames mapping was indexed ({key!r}): its pages would stay resident")
+
+
+def test_a_large_cache_builds_its_table_without_mapping_the_frames(trained):
+    """Past the resident budget the frames are read with pread: a pass over every frame must not
+    fault the whole frames file into the job's RSS (50 000 64x64 frames are 614 MB)."""
+    from hope_models.data.dataset_cache import open_cache
+
+    cache, ckpt = trained
+    comp = build_component("fast_loop", cache.spec, vqvae_dir=ckpt, data_fingerprint=cache.fingerprint)
+    expected = np.array(comp.code_table(cache))
+    small = open_cache(cache.path, resident_budget_mb=0.001)
+    assert small.frames_mode == "read"
+    for lo, hi in ((0, 1), (5, 37), (small.n_steps - 3, small.n_steps)):
+        assert np.array_equal(small.frame_block(lo, hi), cache.frames[lo:hi])
+    table_path(small.path, comp.vqvae_ref["weights_sha256"]).unlink()
+    small.frames = _Untouchable(small.frames)
+    assert np.array_equal(comp.code_table(small), expected)

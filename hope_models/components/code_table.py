@@ -31,10 +31,6 @@ def table_path(cache_dir: str | os.PathLike, key: str) -> Path:
     return Path(cache_dir) / f"{TABLE_PREFIX}{key[:16]}.npy"
 
 
-def _tensor(frames: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.require(frames, requirements=["C", "W"]))  # the cache's map is read-only
-
-
 def _load(path: Path, n: int) -> np.ndarray | None:
     try:
         table = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -59,14 +55,14 @@ def frame_code_table(cache, vqvae: torch.nn.Module, key: str,
     vqvae.eval()
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{os.urandom(4).hex()}")
     try:
-        first = vqvae.encode(_tensor(cache.frames[:1]))
+        first = vqvae.encode(torch.from_numpy(cache.frame_block(0, 1)))
         groups = int(first.shape[-1])
         n_codes = int(getattr(getattr(vqvae, "cfg", None), "n_codes", 1 << 15))
         dtype = np.int16 if n_codes <= np.iinfo(np.int16).max else np.int32
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=dtype, shape=(n, groups))
         for lo in range(0, n, ENCODE_BATCH):
             hi = min(n, lo + ENCODE_BATCH)
-            out[lo:hi] = vqvae.encode(_tensor(cache.frames[lo:hi])).numpy()
+            out[lo:hi] = vqvae.encode(torch.from_numpy(cache.frame_block(lo, hi))).numpy()
         out.flush()
         del out
         fsync_path(tmp)

@@ -168,6 +168,19 @@ class DatasetCache:
             return self.frames[j]
         return _pread_rows(self._files["frames"].fileno(), self.frames, j)
 
+    def frame_block(self, lo: int, hi: int) -> np.ndarray:
+        """Frames lo .. hi-1 in order, a writable copy; "read" mode fetches them with one pread, so a
+        pass over every frame (a tokenizer's code table) does not leave the whole file resident."""
+        if self.frames is None:
+            raise CacheError(f"{self.path}: the feature spec has no frame feature")
+        if not 0 <= lo <= hi <= self.n_steps:
+            raise IndexError(f"frames {lo}..{hi} outside the cache's {self.n_steps}")
+        if self.frames_mode == "mmap":
+            return np.array(self.frames[lo:hi])
+        row = self.frames.strides[0]
+        raw = os.pread(self._files["frames"].fileno(), (hi - lo) * row, lo * row)
+        return np.frombuffer(raw, dtype=self.frames.dtype).reshape(hi - lo, *self.frames.shape[1:]).copy()
+
     def block_rows(self, span_s: float, forward: bool = False) -> int:
         """Most rows any step needs to reach the latest step at or before t - span_s (backward) or
         at or before t + span_s (forward), itself included; computed once per span from t."""
