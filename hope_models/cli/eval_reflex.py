@@ -181,6 +181,13 @@ def _prepare_gl(why: str = "--stream-frames") -> str | None:
     return None
 
 
+def _camera_gl(policy, args: argparse.Namespace) -> str | None:
+    """A camera reflex sees rendered frames: EGL, unless --stream-frames chose it already."""
+    if policy.frame is None or args.stream_frames is not None:
+        return None
+    return _prepare_gl(f"the policy's camera ({policy.frame.path})")
+
+
 def resolve_promoted(home: Path) -> Path:
     """The checkpoint the fast_loop promotion pointer names; FileNotFoundError/ValueError with the reason."""
     pointer = home / POINTER_DIR / POINTER_FILE
@@ -236,10 +243,8 @@ def run(args: argparse.Namespace) -> int:
         policy = ReflexPolicy.from_checkpoint(ckpt_arg)
     except ReflexPolicyError as exc:
         return _fail(args, str(exc))
-    if policy.frame is not None and args.stream_frames is None:  # a camera reflex sees rendered frames
-        problem = _prepare_gl(f"the policy's camera ({policy.frame.path})")
-        if problem is not None:
-            return _fail(args, problem)
+    if (problem := _camera_gl(policy, args)) is not None:
+        return _fail(args, problem)
     seeds = list(range(args.seed, args.seed + args.episodes))
     stream = on_tick = surprise = None
     if args.stream_frames is not None:
@@ -275,12 +280,8 @@ def run(args: argparse.Namespace) -> int:
             for p, e, r in zip(res.episodes, expert.episodes, rand.episodes, strict=True)],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
-    if jump is not None:
-        out["target_jump_s"] = jump
-    if stream is not None:
-        out["frames"] = stream.summary()
-    if surprise is not None:
-        out["surprise"] = surprise
+    extras = {"target_jump_s": jump, "frames": None if stream is None else stream.summary(), "surprise": surprise}
+    out.update({k: v for k, v in extras.items() if v is not None})
     write_result(args.result_file, out)
     if args.json:
         print(json.dumps(out))

@@ -435,16 +435,13 @@ class _Trainer:
                                    "rss_mb": pace.verdict.rss_mb})
 
     def _validate(self, cache) -> dict[str, float]:
-        """Mean evaluate() metrics over a few validation batches; the RNG is left as it was. The
-        promotion gate computes the same numbers with the same function (train/validation.py).
-        A component with a picture of the held-out episodes leaves it in the run dir
-        (train/held_out_picture.py: the frame VQ-VAE's frames over their reconstructions)."""
+        """Mean evaluate() metrics over a few validation batches (the gate's function, validation.py),
+        the RNG left as it was; and a frame VQ-VAE's held-out picture in the run dir."""
         try:
             val = validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
         except NoValidationSplit:
             return {}
-        picture = write_held_out_picture(self.component, cache, self.run_dir, self.cfg.val_fraction)
-        if picture is not None:
+        if (picture := write_held_out_picture(self.component, cache, self.run_dir, self.cfg.val_fraction)) is not None:
             self.log(f"held-out picture: {picture}")
         return val
 
