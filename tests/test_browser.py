@@ -236,6 +236,16 @@ def test_robot_editor_end_to_end(browser, serve, tmp_path):
         expect(page.locator("#infer-error")).to_have_text(f"The server answered HTTP 400: {reason}")
         expect(page.locator("#infer-result dd")).to_have_count(0)
         shots.take(page, "inference-frame-refused")
+        # a phone-sized photo (a noisy 1600x1200 PNG, ~5.8 MB) is shrunk in the page to fit the API's
+        # 1 MiB body: the server reads it (the same refusal), not a 413
+        big = png(np.random.default_rng(0).integers(0, 256, (1200, 1600, 3), dtype=np.uint8))
+        assert len(big) > 4 << 20
+        page.set_input_files("#infer-frame", files=[{"name": "photo.png", "mimeType": "image/png", "buffer": big}])
+        with page.expect_response("**/api/brain/infer") as answered:
+            page.click("#infer-button")
+        sent = answered.value.request.post_data_json
+        assert sent["frame"].startswith("data:image/jpeg;base64,") and len(sent["frame"]) < 1 << 20
+        assert answered.value.status == 400 and answered.value.json()["error"] == reason, answered.value.text()
         assert [e for e in errors if "400" not in e] == [], errors  # the browser logs the refused request itself
         errors.clear()
         page.click("#infer-frame-clear")

@@ -79,7 +79,7 @@ async function onInfer(event) {
   $("#infer-button").disabled = true;
   try {
     const body = { component: "fast_loop", observation, session: "robot-editor", reset: $("#infer-reset").checked };
-    if (file) body.frame = await dataUrl(file);
+    if (file) body.frame = await frameForRequest(file);
     const out = await ctx.api("/api/brain/infer", { method: "POST", body });
     const rows = [["action", out.action.map((v) => num(v)).join(", ")], ["version", out.model_version],
                   ["latency", `${num(out.latency_ms, 3)} ms`]];
@@ -92,6 +92,29 @@ async function onInfer(event) {
   } finally {
     $("#infer-button").disabled = false;
   }
+}
+
+// A phone photo is several MB and the API takes 1 MiB bodies (base64 adds a third): a large file
+// is drawn at most FRAME_SEND_SIDE pixels on its long side and sent as a JPEG. The served model
+// reads 64-128 pixels, so nothing it could use is lost; a small file goes byte for byte.
+const FRAME_SEND_BYTES = 512 * 1024;
+const FRAME_SEND_SIDE = 640;
+
+async function frameForRequest(file) {
+  const url = await dataUrl(file);
+  if (file.size <= FRAME_SEND_BYTES) return url;
+  const img = new Image();
+  await new Promise((resolve, reject) => {
+    img.onload = resolve;
+    img.onerror = () => reject(new Error(`frame: ${file.name} is not an image the browser can read`));
+    img.src = url;
+  });
+  const scale = Math.min(1, FRAME_SEND_SIDE / Math.max(img.naturalWidth, img.naturalHeight));
+  const canvas = document.createElement("canvas");
+  canvas.width = Math.max(1, Math.round(img.naturalWidth * scale));
+  canvas.height = Math.max(1, Math.round(img.naturalHeight * scale));
+  canvas.getContext("2d").drawImage(img, 0, 0, canvas.width, canvas.height);
+  return canvas.toDataURL("image/jpeg", 0.92);
 }
 
 // the chosen file as a data: URL, what the request's `frame` carries
