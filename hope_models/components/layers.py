@@ -23,6 +23,12 @@ class Layer:
     #      (in_channels, out_channels, kernel, stride, padding, dilation, output_padding) of a conv
     repeat: int = 1  # the same layer this many times (a stack's blocks): counted, not listed
     name: str = ""  # the module's path in the model; a repeated layer's holds "{i}", its index
+    # How often it runs per sample, for the activations (a torch module states it with the
+    # attributes estimate_per_point / estimate_per_sample): per_point times at every window point
+    # (a layer that reads each cell of a grid: G), or per_sample times whatever the window (a
+    # decoder run only where targets are scored); per_sample 0: per_point times K.
+    per_point: int = 1
+    per_sample: int = 0
 
 
 # The parameters of each kind, in the order `params` lists their shapes (torch's registration order).

@@ -17,7 +17,9 @@ The estimate of a training process's peak RSS is a sum of parts (MB = 2^20 bytes
                          parameter's widest axis per token (the diagonal SSM's log_rate [N],
                          B [N, d], C [d, N], D [d]: its state, input, output and skip vectors)
                tokens per sample = window_k (the window's grid points; + horizons for the frozen
-               encoder of future frames). Trainable modules keep their outputs for backward; a
+               encoder of future frames), or what the layer states (Layer.per_point x window_k,
+               e.g. once per cell of a grid, or a fixed Layer.per_sample, e.g. a decoder run
+               only where targets are scored). Trainable modules keep their outputs for backward; a
                frozen module (no trainable parameter) runs without grad, so only its largest
                single output counts (x FROZEN_FACTOR, the tensor and the next one being made).
                A model may override all this with a method
@@ -105,7 +107,8 @@ def model_layers(model: Any) -> list[Layer]:
             conv = (m.in_channels, m.out_channels, m.kernel_size[0], m.stride[0], padding, m.dilation[0],
                     m.output_padding[0])
         out.append(Layer(name, tuple(tuple(p.shape) for p in own), any(p.requires_grad for p in own), conv,
-                         name=path))
+                         name=path, per_point=int(getattr(m, "estimate_per_point", 1)),
+                         per_sample=int(getattr(m, "estimate_per_sample", 0))))
     return out
 
 
@@ -149,9 +152,10 @@ def activation_floats_per_sample(layers: list[Layer], window_k: int, frames: boo
     frames_per_sample = window_k if frames else 0
     kept = 0.0
     frozen_peak = 0.0
-    for per_token, per_frame, trainable, repeat in _leaf_outputs(layers):
+    for layer, (per_token, per_frame, trainable, repeat) in zip(layers, _leaf_outputs(layers), strict=True):
         if trainable:
-            kept += repeat * (per_token * window_k + per_frame * max(1, frames_per_sample))
+            tokens = layer.per_sample or layer.per_point * window_k
+            kept += repeat * (per_token * tokens + per_frame * max(1, frames_per_sample))
         else:
             tokens = window_k + horizons
             frozen_peak = max(frozen_peak, per_token * tokens + per_frame * max(1, frames_per_sample + horizons))

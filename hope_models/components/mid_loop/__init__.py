@@ -3,6 +3,7 @@
 
     config.py      MidLoopConfig (torch-free)        model.py, metrics.py   the torch model, its losses
     layers.py      its layers, from a config         train.py       its loss as the loop sees it
+    grid_model.py, grid_metrics.py  the model over a grid frame tokenizer (per-cell codes + joints), its loss
     numpy_form.py  the NumPy predictor BrainService runs; checkpoint.py: what it accepts
     held_out.py    its held-out figures and the gate's baselines verdict
 """
@@ -24,8 +25,10 @@ def _check_window(window: Any) -> None:
 
 
 def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: Any) -> MidLoopConfig:
-    return make_config(MidLoopConfig, {"act_dim": spec.act_dim, "n_codes": vq_cfg.n_codes,
-                                       "horizon_steps": horizon_steps(window)}, overrides, "mid_loop")
+    derived = {"act_dim": spec.act_dim, "n_codes": vq_cfg.n_codes, "horizon_steps": horizon_steps(window)}
+    if vq_cfg.input == "frame" and vq_cfg.layout == "grid":  # grid_model.py: the joints are read and predicted
+        derived["obs_dim"] = spec.obs_dim
+    return make_config(MidLoopConfig, derived, overrides, "mid_loop")
 
 
 def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | None:

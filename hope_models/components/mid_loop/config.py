@@ -24,6 +24,16 @@ class MidLoopConfig:
     wm_horizon: int = 4
     wm_hidden: int = 128
     wm_weight: float = 1.0  # of its MSE (normalised units) beside the codes' NLL in the loss
+    # A grid frame tokenizer (VQ-VAE layout "grid": one code per cell from one shared codebook) is
+    # read and predicted per cell by grid_model.py; these fields are read by that model only.
+    obs_dim: int = 0  # the joints (the dataset's observation vector): an input and a target; from the data
+    keypoints: int = 8  # where things are: learned keypoints over the cells (code_keypoints.py), at every point
+    cell_rank: int = 32  # width of the shared per-cell decoder: logits = u_cell @ V^T, V [n_codes, rank]
+    score_points: int = 2  # code targets scored per window and horizon: the anchor's and the last in-window ones
+    # training decodes every cell whose code changed and this fraction of the others (weighted back):
+    # most cells of a frame hold still, and their logits would be most of a step's cost
+    stay_sample: float = 0.25
+    joint_weight: float = 1.0  # of the joints' MSE (normalised units) beside the codes' NLL per cell
 
     def ssm_config(self) -> SSMConfig:
         return SSMConfig(self.d_model, self.d_state, self.n_layers, self.mlp_ratio, self.min_timescale,
@@ -41,4 +51,10 @@ class MidLoopConfig:
         if self.wm_horizon < 0 or self.wm_hidden < 1 or not self.wm_weight >= 0:
             raise ValueError(f"wm_horizon={self.wm_horizon} must be >= 0, wm_hidden={self.wm_hidden} >= 1 and "
                              f"wm_weight={self.wm_weight} >= 0")
+        if self.obs_dim < 0 or self.keypoints < 1 or self.cell_rank < 1 or self.score_points < 1:
+            raise ValueError(f"obs_dim={self.obs_dim} must be >= 0, keypoints={self.keypoints}, cell_rank="
+                             f"{self.cell_rank} and score_points={self.score_points} >= 1")
+        if not self.joint_weight >= 0 or not 0.0 < self.stay_sample <= 1.0:
+            raise ValueError(f"joint_weight={self.joint_weight} must be >= 0 and stay_sample={self.stay_sample} "
+                             "within (0, 1]")
         check_timescales(self.min_timescale, self.max_timescale)

@@ -1,13 +1,16 @@
 """The Mid Loop as the training loop sees it: window mid, 2 s, K=20, horizons 0.5 s and 1 s; codes
 (frozen VQ-VAE, required) + past actions -> codes ahead; loss cross-entropy, + the
 action-conditioned world model (wm_*, vector VQ-VAE): obs of the next points given the actions to
-be held, + wm_weight x its MSE."""
+be held, + wm_weight x its MSE. Over a grid frame VQ-VAE the model is grid_model.GridMidLoop: codes
+and joints in, each cell's code and the joints at each horizon out (grid_metrics.py)."""
 from __future__ import annotations
 
 from typing import Any
 
 import torch
 
+from hope_models.components.mid_loop.grid_metrics import grid_loss
+from hope_models.components.mid_loop.grid_model import GridMidLoop, is_grid
 from hope_models.components.mid_loop.metrics import mid_loop_loss, world_model_loss
 from hope_models.components.mid_loop.model import MidLoop, previous_actions
 from hope_models.components.training_base import TrainingComponent, as_tensor
@@ -17,7 +20,7 @@ class MidLoopComponent(TrainingComponent):
     name = "mid_loop"
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
-        model: MidLoop = self._model
+        model: MidLoop | GridMidLoop = self._model
         codes = self._codes(batch)  # a dataset's code table spares the frozen encoder
         if codes is None:
             codes = model.codes(as_tensor(batch.obs), self._frames(batch))
@@ -32,6 +35,13 @@ class MidLoopComponent(TrainingComponent):
         future_mask = None if future_codes is None or batch.future_mask is None else as_tensor(batch.future_mask)
         mask = as_tensor(batch.mask)
         act = as_tensor(batch.act)
+        labels = tuple(f"{h:g}s" for h in self._window.horizons_s)
+        if isinstance(model, GridMidLoop):
+            obs = as_tensor(batch.obs)
+            y = model.context(codes, previous_actions(act), obs, mask)
+            return grid_loss(model, y, codes, obs, mask, future_codes=future_codes, future_mask=future_mask,
+                             future_obs=None if batch.future_obs is None else as_tensor(batch.future_obs),
+                             labels=labels, training=training)
         y = model.context(codes, previous_actions(act), mask)
         logits = model.heads(y)
         vector = not self.wants_frames
@@ -39,7 +49,7 @@ class MidLoopComponent(TrainingComponent):
             model, logits, codes, mask, obs=as_tensor(batch.obs) if vector else None,
             future_codes=future_codes, future_mask=future_mask,
             future_obs=as_tensor(batch.future_obs) if vector and batch.future_obs is not None else None,
-            labels=tuple(f"{h:g}s" for h in self._window.horizons_s), training=training)
+            labels=labels, training=training)
         if model.has_world_model:  # the action-conditioned world model (mid_loop.py), trained alongside
             wm_loss, wm_metrics = world_model_loss(model, y, as_tensor(batch.obs), act, mask, self._window.grid_step_s)
             metrics.update(wm_metrics)
@@ -50,4 +60,5 @@ class MidLoopComponent(TrainingComponent):
 def build(spec: Any, r: Any, vqvae: Any, data_fingerprint: str, vqvae_ref: dict | None) -> MidLoopComponent:
     """The component for a resolved configuration (components.resolve.Resolved) and a dataset's
     feature spec; vqvae: the frozen VQ-VAE module it reads codes of (None: none)."""
-    return MidLoopComponent(spec, MidLoop(r.cfg, vqvae), r.cfg, r.window, data_fingerprint, vqvae_ref)
+    model = GridMidLoop(r.cfg, vqvae) if is_grid(vqvae.cfg) else MidLoop(r.cfg, vqvae)
+    return MidLoopComponent(spec, model, r.cfg, r.window, data_fingerprint, vqvae_ref)
