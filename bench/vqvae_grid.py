@@ -88,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=3000, help="training steps")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the training (the measuring uses one)")
     p.add_argument("--model-config", type=json.loads, default={}, help="the vqvae's model_config (JSON)")
     p.add_argument("--probe-frames", type=int, default=4000, help="training frames the probe is fitted on")
     p.add_argument("--strip", type=Path, default=None)
@@ -114,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         result = train(TrainConfig(component="vqvae", data=str(args.train), run_dir=str(args.out / "run"),
                                    steps=args.steps, lr=args.lr, seed=args.seed, model_config=args.model_config,
                                    cache_dir=str(args.out / "cache"), thermal_zone=None, vcgencmd=None,
-                                   log_every=100, threads=1))
+                                   log_every=100, threads=args.threads))
         wall = time.monotonic() - t0
         if result.outcome != "completed":
             print(f"training ended {result.outcome}: {result.message}", file=sys.stderr)

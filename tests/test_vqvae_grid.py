@@ -51,6 +51,18 @@ def test_grid_codes_are_one_per_cell_and_the_layers_match_the_model():
     assert torch.all(chosen <= dist.amin(-1) + 1e-6)  # (near-ties aside, the argmin)
 
 
+def test_a_wider_decoder_leaves_the_encoder_as_it_was():
+    narrow, wide = _grid(), _grid(decoder_channels=12)
+    enc = lambda vq: {k: tuple(v.shape) for k, v in vq.named_parameters() if k.startswith("encoder.")}  # noqa: E731
+    assert enc(wide) == enc(narrow)  # the robot's encode costs the same
+    named = {k: tuple(v.shape) for k, v in wide.named_parameters()}
+    assert named == tensors(layers(wide.cfg)) and named["decoder.1.weight"][0] == 24  # 2 x 12 at the grid
+    x = _scenes(3)
+    assert wide(x, init_codebook=True).recon.shape == (3, 3, 32, 32)
+    with pytest.raises(ValueError, match="decoder_channels=8 is the grid layout's"):
+        VQVAEConfig(input="frame", decoder_channels=8).validate()
+
+
 def test_the_codebook_is_shared_by_the_cells_and_stored_once_per_cell():
     vq = _grid()
     x = _scenes(16)

@@ -30,6 +30,7 @@ class VQVAEConfig:
     layout: str = "flat"
     patch: int = 4  # grid: pixels per cell side, a power of 2 (64x64 / 4 = a 16x16 grid, 256 codes)
     fg_weight: float = 0.0  # frames: extra loss weight of the pixels that differ from the background
+    decoder_channels: int = 0  # grid: the decoder's first width (0: `channels`); the encoder stays as cheap
 
     @property
     def grid_shape(self) -> tuple[int, int]:
@@ -49,6 +50,8 @@ class VQVAEConfig:
             raise ValueError(f"layout={self.layout!r} must be one of {', '.join(LAYOUTS)}")
         if self.layout == "grid":
             self._validate_grid()
+        elif self.decoder_channels:
+            raise ValueError(f"decoder_channels={self.decoder_channels} is the grid layout's; layout is {self.layout!r}")
         if self.fg_weight < 0:
             raise ValueError(f"fg_weight={self.fg_weight} must be >= 0")
         if self.n_codes < 2 or self.code_dim < 1:
@@ -75,10 +78,14 @@ class VQVAEConfig:
         if self.groups != cells:
             raise ValueError(f"groups={self.groups} must be the grid's {h // p}x{w // p}={cells} cells "
                              f"(layout='grid', patch={p})")
+        if self.decoder_channels < 0:
+            raise ValueError(f"decoder_channels={self.decoder_channels} must be >= 0 (0: channels)")
 
 
-def grid_widths(cfg: VQVAEConfig) -> list[int]:
+def grid_widths(cfg: VQVAEConfig, decoder: bool = False) -> list[int]:
     """The channels of the grid encoder's stride-2 convs, input first: 3, c, 2c, 2c, ... (log2(patch)
-    convs; the decoder runs them backwards)."""
+    convs); the decoder runs its own widths backwards (c = decoder_channels when set: a wider
+    decoder costs training time, never the robot's encode)."""
     n = cfg.patch.bit_length() - 1
-    return [3] + [cfg.channels * (1 if i == 0 else 2) for i in range(n)]
+    c = (cfg.decoder_channels or cfg.channels) if decoder else cfg.channels
+    return [3] + [c * (1 if i == 0 else 2) for i in range(n)]

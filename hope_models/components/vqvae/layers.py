@@ -36,8 +36,9 @@ def _grid_layers(cfg: VQVAEConfig, trainable: bool, prefix: str) -> list[Layer]:
     enc = [conv("Conv2d", w[i], w[i + 1], trainable, f"{prefix}encoder.{2 * i}") for i in range(n)]
     enc += [conv("Conv2d", top, top, trainable, f"{prefix}encoder.{2 * n}", 3, 1, 1),
             conv("Conv2d", top, cell, trainable, f"{prefix}encoder.{2 * n + 2}", 1, 1, 0)]
-    dec = [conv("Conv2d", cell + 2, top, trainable, f"{prefix}decoder.1", 3, 1, 1)]  # + a cell's row, column
-    dec += [conv("ConvTranspose2d", w[n - i], w[n - i - 1], trainable, f"{prefix}decoder.{3 + 2 * i}") for i in range(n)]
+    d = grid_widths(cfg, decoder=True)
+    dec = [conv("Conv2d", cell + 2, d[-1], trainable, f"{prefix}decoder.1", 3, 1, 1)]  # + a cell's row, column
+    dec += [conv("ConvTranspose2d", d[n - i], d[n - i - 1], trainable, f"{prefix}decoder.{3 + 2 * i}") for i in range(n)]
     h, wd, _ = cfg.frame_shape
     return enc + dec + [Layer("AddBackground", ((3, h, wd),), trainable, name=f"{prefix}decoder.{2 + 2 * n}")]
 

@@ -112,7 +112,7 @@ def _grid_encoder(cfg: VQVAEConfig) -> nn.Module:
 
 
 def _grid_decoder(cfg: VQVAEConfig) -> nn.Module:
-    w = grid_widths(cfg)
+    w = grid_widths(cfg, decoder=True)
     cell = cfg.code_dim // cfg.groups
     layers: list[nn.Module] = [_FromCells(*cfg.grid_shape), nn.Conv2d(cell + 2, w[-1], 3, 1, 1), nn.SiLU()]
     ups = list(zip(w[:0:-1], w[-2::-1], strict=True))  # (2c -> 2c), ..., (c -> 3)
