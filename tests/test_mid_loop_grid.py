@@ -211,3 +211,21 @@ def test_the_layer_table_is_the_grid_models_and_the_estimate_counts_its_decoded_
     cells = decoded_cells(more.cfg, 64) - decoded_cells(r.cfg, 64)
     grown = estimate_from_config(more, 32, 4, 2).breakdown["activations"] - built.breakdown["activations"]
     assert cells > 0 and grown == pytest.approx(ACT_FACTOR * 4 * 32 * 72 * cells / 2**20)
+
+
+def test_copy_last_in_the_mixture_caps_what_a_wrong_change_costs():
+    """A decoder sure of a change that does not come: alone it pays its whole log-probability on
+    every cell; mixed with copy-last (copy_mix) at most -log(copy_mix x P(stay)) a cell."""
+    batch = _toy(8, 8, (2, 4), torch.Generator().manual_seed(3))
+    costs = {}
+    for mix in (0.0, 0.2):
+        model = _model(copy_mix=mix).eval()
+        with torch.no_grad():
+            model.cell_out.bias.fill_(-30.0)
+            model.cell_out.bias[7] = 30.0  # every cell will turn into code 7, which no cell of the toy holds
+        _, m = _loss(model, batch, training=False)
+        costs[mix] = m["nll_2steps"] / (SIDE * SIDE)
+        assert m["accuracy_2steps"] == 0.0  # the mixture's most probable code is still the decoder's
+    # no counts yet: copy-last's P(stay) is 0.5; a cell that stayed costs at most -log(0.1), one
+    # that changed -log(0.2 x 0.5 / 7) (the other codes share the rest), and most cells stayed
+    assert costs[0.0] > 50 and costs[0.2] < -np.log(0.1) + 0.1 * -np.log(0.2 * 0.5 / 7), costs

@@ -33,6 +33,9 @@ class MidLoopConfig:
     # training decodes every cell whose code changed and this fraction of the others (weighted back):
     # most cells of a frame hold still, and their logits would be most of a step's cost
     stay_sample: float = 0.25
+    # each cell's predicted distribution is (1 - copy_mix) x the decoder's + copy_mix x copy-last's
+    # (grid_metrics.py): on held-out episodes the decoder alone is sure of changes that do not come
+    copy_mix: float = 0.2
     joint_weight: float = 1.0  # of the joints' MSE (normalised units) beside the codes' NLL per cell
 
     def ssm_config(self) -> SSMConfig:
@@ -54,7 +57,7 @@ class MidLoopConfig:
         if self.obs_dim < 0 or self.keypoints < 1 or self.cell_rank < 1 or self.score_points < 1:
             raise ValueError(f"obs_dim={self.obs_dim} must be >= 0, keypoints={self.keypoints}, cell_rank="
                              f"{self.cell_rank} and score_points={self.score_points} >= 1")
-        if not self.joint_weight >= 0 or not 0.0 < self.stay_sample <= 1.0:
-            raise ValueError(f"joint_weight={self.joint_weight} must be >= 0 and stay_sample={self.stay_sample} "
-                             "within (0, 1]")
+        if not self.joint_weight >= 0 or not 0.0 < self.stay_sample <= 1.0 or not 0.0 <= self.copy_mix < 1.0:
+            raise ValueError(f"joint_weight={self.joint_weight} must be >= 0, stay_sample={self.stay_sample} "
+                             f"within (0, 1] and copy_mix={self.copy_mix} within [0, 1)")
         check_timescales(self.min_timescale, self.max_timescale)
