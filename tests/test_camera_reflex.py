@@ -71,23 +71,11 @@ def test_a_fast_loop_over_a_grid_tokenizer_tells_cells_apart_and_steps_like_its_
 
 @pytest.fixture(scope="module")
 def camera_reflex(tmp_path_factory):
-    """Two short camera episodes, a grid VQ-VAE and a fast_loop over it, each for a few steps (the CLI)."""
-    root = tmp_path_factory.mktemp("camreflex")
-    env = {**os.environ, "MUJOCO_GL": "egl"}
+    """A grid VQ-VAE and a camera fast_loop over it with the reacher's fields, random weights, saved
+    with the real checkpoint writer (tests/frame_fixtures.py): what the reflex runtime loads."""
+    from frame_fixtures import camera_checkpoints
 
-    def cli(*args):
-        proc = subprocess.run([sys.executable, "run_trainer.py", *args], cwd=REPO, capture_output=True, text=True,
-                              timeout=300, env=env)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        return proc
-
-    cli("sim-demos", "--episodes", "2", "--steps", "40", "--observation", "camera", "--out", str(root / "ds"))
-    common = ["--data", str(root / "ds"), "--cache-dir", str(root / "cache"), "--batch-size", "16"]
-    cli("train", "--component", "vqvae", *common, "--run-dir", str(root / "vq"), "--steps", "3",
-        "--model-config", json.dumps(GRID_VQ))
-    cli("train", "--component", "fast_loop", *common, "--run-dir", str(root / "fl"), "--steps", "3",
-        "--vqvae", str(root / "vq"))
-    return root
+    return camera_checkpoints(tmp_path_factory.mktemp("camreflex"), "grid")["fast"]
 
 
 def test_a_camera_reflex_sees_the_joints_and_the_camera_and_nothing_about_the_target(camera_reflex):
@@ -115,7 +103,7 @@ for bad in (np.zeros((32, 32, 3), np.uint8), np.zeros((64, 64, 3), np.float32)):
         errors.append(str(exc))
 print(json.dumps({"size": policy.frame_size, "seen": seen, "steps": len(res.episodes), "errors": errors}))
 """
-    proc = subprocess.run([sys.executable, "-c", code, str(camera_reflex / "fl")], cwd=REPO, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", code, str(camera_reflex)], cwd=REPO, capture_output=True,
                           text=True, timeout=300, env={**os.environ, "MUJOCO_GL": "egl"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
