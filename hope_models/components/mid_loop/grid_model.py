@@ -17,6 +17,8 @@ every cell), told which cell it is (pos) and what the cell holds now (code[c_g]:
 same" is then the easy answer, and a change is what the context must explain). Its cost is per
 scored target, so only targets that are scored are decoded (grid_metrics.py: the anchor's and the
 last few in-window points per horizon), never the whole [B, K, H, G, n_codes] tensor.
+The loss and the metrics read each cell's distribution mixed with copy-last's (copy_mix,
+grid_metrics.py): the decoder alone is too sure of changes on episodes it was not trained on.
 
 The joints are the robot's own measurement, an input at every point and a target per horizon: a
 camera world model that forgets where its arm is cannot plan with it. The code heads, like the
