@@ -78,6 +78,9 @@ import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests"))  # frame_fixtures: the moving scene the frame tests use too
+
+from frame_fixtures import moving_frames  # noqa: E402
 
 TARGET_P99_MS = 1.0
 TARGET_WHOLE_P99_MS = 2.0
@@ -459,23 +462,6 @@ def mid_forms(model, n: int) -> dict[str, dict[str, float]]:
 
 # -- 6. the full answer from a camera frame ---------------------------------------------------------
 
-def _frames(n: int, side: int, seed: int) -> np.ndarray:
-    """A shaded arena with a ball that drifts and a bar that turns (what the reacher's camera shows)."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:side, 0:side].astype(np.float32) / side
-    out = np.empty((n, side, side, 3), np.uint8)
-    ball = rng.uniform(0.2, 0.8, 2)
-    for t in range(n):
-        ball = np.clip(ball + rng.normal(0, 0.02, 2), 0.1, 0.9)
-        img = np.stack([0.45 + 0.1 * xx, 0.5 + 0.05 * yy, 0.4 + 0.1 * (xx + yy) / 2], -1)
-        img[(xx - ball[0]) ** 2 + (yy - ball[1]) ** 2 < 0.004] = (0.9, 0.1, 0.1)
-        along = (xx - 0.5) * np.cos(0.1 * t) + (yy - 0.5) * np.sin(0.1 * t)
-        across = -(xx - 0.5) * np.sin(0.1 * t) + (yy - 0.5) * np.cos(0.1 * t)
-        img[(np.abs(across) < 0.03) & (along > 0) & (along < 0.35)] = (0.1, 0.2, 0.9)
-        out[t] = np.clip((img + rng.normal(0, 0.01, img.shape)) * 255, 0, 255).astype(np.uint8)
-    return out
-
-
 def camera_models(root: Path, side: int, seed: int = 0) -> dict[str, Path]:
     """Checkpoints with random weights, written as training writes them: a grid VQ-VAE (its codebook
     from encoder outputs, as training's first step), a fast_loop over it; a vector VQ-VAE of the
@@ -500,7 +486,7 @@ def camera_models(root: Path, side: int, seed: int = 0) -> dict[str, Path]:
     for name in ("vq", "vq_other"):
         vq = build_component("vqvae", spec, model_config=FRAME_VQ)
         with torch.no_grad():
-            vq.model(torch.from_numpy(_frames(16, side, seed + len(out))), init_codebook=True)
+            vq.model(torch.from_numpy(moving_frames(16, seed + len(out), side)), init_codebook=True)
         out[name] = save(f"cam-{name}", vq)
     out["fast"] = save("cam-fast", build_component("fast_loop", spec, vqvae_dir=out["vq"]))
     vec = build_component("vqvae", spec, model_config={"input": "vector", "n_codes": 128, "groups": 3, "code_dim": 48})
@@ -531,7 +517,7 @@ def frame_answer(root: Path, ticks: int, side: int = 64, block: int = 250) -> di
             write_pointer(home, ckpt, component=component)
         brains[name] = BrainService(home, components=tuple(promoted))
         brains[name].check_now()
-    frames = _frames(1024, side, 7)
+    frames = moving_frames(1024, 7, side)
 
     def encoded(img: np.ndarray, fmt: str) -> str:
         buf = io.BytesIO()

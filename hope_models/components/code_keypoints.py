@@ -22,14 +22,13 @@ import math
 import torch
 from torch import nn
 
+from hope_models.components.numpy_keypoints import cell_centres as _cell_centres
+
 
 def cell_centres(grid: tuple[int, int]) -> torch.Tensor:
-    """[h * w, 2] (x, y) of each cell's centre in [-1, 1], row-major like the grid's codes."""
-    h, w = grid
-    ys = (torch.arange(h, dtype=torch.float32) + 0.5) / h * 2 - 1
-    xs = (torch.arange(w, dtype=torch.float32) + 0.5) / w * 2 - 1
-    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)
+    """[h * w, 2] (x, y) of each cell's centre in [-1, 1], row-major like the grid's codes (the
+    NumPy runtime's arithmetic, so both forms read the same centres)."""
+    return torch.from_numpy(_cell_centres(grid))
 
 
 class CodeKeypoints(nn.Module):
