@@ -1,6 +1,7 @@
-"""The held-out picture a frame VQ-VAE run leaves (train/held_out_picture.py) over HTTP: listed by
-GET /api/runs/<id>/artifacts as kind "picture" and sent as image/png with the bearer token only;
-a run without one lists none and 404s; a picture that resolves outside the run dir is refused."""
+"""The held-out pictures a frame run leaves (train/held_out_picture.py: a frame VQ-VAE's
+held_out_frames.png, a grid Mid Loop's predicted_frames.png) over HTTP: listed by GET
+/api/runs/<id>/artifacts as kind "picture" and sent as image/png with the bearer token only; a run
+without one lists none and 404s; a picture that resolves outside the run dir is refused."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,7 +11,7 @@ import pytest
 from run_page_fixtures import RunPageApp
 
 from hope_models.components.picture import png
-from hope_models.train.held_out_picture import HELD_OUT_PICTURE
+from hope_models.train.held_out_picture import HELD_OUT_PICTURE, PREDICTED_PICTURE
 
 
 @pytest.fixture
@@ -20,7 +21,7 @@ def api(tmp_path):
     a.close()
 
 
-def _add_run(api: RunPageApp) -> tuple[str, Path]:
+def _add_run(api: RunPageApp, component: str = "vqvae") -> tuple[str, Path]:
     from registry import runs
     from registry.models import new_run_id
 
@@ -28,7 +29,7 @@ def _add_run(api: RunPageApp) -> tuple[str, Path]:
     run_dir = Path(api.settings.runs_dir) / rid
     run_dir.mkdir(parents=True)
     with api.registry.session() as s:
-        runs.create_run(s, component="vqvae", config={"data": "/data/ds", "steps": 20}, total_steps=20,
+        runs.create_run(s, component=component, config={"data": "/data/ds", "steps": 20}, total_steps=20,
                         run_dir=str(run_dir), run_id=rid, dataset_fingerprint="fp")
     return rid, run_dir
 
@@ -37,15 +38,20 @@ def _picture() -> bytes:
     return png(np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3))
 
 
-def test_the_picture_is_listed_and_sent_with_the_token_only(api):
-    rid, run_dir = _add_run(api)
+@pytest.mark.parametrize(("component", "name", "words"), [
+    ("vqvae", HELD_OUT_PICTURE, ("held-out", "reconstruction")),
+    ("mid_loop", PREDICTED_PICTURE, ("held-out", "the frame now", "predicted codes", "recorded")),
+])
+def test_the_picture_is_listed_and_sent_with_the_token_only(api, component, name, words):
+    rid, run_dir = _add_run(api, component)
     (run_dir / "result.json").write_text("{}")
-    (run_dir / HELD_OUT_PICTURE).write_bytes(_picture())
+    (run_dir / name).write_bytes(_picture())
     arts = {a["name"]: a for a in api.get(f"/api/runs/{rid}/artifacts").get_json()["artifacts"]}
-    pic = arts[HELD_OUT_PICTURE]
+    assert list(arts) == ["result.json", name]
+    pic = arts[name]
     assert pic["kind"] == "picture" and pic["media_type"] == "image/png"
-    assert "held-out" in pic["description"] and "reconstruction" in pic["description"]
-    assert pic["size"] == len(_picture()) and pic["url"] == f"/api/runs/{rid}/artifacts/{HELD_OUT_PICTURE}"
+    assert all(w in pic["description"] for w in words), pic["description"]
+    assert pic["size"] == len(_picture()) and pic["url"] == f"/api/runs/{rid}/artifacts/{name}"
     r = api.get(pic["url"])
     assert r.status_code == 200 and r.headers["Content-Type"] == "image/png" and r.data == _picture()
     assert api.client.get(pic["url"]).status_code == 401

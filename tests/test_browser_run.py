@@ -10,7 +10,8 @@ scale; a wheel zoom narrows x and Reset restores it; wall-time x draws the elaps
 config and provenance card shows batch_size and the dataset fingerprint; every artifact downloads
 (a blob download with the bearer token) with the right bytes; a run without a held-out picture shows
 none, and once held_out_frames.png is in its run dir the reopened page draws it (fetched with the
-token) with its caption. Compare overlays both runs' series
+token) with its caption; predicted_frames.png in its place is drawn with the Mid Loop's heading and
+a caption naming each column. Compare overlays both runs' series
 and lists lr, and only the differing keys, in the config diff. A 100k-step run's page draws in
 under 2 s (the phone figure, with 4x CPU throttling, is printed for the docs). Screenshots at 1280
 and 390 px go to test-artifacts/browser/run/.
@@ -287,6 +288,22 @@ def test_run_page_live_metrics_smoothing_zoom_provenance_downloads(browser, serv
         expect(page.locator("#run-picture figcaption")).to_contain_text("held-out episodes")
         assert page.evaluate("document.querySelector('#run-picture-img').naturalWidth") == 8 * 16 * 12
         page.locator("#run-picture").screenshot(path=str(shots.dir / "92-picture-card.png"))
+        # a grid Mid Loop's predicted frames instead (4 windows x now, then predicted | recorded per horizon)
+        from hope_models.components.picture import grid
+        from hope_models.train.held_out_picture import PREDICTED_PICTURE
+
+        (run_dir / HELD_OUT_PICTURE).unlink()
+        (run_dir / PREDICTED_PICTURE).write_bytes(png(grid(np.stack([frames[:5], frames[3:]]).repeat(2, 0))))
+        before_ms = page.get_attribute("#page-run", "data-rendered-ms")
+        page.click('#nav a[data-page="jobs"]')
+        page.click('#nav a[data-page="run"]')
+        poll(lambda: page.get_attribute("#page-run", "data-rendered-ms") != before_ms, 10, "the run page reloaded")
+        expect(page.locator('#run-picture img[data-loaded="1"]')).to_be_visible()
+        expect(page.locator("#run-picture h2")).to_have_text("Predicted frames")
+        for words in ("the frame now", "predicted +0.5 s", "recorded +0.5 s", "predicted +1 s", "recorded +1 s"):
+            expect(page.locator("#run-picture figcaption")).to_contain_text(words)
+        assert page.evaluate("document.querySelector('#run-picture-img').naturalWidth") == 5 * 16 * 12
+        page.locator("#run-picture").screenshot(path=str(shots.dir / "93-predicted-card.png"))
         assert not errors, "\n".join(errors)
         phone_fits(browser, serve, f"#run/{a}", shots, "run-phone", "run", a)
 

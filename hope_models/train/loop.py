@@ -436,7 +436,7 @@ class _Trainer:
 
     def _validate(self, cache) -> dict[str, float]:
         """Mean evaluate() metrics over a few validation batches (the gate's function, validation.py),
-        the RNG left as it was; and a frame VQ-VAE's held-out picture in the run dir."""
+        the RNG left as it was; and a frame run's held-out picture in the run dir (train/held_out_picture.py)."""
         try:
             val = validation_metrics(self.component, cache, ValidationSetup.from_train_config(self.cfg))
         except NoValidationSplit:

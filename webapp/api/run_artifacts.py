@@ -21,7 +21,9 @@ Artifacts, in this order, those that exist: "metrics.jsonl" (kind "metrics"), "m
 ended), "provenance.json" (kind "provenance"), "gate.json" (kind "gate", when a gate report was
 written into the run dir; the gate today records into the registry, shown by /provenance),
 "held_out_frames.png" (kind "picture", media type image/png: a frame VQ-VAE run's held-out frames
-over their reconstructions, train/held_out_picture.py; the run page shows it), then
+over their reconstructions, train/held_out_picture.py; the run page shows it), "predicted_frames.png"
+(kind "picture", image/png: a grid Mid Loop run's held-out windows, one a row, the frame now and at
+each horizon the frame decoded from its predicted codes beside the recorded one; shown likewise), then
 "checkpoint-<step>.tar" per checkpoint dir, oldest first (kind "checkpoint", "step"; size is the
 sum of its files). `url` is the download's path. A file is sent with Content-Length (its size
 when the request opened it; Range and conditional requests work); a checkpoint as an uncompressed tar streamed from the dir, members named

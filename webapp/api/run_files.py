@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import IO, Iterator
 
 from hope_models.checkpoints import list_step_dirs
-from hope_models.train.held_out_picture import HELD_OUT_PICTURE
+from hope_models.train.held_out_picture import HELD_OUT_PICTURE, PREDICTED_PICTURE
 
 CHUNK = 256 * 1024
 BLOCK = tarfile.BLOCKSIZE
@@ -41,6 +41,9 @@ SINGLE_FILES = (
     ("gate.json", "gate", JSON_TYPE, "the promotion gate's report"),
     (HELD_OUT_PICTURE, "picture", PNG_TYPE, "held-out frames (top row) over the VQ-VAE's reconstructions of them "
      "(bottom row), drawn at the end of training"),
+    (PREDICTED_PICTURE, "picture", PNG_TYPE, "held-out windows, one a row: the frame now, then at each horizon "
+     "(0.5 s, 1 s) the frame decoded from the Mid Loop's predicted codes beside the recorded one, drawn at the "
+     "end of training"),
 )
 
 

@@ -4,6 +4,7 @@
     config.py      MidLoopConfig (torch-free)        model.py, metrics.py   the torch model, its losses
     layers.py      its layers, from a config         train.py       its loss as the loop sees it
     grid_model.py, grid_metrics.py  the model over a grid frame tokenizer (per-cell codes + joints), its loss
+    grid_picture.py  its held-out picture: predicted frames at each horizon beside the recorded ones
     numpy_form.py  the NumPy predictor BrainService runs; checkpoint.py: what it accepts
     held_out.py    its held-out figures and the gate's baselines verdict
 """

@@ -112,7 +112,7 @@ def _mixed(model, h: int, ce: torch.Tensor, same: torch.Tensor, cells: torch.Ten
     return -torch.logaddexp(math.log1p(-eps) - ce, math.log(eps) + _log_copy(model, h, same, cells))
 
 
-def _mixed_argmax(model, h: int, logits: torch.Tensor, now: torch.Tensor) -> torch.Tensor:
+def mixed_argmax(model, h: int, logits: torch.Tensor, now: torch.Tensor) -> torch.Tensor:
     """The most probable code of each cell under the mixture: the decoder's argmax, or the code now."""
     eps = model.cfg.copy_mix
     probs = logits.softmax(-1)
@@ -163,7 +163,7 @@ def grid_loss(model, y, codes, obs, mask, *, future_codes=None, future_mask=None
                 logits = model.cell_logits(ys, h, now)
                 ce = F.cross_entropy(logits.flatten(0, 1), target.reshape(-1), reduction="none").view(target.shape)
                 nll = _mixed(model, h, ce, ~changed, torch.arange(model.groups)).sum(1)
-                right = _mixed_argmax(model, h, logits, now) == target  # costs about what the loss does
+                right = mixed_argmax(model, h, logits, now) == target  # costs about what the loss does
                 per["accuracy"] = right.float().mean(1)
                 if bool(changed.any()):
                     metrics[f"changed_accuracy_{label}"] = float(right[changed].float().mean())

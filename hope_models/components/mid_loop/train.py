@@ -2,15 +2,18 @@
 (frozen VQ-VAE, required) + past actions -> codes ahead; loss cross-entropy, + the
 action-conditioned world model (wm_*, vector VQ-VAE): obs of the next points given the actions to
 be held, + wm_weight x its MSE. Over a grid frame VQ-VAE the model is grid_model.GridMidLoop: codes
-and joints in, each cell's code and the joints at each horizon out (grid_metrics.py)."""
+and joints in, each cell's code and the joints at each horizon out (grid_metrics.py); its held-out
+picture is a few windows' predicted frames beside the real ones (grid_picture.py)."""
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 
 from hope_models.components.mid_loop.grid_metrics import grid_loss
 from hope_models.components.mid_loop.grid_model import GridMidLoop, is_grid
+from hope_models.components.mid_loop.grid_picture import predicted_frames
 from hope_models.components.mid_loop.metrics import mid_loop_loss, world_model_loss
 from hope_models.components.mid_loop.model import MidLoop, previous_actions
 from hope_models.components.training_base import TrainingComponent, as_tensor
@@ -55,6 +58,14 @@ class MidLoopComponent(TrainingComponent):
             metrics.update(wm_metrics)
             loss = loss + model.cfg.wm_weight * wm_loss
         return loss, metrics
+
+    def held_out_picture(self, cache, episodes: np.ndarray) -> np.ndarray | None:
+        """A grid Mid Loop's picture of held-out `episodes` (cache episode indices): a few windows,
+        the frame now beside each horizon's predicted and real frame (grid_picture.py); None for a
+        Mid Loop over a vector or flat VQ-VAE, or episodes without a whole window and horizon."""
+        if not isinstance(self._model, GridMidLoop):
+            return None
+        return predicted_frames(self._model, cache, episodes, self._window)
 
 
 def build(spec: Any, r: Any, vqvae: Any, data_fingerprint: str, vqvae_ref: dict | None) -> MidLoopComponent:

@@ -1,6 +1,8 @@
-// The Run page's picture card: the held-out picture a frame VQ-VAE run leaves in its run dir
-// (the artifact of kind "picture", held_out_frames.png: held-out frames over their reconstructions,
-// drawn by the trainer at the end of training, hope_models/train/held_out_picture.py).
+// The Run page's picture card: the held-out picture a frame run leaves in its run dir (the artifact
+// of kind "picture", drawn by the trainer at the end of training, hope_models/train/held_out_picture.py):
+// a frame VQ-VAE's held_out_frames.png (held-out frames over their reconstructions) or a grid Mid
+// Loop's predicted_frames.png (a held-out window a row: the frame now, then at each horizon the
+// predicted frame beside the recorded one). The heading, alt text and caption say which.
 //
 //   renderPicture(ctx, artifacts, run, current)   artifacts: GET /api/runs/<id>/artifacts' list;
 //                                                 current(): false once a newer load has begun
@@ -48,7 +50,29 @@ export async function renderPicture(ctx, artifacts, run, current = () => true) {
   img.onerror = () => clearPicture();  // not an image after all: no broken picture
   img.src = shownUrl;
   const step = run && typeof run.step === "number" ? ` (step ${run.step})` : "";
-  $("#run-picture-caption").textContent =
-    "Top row: frames evenly spaced through the held-out episodes (the validation split, never trained on). " +
-    `Bottom row: the VQ-VAE's reconstruction of each, decoded from its codes at the end of training${step}.`;
+  const words = WORDS[pic.name] || WORDS["held_out_frames.png"];
+  $("#run-picture h2").textContent = words.title;
+  img.alt = words.alt;
+  $("#run-picture-caption").textContent = words.caption(step);
 }
+
+// what each picture shows, by its file name (hope_models/train/held_out_picture.py)
+const WORDS = {
+  "held_out_frames.png": {
+    title: "Held-out frames",
+    alt: "held-out frames (top row) over the VQ-VAE's reconstructions (bottom row)",
+    caption: (step) =>
+      "Top row: frames evenly spaced through the held-out episodes (the validation split, never trained on). " +
+      `Bottom row: the VQ-VAE's reconstruction of each, decoded from its codes at the end of training${step}.`,
+  },
+  "predicted_frames.png": {
+    title: "Predicted frames",
+    alt: "held-out windows, one a row: the frame now, then predicted and recorded frames at each horizon",
+    caption: (step) =>
+      "Each row is a window of the held-out episodes (the validation split, never trained on). Columns, left " +
+      "to right: the frame now; predicted +0.5 s; recorded +0.5 s; predicted +1 s; recorded +1 s (the run's " +
+      "horizons, 0.5 s and 1 s by default). Predicted: the frozen VQ-VAE's decoding of the Mid Loop's most " +
+      "probable code for each cell (mixed with copy-last, as its accuracy counts); recorded: the camera's " +
+      `frame at that time, from the dataset, not decoded. Drawn at the end of training${step}.`,
+  },
+};
