@@ -66,10 +66,22 @@ $(STAMP): pyproject.toml
 	@touch $@
 
 test: setup system-deps lint
-	$(PY) -m pytest -q $(PYTEST_XDIST) --durations=15 $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(PYTEST_XDIST) --durations=15 -m "not heavy" $(PYTEST_ARGS)
+
+# The tests marked heavy (pyproject.toml): minutes each, outside the suite's budget (e.g. the
+# camera demo end to end, tests/test_demo_camera_e2e.py).
+.PHONY: test-heavy
+test-heavy: setup system-deps
+	$(PY) -m pytest -q -p no:xdist --durations=15 -m heavy $(PYTEST_ARGS)
 
 demo: setup
 	$(PY) run_trainer.py demo
+
+# The same loop on the camera observation (joints + a 64x64 frame rendered with EGL): ~30 minutes
+# on 2 cores (hope_trainer/demo/camera.py, docs/reflex.md "demo --camera").
+.PHONY: demo-camera
+demo-camera: setup
+	$(PY) run_trainer.py demo --camera
 
 bench: setup
 	$(PY) bench/data_pipeline.py

@@ -203,9 +203,9 @@ def test_auto_promoter_child_that_dies_before_writing(fake_child, monkeypatch, t
 # -- the demo ---------------------------------------------------------------------------------------------
 
 def _demo(tmp_path, fake_child, monkeypatch):
-    from hope_trainer.demo import session
+    from hope_trainer.demo import children, session
 
-    monkeypatch.setattr(session, "trainer_argv", lambda *args: [str(fake_child), *args])
+    monkeypatch.setattr(children, "trainer_argv", lambda *args: [str(fake_child), *args])
     settings = argparse.Namespace(home=tmp_path / "home")
     return session.Demo(settings, argparse.Namespace())
 

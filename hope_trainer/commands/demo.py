@@ -1,6 +1,7 @@
 """`hope-trainer demo`: the whole loop on this machine, through the real services, in one command.
 
     hope-trainer demo [--episodes 50] [--steps 4000] [--eval-episodes 20] [--exit] [--port 8765]
+    hope-trainer demo --camera [...]      the same loop on the camera observation (demo/camera.py)
 
 1. records expert demonstrations in the simulated reacher (DART noise 1.0, seeds from 100000) into
    $HOPE_HOME/demo/reach-<N>-dart<noise>/ (reused when already there);
@@ -27,6 +28,12 @@ fast_loop was served, and its mean return is at least --target-return (900); 1 o
 settings); 130 after Ctrl-C before the summary. This process never imports torch or MuJoCo: the
 recording, training, gating and evaluation all run in child processes.
 
+--camera runs the loop on the camera observation (the joints and a 64x64 top-down frame), each
+component with its own step count from hope_trainer/demo/camera.py's CAMERA recipe (--steps, when
+given, replaces them all), writes $HOPE_HOME/demo/camera/summary.json, and stops at the first stage
+that fails, naming it (exit 1). It refuses (exit 2) fewer than 3 episodes and a $HOPE_HOME whose
+promoted models read no camera (BrainService would refuse the camera models beside them).
+
 Why 4000 steps: measured on 2 busy cores, a fast_loop reading the chain's VQ-VAE codes, trained on
 50 DART demos, scored 978 (2000 steps), 984 (4000) and 981 (10 000) on seeds 0-19; the mid_loop is
 the slow member (~15-25 steps/s), so more steps cost minutes without changing the reflex.
@@ -45,6 +52,7 @@ from hope_models.cli.argtypes import positive_int
 from hope_models.durable import atomic_write
 from hope_models.settings import SettingsError
 from hope_trainer.commands.serve import add_listen_arguments, listen_settings, setup_logging
+from hope_trainer.demo.camera import CameraDemo, camera_problem, served_layout_problem
 from hope_trainer.demo.report import format_summary, verdict
 from hope_trainer.demo.session import Demo
 from hope_trainer.demo.shared import DemoError, Interrupted, say
@@ -52,12 +60,15 @@ from registry.run_request import RunRequestError
 from webapp.server import ServerError
 
 log = logging.getLogger("hope.demo")
+DEFAULT_STEPS = 4000  # every component's, without --camera (why: the module doc)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=positive_int, default=50, help="expert demonstrations to record (default 50)")
     parser.add_argument("--noise", type=float, default=1.0, help="DART noise of the demonstrations (default 1.0)")
-    parser.add_argument("--steps", type=positive_int, default=4000, help="training steps of every component (default 4000)")
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help=f"training steps of every component (default {DEFAULT_STEPS}; with --camera, each "
+                             "component's own from the camera recipe)")
     parser.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     parser.add_argument("--eval-episodes", type=positive_int, default=20,
                         help="held-out reacher seeds 0..N-1 the reflex is evaluated on (default 20)")
@@ -66,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_listen_arguments(parser)
     parser.add_argument("--queue", default="pi", help="the queue the demo's runs and its worker use (default pi)")
     parser.add_argument("--exit", action="store_true", help="stop after the summary instead of serving on")
+    parser.add_argument("--camera", action="store_true",
+                        help="the camera observation: joints + a 64x64 top-down frame instead of the target offset "
+                             "(grid VQ-VAE, Fast Loop over its codes, grid Mid Loop; hope_trainer/demo/camera.py)")
 
 
 def _run_demo(demo: Any) -> tuple[int, dict[str, Any] | None]:
@@ -90,13 +104,12 @@ def _run_demo(demo: Any) -> tuple[int, dict[str, Any] | None]:
     return code, None
 
 
-def _report(summary: dict[str, Any], home: Path, target_return: float) -> bool:
-    """Judge the summary, write it to $HOPE_HOME/demo/summary.json and print it; True when it passed."""
+def _report(summary: dict[str, Any], out: Path, target_return: float) -> bool:
+    """Judge the summary, write it to `out` ($HOPE_HOME/demo/summary.json) and print it; True when it passed."""
     problems = verdict(summary, target_return)
     log.info("demo finished in %.0f s: %s", summary["timings"]["total"], "; ".join(problems) or "ok")
     summary["ok"] = not problems
     summary["problems"] = problems
-    out = Path(home) / "demo" / "summary.json"
     atomic_write(out, json.dumps(summary, indent=1))
     say(format_summary(summary))
     say("")
@@ -110,17 +123,27 @@ def _report(summary: dict[str, Any], home: Path, target_return: float) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    problem = camera_problem(args) if args.camera else None
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
+    if args.steps is None and not args.camera:
+        args.steps = DEFAULT_STEPS
     try:
         settings = listen_settings(args)
     except SettingsError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    problem = served_layout_problem(settings.home) if args.camera else None
+    if problem:
+        print(f"error: the camera demo cannot start: {problem}", file=sys.stderr)
         return 2
     if not settings.auto_promote:
         say("note: auto_promote is off in the settings; the demo turns it on for this process (it gates each run)")
         settings.auto_promote = True
     setup_logging(settings.home, console_level=logging.WARNING, settings=settings)
     settings.auto_train = False  # the daemon reads it each tick: nothing starts by itself before the summary
-    demo = Demo(settings, args)
+    demo = CameraDemo(settings, args) if args.camera else Demo(settings, args)
 
     def on_signal(signum, _frame):
         if demo.serve is not None and demo.shutdown.is_set():
@@ -135,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         code, summary = _run_demo(demo)
         if summary is None:
             return code
-        code = 0 if _report(summary, settings.home, args.target_return) else 1
+        code = 0 if _report(summary, demo.summary_path(), args.target_return) else 1
         say(f"Robot Editor: {demo.url}  token: {demo.token}")
         if args.exit:
             demo.stop()

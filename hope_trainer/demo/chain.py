@@ -19,6 +19,8 @@ from registry.run_request import build_request
 if TYPE_CHECKING:
     from hope_models.settings import Settings
 
+VQVAE_RUN = "vqvae_run"  # the config key create_sequence gives each member that reads the chain's tokenizer
+
 
 class ChainSteps:
     # what Demo (session.py) provides; annotations only, nothing is set here
@@ -32,32 +34,42 @@ class ChainSteps:
         def sleep(self, seconds: float) -> None: ...
         def _try_close_loop(self, fast_id: str, display: Any = None) -> bool: ...
 
+    def member_configs(self, data: Path) -> dict[str, dict[str, Any]]:
+        """Each member's run config (its `config` column, checked as a run request's), by component:
+        here every member trains --steps with the demo's seed."""
+        a = self.args
+        return {name: build_request(component=name, data=str(data), steps=a.steps, queue=a.queue,
+                                    overrides={"seed": a.seed}).config() for name in COMPONENTS}
+
     def queue_chain(self, data: Path) -> list[str]:
         from registry.sequences import create_sequence  # lazy: loads sqlalchemy
 
         a = self.args
-        req = build_request(component=COMPONENTS[0], data=str(data), steps=a.steps, queue=a.queue,
-                            overrides={"seed": a.seed})
-        left = self._unfinished_chain(req.config())
+        configs = self.member_configs(data)
+        left = self._unfinished_chain(configs)
         if left:
             self.serve.daemon.wake()
             say("3. training: resuming the chain an interrupted demo left (its runs resume from their "
                 "checkpoints): " + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, left, strict=False)))
             return left
+        first = configs[COMPONENTS[0]]
         with self.serve.registry.session() as s:
-            members = create_sequence(s, COMPONENTS, req.config(), total_steps=req.steps,
-                                      runs_dir=self.settings.runs_dir, queue=req.queue)
+            members = create_sequence(s, COMPONENTS, first, total_steps=first["steps"],
+                                      runs_dir=self.settings.runs_dir, queue=a.queue, member_configs=configs)
             ids = [r.id for r in members]
             seq = members[0].sequence_id
         self.serve.daemon.wake()
-        say(f"3. training: queued the chain {','.join(COMPONENTS)} ({seq}), {a.steps} steps each: "
+        steps = {c["steps"] for c in configs.values()}
+        each = (f"{steps.pop()} steps each" if len(steps) == 1
+                else ", ".join(f"{name} {cfg['steps']}" for name, cfg in configs.items()) + " steps")
+        say(f"3. training: queued the chain {','.join(COMPONENTS)} ({seq}), {each}: "
             + ", ".join(f"{c} {i}" for c, i in zip(COMPONENTS, ids, strict=False)))
         return ids
 
-    def _unfinished_chain(self, config: dict[str, Any]) -> list[str] | None:
-        """The run ids of a demo chain with this same config that an interrupted demo left queued
-        (Ctrl-C hands the running job back to the queue): finishing it beats queueing a second
-        chain behind it."""
+    def _unfinished_chain(self, configs: dict[str, dict[str, Any]]) -> list[str] | None:
+        """The run ids of a demo chain with these same member configs that an interrupted demo left
+        queued (Ctrl-C hands the running job back to the queue): finishing it beats queueing a
+        second chain behind it."""
         from sqlalchemy import select  # lazy: loads sqlalchemy
 
         from registry import runs  # lazy: loads sqlalchemy
@@ -73,8 +85,9 @@ class ChainSteps:
                     continue
                 if any(m.state in ("failed", "cancelled", "paused") for m in members):
                     continue
-                base = {k: v for k, v in members[0].config.items()}
-                if base == config and all(m.total_steps == self.args.steps for m in members):
+                # the chain gave each member after the tokenizer its run id: the rest must be equal
+                if all({k: v for k, v in m.config.items() if k != VQVAE_RUN} == configs[m.component]
+                       and m.total_steps == configs[m.component]["steps"] for m in members):
                     return [m.id for m in members]
         return None
 

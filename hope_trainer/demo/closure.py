@@ -8,6 +8,7 @@ loop-closure time is recorded).
 """
 from __future__ import annotations
 
+import base64
 import json
 import time
 import urllib.error
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hope_models.components import ACTOR
+from hope_models.media import decode_still
 from hope_trainer.demo.report import gate_outcome
 from hope_trainer.demo.shared import CLOSURE_WAIT_S, COMPONENTS, GATE_WAIT_S, SERVE_WAIT_S, DemoError, say
 
@@ -25,18 +27,26 @@ if TYPE_CHECKING:
 BRAIN_TICKS = 75  # 1.5 s of 20 ms ticks: past the Mid Loop's 1 s horizon, so a surprise is due
 
 
+def raw_frame(path: Path, height: int, width: int) -> dict[str, Any]:
+    """A recorded camera frame at the size it was recorded (the served model's) as a request's raw
+    `frame` (hope_models/runtime/brain_frame.py): uint8 RGB bytes, base64."""
+    pixels = decode_still(path, (height, width))
+    return {"encoding": "raw", "shape": list(pixels.shape), "data": base64.b64encode(pixels.tobytes()).decode()}
+
+
 class ClosureSteps:
     # what Demo (session.py) provides; annotations only, nothing is set here
     serve: Any
     settings: Settings
     inference_url: str | None
     token: str | None
-    first_observation: tuple[list[float], list[float]] | None
+    first_observation: tuple[dict[str, Any], list[float]] | None
     inference: dict[str, Any] | None
 
     if TYPE_CHECKING:
         def sleep(self, seconds: float) -> None: ...
         def _runs(self, ids: list[str]) -> list[dict[str, Any]]: ...
+        def loop_closed(self) -> None: ...
 
     def _gating_idle(self) -> bool:
         """Auto-promotion has nothing running and nothing left to gate: waiting longer is useless."""
@@ -66,6 +76,7 @@ class ClosureSteps:
             say(f"   POST /api/brain/infer -> action [{', '.join(f'{v:+.3f}' for v in inf['action'])}] "
                 f"(expert [{', '.join(f'{v:+.3f}' for v in inf['expert_action'])}]), {inf['model_version']}, "
                 f"{inf['latency_ms']:.2f} ms")
+        self.loop_closed()
         return True
 
     def close_loop(self, fast_id: str) -> dict[str, Any] | None:
@@ -104,41 +115,62 @@ class ClosureSteps:
             return None  # the summary already says which one the gate refused
         deadline = time.monotonic() + SERVE_WAIT_S
         while any((self.serve.brain.status().get(c) or {}).get("version") != g["version"] for c, g in wanted.items()):
+            refused = self._refused_by_brain(wanted)
+            if refused:
+                return {"error": refused}
             if time.monotonic() > deadline:
                 return {"error": f"BrainService does not serve the promoted {', '.join(wanted)} after {SERVE_WAIT_S:.0f} s"}
             self.sleep(0.2)
         answer: dict[str, Any] = {}
-        for i, (obs, _expert) in enumerate(self._observations(data, BRAIN_TICKS)):
-            answer = self._post_infer({"component": ACTOR, "observation": obs, "session": "demo-brain",
-                                       "reset": i == 0})
+        for i, (seen, _expert) in enumerate(self._observations(data, BRAIN_TICKS)):
+            answer = self._post_infer({"component": ACTOR, **seen, "session": "demo-brain", "reset": i == 0})
             if answer.get("error"):
                 return answer
         return {**answer, "ticks": BRAIN_TICKS}
 
-    def _observations(self, data: Path, n: int) -> list[tuple[list[float], list[float]]]:
-        """The first n steps of the first demonstration: (observation in the spec's order, expert command)."""
+    def _refused_by_brain(self, wanted: dict[str, dict[str, Any]]) -> str | None:
+        """Why BrainService will not serve a promoted version (it read that pointer and refused the
+        checkpoint), or None: then waiting may still see it served."""
+        status = self.serve.brain.status()
+        for name, gate in wanted.items():
+            st = status.get(name) or {}
+            if st.get("pointer_version") == gate["version"] and st.get("version") != gate["version"] \
+                    and st.get("last_error"):
+                return f"BrainService does not serve the promoted {name} {gate['version']}: {st['last_error']}"
+        return None
+
+    def _observations(self, data: Path, n: int) -> list[tuple[dict[str, Any], list[float]]]:
+        """The first n steps of the first demonstration: (what a request carries of it, the expert's
+        command), the request's part being the observation vector in the spec's order (joint
+        positions, joint velocities, the target offset when recorded) and, for a camera
+        observation, its frame."""
         episode = sorted(p for p in data.iterdir() if p.is_dir())[0]
         out = []
         with open(episode / "steps" / "000000.jsonl", encoding="utf-8") as f:
             for line in f:
                 step = json.loads(line)
                 o = step["observation"]
-                obs = [*o["robot_state"]["joint_positions"], *o["robot_state"]["joint_velocities"], *o["target_offset"]]
-                out.append(([float(v) for v in obs], [float(v) for v in step["action"]["command"]]))
+                obs = [*o["robot_state"]["joint_positions"], *o["robot_state"]["joint_velocities"],
+                       *o.get("target_offset", [])]
+                seen: dict[str, Any] = {"observation": [float(v) for v in obs]}
+                if "camera" in o:
+                    cam = o["camera"]
+                    seen["frame"] = raw_frame(episode / cam["uri"], int(cam["height"]), int(cam["width"]))
+                out.append((seen, [float(v) for v in step["action"]["command"]]))
                 if len(out) == n:
                     break
         return out
 
-    def _observation(self, data: Path) -> tuple[list[float], list[float]]:
-        """The first step of the first demonstration: the observation vector in the spec's order
-        (joint positions, joint velocities, target offset) and the expert's command there."""
+    def _observation(self, data: Path) -> tuple[dict[str, Any], list[float]]:
+        """The first step of the first demonstration (_observations)."""
         return self._observations(data, 1)[0]
 
     def infer_over_http(self) -> dict[str, Any]:
         assert self.first_observation is not None, "the demo reads its first observation before it infers"
-        obs, expert = self.first_observation
-        answer = self._post_infer({"component": ACTOR, "observation": obs, "session": "demo", "reset": True})
-        return answer if answer.get("error") else {**answer, "observation": obs, "expert_action": expert}
+        seen, expert = self.first_observation
+        answer = self._post_infer({"component": ACTOR, **seen, "session": "demo", "reset": True})
+        return answer if answer.get("error") else {**answer, "observation": seen["observation"],
+                                                   "expert_action": expert}
 
     def _post_infer(self, request: dict[str, Any]) -> dict[str, Any]:
         body = json.dumps(request).encode()

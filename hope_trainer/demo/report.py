@@ -97,10 +97,47 @@ def held_out_lines(rows: list[dict[str, Any]]) -> list[str]:
     for r in rows:
         h = r.get("held_out")
         spec = COMPONENTS.get(r["component"])
-        line = spec.held_out_line(h) if h and spec is not None else None
+        if not h or spec is None:
+            continue
+        line = spec.held_out_line(h)
         if line:
-            lines.append(line)
+            psnr = h.get("psnr_db")  # a frame tokenizer's: the line speaks of the variance only
+            lines.append(line + (f", PSNR {fmt(psnr, '.1f')} dB" if isinstance(psnr, (int, float)) else ""))
     return lines
+
+
+def split_range(total: int, parts: int) -> list[tuple[int, int]]:
+    """`total` items cut into at most `parts` consecutive runs as even as can be: (first, count) each."""
+    parts = max(1, min(parts, total))
+    return [(i * total // parts, (i + 1) * total // parts - i * total // parts) for i in range(parts)]
+
+
+EVAL_KEEP = ("mean_return", "success_rate", "time_to_reach_s", "expert_mean_return", "random_mean_return",
+             "episodes", "seeds", "version", "checkpoint", "elapsed_s")
+
+
+def merge_evaluations(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """eval-reflex results over consecutive seed ranges (in order) as one over all of them: the means
+    weighted by each range's episodes, time to reach by the episodes that reached, the seeds end to
+    end; one result is kept as it is."""
+    if len(results) == 1:
+        return {k: results[0].get(k) for k in EVAL_KEEP}
+    versions = {r.get("version") for r in results}
+    if len(versions) > 1:
+        return {"error": f"the evaluations ran different checkpoints: {', '.join(sorted(map(str, versions)))}"}
+    n = sum(r["episodes"] for r in results)
+
+    def mean(key: str, weight: str = "episodes") -> float | None:
+        pairs = [(r.get(key), r.get(weight) or 0) for r in results]
+        total = sum(w for v, w in pairs if isinstance(v, (int, float)))
+        return sum(v * w for v, w in pairs if isinstance(v, (int, float))) / total if total else None
+
+    return {"mean_return": mean("mean_return"), "success_rate": mean("success_rate"),
+            "time_to_reach_s": mean("time_to_reach_s", "reached"), "expert_mean_return": mean("expert_mean_return"),
+            "random_mean_return": mean("random_mean_return"), "episodes": n,
+            "seeds": [results[0]["seeds"][0], results[-1]["seeds"][-1]], "version": results[0].get("version"),
+            "checkpoint": results[0].get("checkpoint"), "elapsed_s": max(r.get("elapsed_s") or 0 for r in results),
+            "processes": len(results)}
 
 
 def _gate_text(gate: dict[str, Any] | None) -> str:
@@ -143,8 +180,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"whole brain (session ticked through {brain.get('ticks')} steps of a demonstration): action "
                      f"[{', '.join(fmt(a, '+.3f') for a in brain.get('action') or [])}], versions {brain.get('versions')}")
         lines.extend(_whole_brain_lines(brain))
-    elif inference:
-        lines.append(f"inference: {inference.get('error')}")
+    elif inference and inference.get("error"):
+        lines.append(f"inference: {inference['error']}")
     reflex = summary.get("reflex")
     if reflex and reflex.get("mean_return") is not None:
         seeds = reflex.get("seeds") or ["?", "?"]
@@ -216,4 +253,5 @@ def verdict(summary: dict[str, Any], target_return: float) -> list[str]:
     return problems
 
 
-__all__ = ["component_figures", "format_summary", "gate_outcome", "read_result", "verdict"]
+__all__ = ["component_figures", "format_summary", "gate_outcome", "merge_evaluations", "read_result", "split_range",
+           "verdict"]

@@ -8,42 +8,42 @@ so this process never imports either; a wait here ends with Interrupted on Ctrl-
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
-import subprocess
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
-from hope_models.child_command import trainer_argv
-from hope_models.child_result import ChildResultError, read_result, result_argv, result_file
+from hope_models.child_result import ChildResultError
 from hope_models.components import ACTOR
 from hope_models.durable import fsync_path
-from hope_models.log_limits import rotate_if_over
 from hope_trainer.commands.serve import Serve
 from hope_trainer.demo.chain import ChainSteps
+from hope_trainer.demo.children import ChildGroup
 from hope_trainer.demo.closure import ClosureSteps
-from hope_trainer.demo.report import component_figures
+from hope_trainer.demo.report import component_figures, merge_evaluations, split_range
 from hope_trainer.demo.shared import COMPONENTS, DEMO_SEED, DemoError, Interrupted, say
 
 
 class Demo(ChainSteps, ClosureSteps):
     """One demo from the recording to the summary's figures; `stop()` leaves nothing running."""
 
+    recorded = "expert episodes of the reacher"  # what step 1 says it records
+
     def __init__(self, settings: Any, args: argparse.Namespace):
         self.settings = settings
         self.args = args
         self.shutdown = threading.Event()
         self.serve = None
-        self.child: subprocess.Popen | None = None
+        self.groups: list[ChildGroup] = []  # the children running now (children.py)
         self.timings: dict[str, float] = {}
         self.started = time.monotonic()
         self.token: str | None = None
         self.url: str | None = None
         self.inference_url: str | None = None  # the robot's door (webapp/inference_door.py)
         self.inference: dict[str, Any] | None = None
-        self.first_observation: tuple[list[float], list[float]] | None = None
+        self.first_observation: tuple[dict[str, Any], list[float]] | None = None
+        self.eval_started = time.monotonic()
 
     # -- waiting that Ctrl-C can interrupt ------------------------------------------------------
 
@@ -56,67 +56,74 @@ class Demo(ChainSteps, ClosureSteps):
             raise Interrupted()
 
     def run_child(self, argv: list[str], timeout_s: float) -> tuple[int, dict[str, Any], str]:
-        """A `hope-trainer` child in its own session (Ctrl-C reaches us, and we stop it), its stdout
-        and stderr to a log file. Returns (exit code, the result it wrote to its --result-file,
-        stderr tail); ChildResultError (naming the command and its exit code) when it wrote none."""
-        with result_file("hope-demo-") as path:
-            full = trainer_argv(*argv, *result_argv(path))
-            code, tail = self._run(argv, full, timeout_s)
-            return code, read_result(path, full, code), tail
+        """A `hope-trainer` child (children.py): (exit code, the result it wrote to its
+        --result-file, stderr tail); ChildResultError (naming the command and its exit code) when
+        it wrote none."""
+        return self.run_children([argv], timeout_s)[0]
 
-    def _run(self, argv: list[str], full: list[str], timeout_s: float) -> tuple[int, str]:
-        env = {**os.environ, "HOPE_HOME": str(self.settings.home)}
-        logs = Path(self.settings.home) / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
-        err_path = logs / "demo-child.log"
-        rotate_if_over(err_path, self.settings)
-        with open(err_path, "ab") as err, subprocess.Popen(
-                full, stdout=err, stderr=err, stdin=subprocess.DEVNULL, env=env, start_new_session=True) as proc:
-            self.child = proc
-            deadline = time.monotonic() + timeout_s
-            try:
-                while proc.poll() is None:
-                    if time.monotonic() > deadline:
-                        raise DemoError(f"`{' '.join(argv[:1])}` took longer than {timeout_s:.0f} s (see {err_path})")
-                    self.sleep(0.2)
-            finally:
-                if proc.poll() is None:
-                    proc.terminate()
-                    try:
-                        proc.wait(10)
-                    except subprocess.TimeoutExpired:
-                        proc.kill()
-                self.child = None
-        tail = "\n".join(err_path.read_text(encoding="utf-8", errors="replace").splitlines()[-5:])
-        return proc.returncode, tail
+    def run_children(self, argvs: list[list[str]], timeout_s: float) -> list[tuple[int, dict[str, Any], str]]:
+        """`hope-trainer` children started together and waited for together (run_child's, each)."""
+        return self.wait_children(self.start_children(argvs), timeout_s)
+
+    def start_children(self, argvs: list[list[str]]) -> ChildGroup:
+        group = ChildGroup(argvs, self.settings)
+        self.groups.append(group)  # before they start: stop() ends them whatever happens next
+        return group.start()
+
+    def wait_children(self, group: ChildGroup, timeout_s: float) -> list[tuple[int, dict[str, Any], str]]:
+        """Until every child of `group` exited (Interrupted on Ctrl-C; DemoError after `timeout_s`),
+        then their results; the group is stopped and its files removed either way."""
+        deadline = time.monotonic() + timeout_s
+        try:
+            while group.running():
+                if time.monotonic() > deadline:
+                    raise DemoError(f"{group.what()} took longer than {timeout_s:.0f} s (see {group.log_path})")
+                self.sleep(0.2)
+            return group.results()
+        finally:
+            group.close()
+            self.groups.remove(group)
 
     # -- 1. demonstrations ----------------------------------------------------------------------
 
+    def data_dir(self) -> Path:
+        a = self.args
+        return Path(self.settings.home) / "demo" / f"reach-{a.episodes}-dart{a.noise:g}"
+
+    def recording_argvs(self, out: Path) -> list[list[str]]:
+        """The sim-demos children that record the demonstrations into `out`."""
+        a = self.args
+        return [["sim-demos", "--episodes", str(a.episodes), "--out", str(out), "--task", "reach",
+                 "--noise", str(a.noise), "--seed", str(DEMO_SEED), "--json"]]
+
     def record_demos(self) -> Path:
         a = self.args
-        out = Path(self.settings.home) / "demo" / f"reach-{a.episodes}-dart{a.noise:g}"
+        out = self.data_dir()
         if out.is_dir():
             say(f"1. demonstrations: reusing {out} ({a.episodes} episodes recorded earlier)")
             return out
         t0 = time.monotonic()
-        say(f"1. demonstrations: recording {a.episodes} expert episodes of the reacher (DART noise {a.noise:g}, "
-            f"seeds {DEMO_SEED}-{DEMO_SEED + a.episodes - 1}) ...")
         # A directory of episodes cannot be written as one file: it is recorded beside its final name
         # and renamed when complete (the rename made durable), so a reuse never sees half a set.
         partial = out.with_name(out.name + ".partial")
         shutil.rmtree(partial, ignore_errors=True)
+        argvs = self.recording_argvs(partial)
+        say(f"1. demonstrations: recording {a.episodes} {self.recorded} (DART noise {a.noise:g}, "
+            f"seeds {DEMO_SEED}-{DEMO_SEED + a.episodes - 1})"
+            + (f" in {len(argvs)} processes" if len(argvs) > 1 else "") + " ...")
         try:
-            code, result, tail = self.run_child(
-                ["sim-demos", "--episodes", str(a.episodes), "--out", str(partial), "--task", "reach",
-                 "--noise", str(a.noise), "--seed", str(DEMO_SEED), "--json"], timeout_s=1800)
+            done = self.run_children(argvs, timeout_s=1800)
         except ChildResultError as exc:
             raise DemoError(f"recording the demonstrations failed: {exc}") from None
-        if code != 0 or not result.get("ok"):
-            raise DemoError(f"recording the demonstrations failed (exit {code}): {result.get('error') or tail}")
+        for code, result, tail in done:
+            if code != 0 or not result.get("ok"):
+                raise DemoError(f"recording the demonstrations failed (exit {code}): {result.get('error') or tail}")
         partial.rename(out)
         fsync_path(out.parent)
         self.timings["demos"] = time.monotonic() - t0
-        say(f"   {len(result['episodes'])} episodes in {out}, the expert's mean return {result['mean_return']:.1f} "
+        episodes = sum(len(r["episodes"]) for _, r, _ in done)
+        mean = sum(r["mean_return"] * len(r["episodes"]) for _, r, _ in done) / episodes
+        say(f"   {episodes} episodes in {out}, the expert's mean return {mean:.1f} "
             f"under the noise ({self.timings['demos']:.0f} s)")
         return out
 
@@ -138,23 +145,51 @@ class Demo(ChainSteps, ClosureSteps):
 
     # -- 5. the reflex ----------------------------------------------------------------------------
 
-    def evaluate(self) -> dict[str, Any]:
+    eval_processes = 1  # eval-reflex children the held-out seeds are split over
+
+    def eval_argvs(self) -> list[list[str]]:
+        """eval-reflex children of the promoted fast_loop over held-out seeds 0..N-1, one seed range each."""
+        return [["eval-reflex", "--checkpoint", "promoted", "--episodes", str(count), "--seed", str(first),
+                 "--task", "reach", "--json"] for first, count in split_range(self.args.eval_episodes,
+                                                                              self.eval_processes)]
+
+    def start_evaluation(self) -> ChildGroup:
         n = self.args.eval_episodes
+        argvs = self.eval_argvs()
         say(f"5. reflex: the promoted fast_loop in closed loop on held-out seeds 0-{n - 1}, with the expert "
-            "and a random policy on the same seeds ...")
-        t0 = time.monotonic()
+            "and a random policy on the same seeds" + (f" ({len(argvs)} processes)" if len(argvs) > 1 else "")
+            + " ...")
+        self.eval_started = time.monotonic()
+        return self.start_children(argvs)
+
+    def finish_evaluation(self, group: ChildGroup) -> dict[str, Any]:
         try:
-            code, result, tail = self.run_child(["eval-reflex", "--checkpoint", "promoted", "--episodes", str(n),
-                                                 "--seed", "0", "--task", "reach", "--json"], timeout_s=1800)
+            done = self.wait_children(group, timeout_s=1800)
         except ChildResultError as exc:
             return {"error": str(exc)}
         finally:
-            self.timings["reflex"] = time.monotonic() - t0
-        if code != 0 or result.get("ok") is False:
-            return {"error": f"eval-reflex exited {code}: {result.get('error') or tail}"}
-        keep = ("mean_return", "success_rate", "time_to_reach_s", "expert_mean_return", "random_mean_return",
-                "episodes", "seeds", "version", "checkpoint", "elapsed_s")
-        return {k: result.get(k) for k in keep}
+            self.timings["reflex"] = time.monotonic() - self.eval_started
+        for code, result, tail in done:
+            if code != 0 or result.get("ok") is False:
+                return {"error": f"eval-reflex exited {code}: {result.get('error') or tail}"}
+        return merge_evaluations([result for _, result, _ in done])
+
+    def evaluate(self) -> dict[str, Any]:
+        return self.finish_evaluation(self.start_evaluation())
+
+    # -- where the camera demo (camera.py) asks more: a stage that fails stops it -------------------
+
+    def loop_closed(self) -> None:
+        """Called once the first inference through the API came back (or failed)."""
+
+    def check_chain(self, objs: list[dict[str, Any]]) -> None:
+        """After every member ended (here a failed member is a line of the summary)."""
+
+    def check_reflex(self, fast_gate: dict[str, Any] | None, reflex: dict[str, Any]) -> None:
+        """After the reflex's evaluation, or the reason there was none."""
+
+    def summary_path(self) -> Path:
+        return Path(self.settings.home) / "demo" / "summary.json"
 
     # -- the whole thing ----------------------------------------------------------------------------
 
@@ -165,6 +200,7 @@ class Demo(ChainSteps, ClosureSteps):
         self.start_services()
         ids = self.queue_chain(data)
         objs = self.follow_chain(ids)
+        self.check_chain(objs)
         fast_id = ids[COMPONENTS.index(ACTOR)]
         fast_obj = next(o for o in objs if o["id"] == fast_id)
         if fast_obj["state"] == "completed" and self.inference is None:
@@ -180,6 +216,7 @@ class Demo(ChainSteps, ClosureSteps):
                 reflex["note"] = f"evaluated {reflex['version']}, not the demo's {fast_gate['version']}"
         else:
             reflex = {"error": "no fast_loop is promoted, so there is nothing to evaluate"}
+        self.check_reflex(fast_gate, reflex)
         closure = self.loop_closure(fast_id) if self.inference and not self.inference.get("error") else None
         brain = self.brain_inference(gates, ids, data)
         objs = self._runs(ids)
@@ -198,8 +235,7 @@ class Demo(ChainSteps, ClosureSteps):
         }
 
     def stop(self) -> None:
-        child = self.child
-        if child is not None and child.poll() is None:
-            child.terminate()
+        for group in list(self.groups):
+            group.stop()
         if self.serve is not None:
             self.serve.stop()
