@@ -68,7 +68,7 @@ $(STAMP): pyproject.toml
 test: setup system-deps lint
 	$(PY) -m pytest -q $(PYTEST_XDIST) --durations=15 -m "not heavy" $(PYTEST_ARGS)
 
-# The tests marked heavy (pyproject.toml): minutes each, outside the suite's budget (e.g. the
+# The tests marked heavy (tests/conftest.py): minutes each, outside the suite's budget (e.g. the
 # camera demo end to end, tests/test_demo_camera_e2e.py).
 .PHONY: test-heavy
 test-heavy: setup system-deps

@@ -10,6 +10,12 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = Path(os.environ.get("HOPE_SAMPLES_DIR", REPO_ROOT.parent / "shared" / "rlds_samples" / "continuon"))
 
 
+def pytest_configure(config):
+    # here, not in pyproject.toml's markers: a change there makes `make` reinstall the venv
+    config.addinivalue_line("markers", "heavy: minutes of training on full-length episodes; not in `make test` "
+                                       "(`make test-heavy` runs them)")
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
