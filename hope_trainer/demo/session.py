@@ -236,6 +236,6 @@ class Demo(ChainSteps, ClosureSteps):
 
     def stop(self) -> None:
         for group in list(self.groups):
-            group.stop()
+            group.close()  # stopped, and its result files removed
         if self.serve is not None:
             self.serve.stop()
