@@ -22,7 +22,20 @@ import math
 import torch
 from torch import nn
 
+from hope_models.components.numpy_keypoints import READER_GAIN
 from hope_models.components.numpy_keypoints import cell_centres as _cell_centres
+
+READERS = ("policy", "frames")
+RENDER_SIGMA = 0.15  # frame units ([-1, 1] across): a point's drawing reaches about one cell either side
+# The drawing's cross-entropy over G cells x n_codes is most of a training step's cost: it is taken
+# on this many frames of the batch (a probe drawing 32 frames a step put one point on the reacher's
+# target to 0.9 cm, held-out, within 3000 steps: docs/reflex.md).
+RENDER_BATCH = 32
+# READER_GAIN: the drawing's logits and a "frames" reader's scores are used times this gain. Adam
+# steps a parameter by about the learning rate whatever its gradient, so the points and their drawing
+# learn at READER_GAIN x the policy's rate and have settled while the policy learns to read them.
+# a point standing wholly on one code starts by adding this to that code's logit where it stands
+DRAW_START = 15.0
 
 
 def cell_centres(grid: tuple[int, int]) -> torch.Tensor:
@@ -32,24 +45,104 @@ def cell_centres(grid: tuple[int, int]) -> torch.Tensor:
 
 
 class CodeKeypoints(nn.Module):
-    def __init__(self, n_codes: int, grid: tuple[int, int], keypoints: int, d_out: int):
+    """reader "policy": the keypoints are whatever the loss of their user makes of them.
+    reader "frames": they are learned by drawing the codes back from them (render_loss), and their
+    user reads them without gradient. view_frame adds each point turned into the frame of a joint."""
+
+    def __init__(self, n_codes: int, grid: tuple[int, int], keypoints: int, d_out: int, *,
+                 reader: str = "policy", view_frame: bool = False, sigma: float = RENDER_SIGMA):
         super().__init__()
+        if reader not in READERS:
+            raise ValueError(f"keypoint reader={reader!r} must be one of {', '.join(READERS)}")
         self.n_codes, self.grid, self.keypoints = n_codes, (int(grid[0]), int(grid[1])), keypoints
+        self.reader, self.view_frame, self.sigma = reader, view_frame, float(sigma)
         self.score = nn.Embedding(n_codes, keypoints)
-        self.out = nn.Linear(3 * keypoints, d_out)
+        self.gain = READER_GAIN if reader == "frames" else 1.0
+        if reader == "frames":  # the scores in use start as a policy reader's (N(0, 1))
+            nn.init.normal_(self.score.weight, std=1.0 / self.gain)
+        self.out = nn.Linear(feature_count(keypoints, view_frame), d_out)
         self.centres: torch.Tensor
         self.register_buffer("centres", cell_centres(self.grid), persistent=False)
         self.cells = self.grid[0] * self.grid[1]
         self._log_g = math.log(self.cells)
+        self.view = JointView() if view_frame else None
+        self.render = KeypointRender(self.cells, keypoints, n_codes, DRAW_START / self.gain) if reader == "frames" else None
 
-    def forward(self, codes: torch.Tensor) -> torch.Tensor:
-        """codes [..., G] (long, cell-local) -> [..., d_out]."""
+    def locate(self, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """codes [..., G] (long, cell-local) -> where [..., C, 2], there [..., C]."""
         if codes.shape[-1] != self.cells:
             raise ValueError(f"codes have {codes.shape[-1]} cells, the grid {self.grid} has {self.cells}")
         # index_select: its backward (index_add) is half the cost of nn.Embedding's on a CPU
         s = self.score.weight.index_select(0, codes.reshape(-1).long()).view(*codes.shape, self.keypoints)
+        if self.gain != 1.0:
+            s = s * self.gain
         s = s.transpose(-1, -2).contiguous()  # [..., C, G]: the reductions run along memory
         lse = torch.logsumexp(s, dim=-1, keepdim=True)
         where = torch.exp(s - lse) @ self.centres  # softmax over the cells, [..., C, 2]
-        there = lse[..., 0] - self._log_g  # [..., C]
-        return self.out(torch.cat([where.flatten(-2), there], -1))
+        return where, lse[..., 0] - self._log_g
+
+    def forward(self, codes: torch.Tensor, angle: torch.Tensor | None = None) -> torch.Tensor:
+        """codes [..., G] (long, cell-local), angle [...] (radians; view_frame only) -> [..., d_out]."""
+        where, there = self.locate(codes)
+        if self.reader == "frames":
+            where, there = where.detach(), there.detach()
+        feats = [where.flatten(-2), there]
+        if self.view is not None:
+            if angle is None:
+                raise ValueError("this keypoint reader turns its points into a joint's frame: pass the joint angle")
+            feats += turned(where - self.view.pivot, angle)
+        return self.out(torch.cat(feats, -1))
+
+    def render_loss(self, codes: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy of the cells' codes drawn back from the keypoints alone (reader "frames").
+        Each point draws, around where it stands, the codes it stands on (the softmax-weighted mix
+        of the codes under it), so a point pays off only on something the cells' usual codes do not
+        explain: the arm, which moves, and the target, which differs between scenes. No label
+        (Transporter / KeyNet, on codes rather than pixels). A point with its own fixed drawing
+        instead finds its way to a lone target only when it starts near one (tests)."""
+        assert self.render is not None, "reader 'policy' has no drawing"
+        codes = codes.reshape(-1, self.cells)[:RENDER_BATCH].long()
+        s = self.score.weight.index_select(0, codes.reshape(-1)).view(*codes.shape, self.keypoints) * self.gain
+        w = torch.softmax(s.transpose(-1, -2), -1)  # [N, C, G]
+        where = w @ self.centres  # [N, C, 2]
+        d2 = (self.centres[None, None] - where[:, :, None]).pow(2).sum(-1)  # [N, C, G]
+        heat = torch.exp(d2 * (-1.0 / (self.sigma * self.sigma)))
+        under = torch.zeros(codes.shape[0], self.keypoints, self.n_codes, dtype=w.dtype)
+        under.scatter_add_(2, codes[:, None, :].expand(-1, self.keypoints, -1), w)  # [N, C, n_codes]
+        drawn = under * self.render.strength[None, :, None]
+        logits = (self.render.background + torch.einsum("ncg,nck->ngk", heat, drawn)) * self.gain
+        return nn.functional.cross_entropy(logits.reshape(-1, self.n_codes), codes.reshape(-1))
+
+
+class JointView(nn.Module):
+    """Where the joint turns, in frame units: learned (the camera need not look straight at it)."""
+
+    def __init__(self):
+        super().__init__()
+        self.pivot = nn.Parameter(torch.zeros(2))
+
+
+class KeypointRender(nn.Module):
+    """The drawing a "frames" reader learns from: each cell's code logits with no point near it
+    (background [G, n_codes]) and how strongly each point draws what it stands on (strength [C])."""
+
+    def __init__(self, cells: int, keypoints: int, n_codes: int, strength: float):
+        super().__init__()
+        self.background = nn.Parameter(torch.zeros(cells, n_codes))
+        self.strength = nn.Parameter(torch.full((keypoints,), float(strength)))
+        self.estimate_per_sample = cells  # train/estimate.py: G cells x n_codes logits per sample, once
+
+
+def turned(r: torch.Tensor, angle: torch.Tensor) -> list[torch.Tensor]:
+    """r [..., C, 2] turned by -angle and by +angle ([..., 2C] each): a camera's image may be the
+    world mirrored, so which way the joint turns the view is learned, not assumed."""
+    c, s = torch.cos(angle)[..., None], torch.sin(angle)[..., None]
+    x, y = r[..., 0], r[..., 1]
+    back = torch.stack([c * x + s * y, c * y - s * x], -1).flatten(-2)
+    ahead = torch.stack([c * x - s * y, c * y + s * x], -1).flatten(-2)
+    return [back, ahead]
+
+
+def feature_count(keypoints: int, view_frame: bool) -> int:
+    """The values out() reads: where (2C), there (C), and with view_frame both turnings (4C)."""
+    return keypoints * (7 if view_frame else 3)

@@ -35,7 +35,7 @@ class Layer:
 PARAM_NAMES = {"Linear": ("weight", "bias"), "LayerNorm": ("weight", "bias"), "Embedding": ("weight",),
                "WindowSSM": ("log_rate", "B", "C", "D"), "DiagonalSSM": ("log_rate", "B", "C", "D"),
                "Conv2d": ("weight", "bias"), "ConvTranspose2d": ("weight", "bias"),
-               "AddBackground": ("image",)}
+               "AddBackground": ("image",), "JointView": ("pivot",), "KeypointRender": ("background", "strength")}
 
 
 def expand(layers: list[Layer]) -> list[Layer]:

@@ -6,7 +6,9 @@ keypoints -> the Fast Loop's embedding, for the torch-free runtime.
 
 Per keypoint c: w = softmax over the cells of score[code]; where = sum_cells w * cell centre (x, y);
 there = logsumexp_cells(score) - log G; out = Linear(3C -> d) of
-[where_0x, where_0y, ..., where_Cx, where_Cy, there_0, ..., there_C] (torch's order). `out` may be
+[where_0x, where_0y, ..., where_Cx, where_Cy, there_0, ..., there_C] (torch's order), and with a
+view joint, (where - pivot) turned by -angle then by +angle (4C more: code_keypoints.turned). The
+scores are used times `gain` (code_keypoints.READER_GAIN for reader "frames"). `out` may be
 given in another form (the Fast Loop's flat path centres it: numpy_form._prepare_flat). float32
 throughout. Torch-free.
 """
@@ -15,6 +17,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+# code_keypoints.READER_GAIN: a "frames" reader's scores are used times this (why: code_keypoints.py)
+READER_GAIN = 10.0
+
+
+def keypoint_gain(model_config: dict) -> float:
+    """The gain a Fast Loop's keypoint scores are used with, from its model_config (the config's
+    default reader is "frames")."""
+    return READER_GAIN if model_config.get("keypoint_reader", "frames") == "frames" else 1.0
 
 
 def cell_centres(grid: tuple[int, int]) -> np.ndarray:
@@ -29,8 +40,8 @@ def cell_centres(grid: tuple[int, int]) -> np.ndarray:
 class KeypointsNumpy:
     """One CodeKeypoints' arithmetic (its tensors under `prefix`). Immutable."""
 
-    def __init__(self, tensors: dict[str, np.ndarray], prefix: str, grid: tuple[int, int]):
-        score = tensors[f"{prefix}.score.weight"]
+    def __init__(self, tensors: dict[str, np.ndarray], prefix: str, grid: tuple[int, int], gain: float = 1.0):
+        score = tensors[f"{prefix}.score.weight"] * np.float32(gain)
         self.n_codes, self.keypoints = score.shape
         self.cells = int(grid[0]) * int(grid[1])
         c = self.keypoints
@@ -38,11 +49,14 @@ class KeypointsNumpy:
         self._centres = cell_centres(grid)  # [G, 2]
         self._log_g = np.float32(math.log(self.cells))
         self._c = c
-        self.w_t = np.ascontiguousarray(tensors[f"{prefix}.out.weight"].T)  # [3C, d]
+        self.w_t = np.ascontiguousarray(tensors[f"{prefix}.out.weight"].T)  # [3C or 7C, d]
         self.b = tensors[f"{prefix}.out.bias"]
+        pivot = tensors.get(f"{prefix}.view.pivot")
+        self.pivot = None if pivot is None else np.asarray(pivot, np.float32)  # present: it reads an angle
 
-    def features(self, codes: np.ndarray) -> np.ndarray:
-        """codes [..., G] -> the 3C values out() reads: where (x, y per keypoint) then there."""
+    def features(self, codes: np.ndarray, angle: np.ndarray | None = None) -> np.ndarray:
+        """codes [..., G] (angle [...] radians, with a view joint) -> the values out() reads: where
+        (x, y per keypoint), there, then where turned into the joint's frame both ways."""
         c = self._c
         s = self._score[codes]  # [..., G, C]
         top = s.max(-2, keepdims=True)  # [..., 1, C]
@@ -52,13 +66,24 @@ class KeypointsNumpy:
         wt = np.swapaxes(w, -1, -2)  # [..., C, G]
         where = wt @ self._centres  # [..., C, 2]
         there = np.log(total[..., 0, :]) + top[..., 0, :] - self._log_g  # [..., C]
-        return np.concatenate([where.reshape(*where.shape[:-2], 2 * c), there], -1)
+        parts = [where.reshape(*where.shape[:-2], 2 * c), there]
+        if self.pivot is not None:
+            if angle is None:
+                raise ValueError("these keypoints are also read in a joint's frame: pass the joint angle")
+            r = where - self.pivot
+            cos = np.cos(np.asarray(angle, np.float32))[..., None]
+            sin = np.sin(np.asarray(angle, np.float32))[..., None]
+            x, y = r[..., 0], r[..., 1]
+            parts += [np.stack([cos * x + sin * y, cos * y - sin * x], -1).reshape(*r.shape[:-2], 2 * c),
+                      np.stack([cos * x - sin * y, cos * y + sin * x], -1).reshape(*r.shape[:-2], 2 * c)]
+        return np.concatenate(parts, -1).astype(np.float32, copy=False)
 
-    def __call__(self, codes: np.ndarray, w_t: np.ndarray | None = None, b: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, codes: np.ndarray, w_t: np.ndarray | None = None, b: np.ndarray | None = None,
+                 angle: np.ndarray | None = None) -> np.ndarray:
         """codes [..., G] -> out(features) [..., d]; w_t, b: another form of out (e.g. centred)."""
-        y = self.features(codes).dot(self.w_t if w_t is None else w_t)
+        y = self.features(codes, angle).dot(self.w_t if w_t is None else w_t)
         y += self.b if b is None else b
         return y
 
 
-__all__ = ["KeypointsNumpy", "cell_centres"]
+__all__ = ["READER_GAIN", "KeypointsNumpy", "cell_centres", "keypoint_gain"]

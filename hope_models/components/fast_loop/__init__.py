@@ -21,10 +21,25 @@ def _check_window(window: Any) -> None:
         raise ValueError("model_config.window.horizons_s: the fast_loop predicts the current action, not horizons")
 
 
+def view_joint(spec: Any, vq_cfg: Any) -> dict[str, Any]:
+    """The observation's first joint angle, for a policy reading a grid of frame codes: the index of
+    the first value of a `joint_positions` field and its statistics (none: index -1)."""
+    if vq_cfg is None or vq_cfg.input != "frame" or vq_cfg.layout != "grid" or not spec.observation.has_stats:
+        return {"view_joint": -1}
+    start = 0
+    for f in spec.observation.fields:
+        if f.path.rsplit(".", 1)[-1] == "joint_positions":
+            return {"view_joint": start, "view_joint_mean": float(spec.observation.mean[start]),
+                    "view_joint_std": float(spec.observation.std[start])}
+        start += f.size
+    return {"view_joint": -1}
+
+
 def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: Any) -> FastLoopConfig:
     # window_k follows the window: the policy is window-exact over the K points it is trained on
     return make_config(FastLoopConfig, {"obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "window_k": window.k,
-                                        "n_codes": 0 if vq_cfg is None else vq_cfg.n_codes}, overrides, "fast_loop")
+                                        "n_codes": 0 if vq_cfg is None else vq_cfg.n_codes,
+                                        **view_joint(spec, vq_cfg)}, overrides, "fast_loop")
 
 
 def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | None:

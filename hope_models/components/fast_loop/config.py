@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 from hope_models.components.ssm_config import check_timescales
 
+KEYPOINT_READERS = ("policy", "frames")  # code_keypoints.READERS, without torch
+
 
 @dataclass
 class FastLoopConfig:
@@ -18,6 +20,16 @@ class FastLoopConfig:
     max_timescale: float = 16.0
     n_codes: int = 0  # codebook size of the frozen VQ-VAE whose codes are inputs; 0 = none
     keypoints: int = 16  # a grid VQ-VAE's codes are read as this many learned keypoints (code_keypoints.py)
+    # "frames": the keypoints learn where things are by drawing the codes back (self-supervised),
+    # the policy reads them without gradient; "policy": behaviour cloning alone places them
+    keypoint_reader: str = "frames"
+    render_weight: float = 1.0  # the drawing loss beside the action's MSE (keypoint_reader "frames")
+    # The observation's first joint angle (set from the feature spec: -1 when it has none): the
+    # keypoints are also read turned into that joint's frame, where a reach is the same wherever
+    # the target stands around the robot. Its mean and std undo the observation's normalisation.
+    view_joint: int = -1
+    view_joint_mean: float = 0.0
+    view_joint_std: float = 1.0
 
     def validate(self) -> None:
         if self.obs_dim < 1 or self.act_dim < 1:
@@ -28,4 +40,12 @@ class FastLoopConfig:
             raise ValueError("d_model, d_state and mlp_ratio must be >= 1")
         if self.keypoints < 1:
             raise ValueError(f"keypoints={self.keypoints} must be >= 1")
+        if self.keypoint_reader not in KEYPOINT_READERS:
+            raise ValueError(f"keypoint_reader={self.keypoint_reader!r} must be one of {', '.join(KEYPOINT_READERS)}")
+        if not self.render_weight >= 0:
+            raise ValueError(f"render_weight={self.render_weight} must be >= 0")
+        if not -1 <= self.view_joint < self.obs_dim:
+            raise ValueError(f"view_joint={self.view_joint} must be -1 (none) or an observation index < {self.obs_dim}")
+        if not self.view_joint_std > 0:
+            raise ValueError(f"view_joint_std={self.view_joint_std} must be > 0")
         check_timescales(self.min_timescale, self.max_timescale)

@@ -16,7 +16,15 @@ def layers(cfg: FastLoopConfig, vq: VQVAEConfig | None) -> list[Layer]:
     codes = []
     if vq is not None and vq.input == "frame" and vq.layout == "grid":  # model.py's CodeKeypoints
         c = cfg.keypoints
-        codes = [embedding(cfg.n_codes, c, True, "keypoints.score"), linear(3 * c, d, True, "keypoints.out")]
+        view = cfg.view_joint >= 0
+        codes = [embedding(cfg.n_codes, c, True, "keypoints.score"),
+                 linear(c * (7 if view else 3), d, True, "keypoints.out")]  # code_keypoints.feature_count
+        if view:
+            codes.append(Layer("JointView", ((2,),), True, name="keypoints.view"))
+        if cfg.keypoint_reader == "frames":
+            # drawn at the acting point only: per window, G cells x n_codes logits once
+            codes.append(Layer("KeypointRender", ((vq.grid_shape[0] * vq.grid_shape[1], cfg.n_codes), (c,)),
+                               True, name="keypoints.render", per_sample=vq.grid_shape[0] * vq.grid_shape[1]))
     elif vq is not None:
         codes = [embedding(cfg.n_codes * vq.groups, d, True, "code_in")]
     return [linear(cfg.obs_dim, d, True, "obs_in"), *codes, layer_norm(d, True, "enc_ln"),

@@ -62,7 +62,8 @@ class FastLoop(nn.Module):
         # would say what is in view, never where.
         self.code_in = self.keypoints = None
         if vqvae is not None and vqvae.cfg.input == "frame" and vqvae.cfg.layout == "grid":
-            self.keypoints = CodeKeypoints(vqvae.cfg.n_codes, vqvae.cfg.grid_shape, cfg.keypoints, d)
+            self.keypoints = CodeKeypoints(vqvae.cfg.n_codes, vqvae.cfg.grid_shape, cfg.keypoints, d,
+                                           reader=cfg.keypoint_reader, view_frame=cfg.view_joint >= 0)
         elif vqvae is not None:
             self.code_in = nn.Embedding(vqvae.codebook.shape[0], d)
         self.enc_ln = nn.LayerNorm(d)
@@ -117,9 +118,19 @@ class FastLoop(nn.Module):
             # through the SSM cost 5x more per step and a static scene gains nothing from a window.
             if codes is None:
                 codes = self.codes(obs, frames)
-            z = z + self.keypoints(codes)
+            z = z + self.keypoints(codes, self.view_angle(obs))
         z = z + self.head_mlp(self.head_ln(z))
         return self.out(self.out_ln(z))
+
+    def view_angle(self, obs: torch.Tensor) -> torch.Tensor | None:
+        """The joint angle (radians) the keypoints are turned by, from normalised obs [..., obs_dim]."""
+        j = self.cfg.view_joint
+        return None if j < 0 else obs[..., j] * self.cfg.view_joint_std + self.cfg.view_joint_mean
+
+    def render_loss(self, codes: torch.Tensor) -> torch.Tensor | None:
+        """The keypoints' self-supervised loss on codes [..., G] (None: they have none)."""
+        kp = self.keypoints
+        return None if kp is None or kp.reader != "frames" else kp.render_loss(codes)
 
     # -- the two forms ---------------------------------------------------------------------------
 

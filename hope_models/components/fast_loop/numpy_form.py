@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from hope_models.components.fast_loop.checkpoint import FastLoopNumpyError, read_fast_loop, vqvae_frame, vqvae_groups
-from hope_models.components.numpy_keypoints import KeypointsNumpy
+from hope_models.components.numpy_keypoints import KeypointsNumpy, keypoint_gain
 from hope_models.components.numpy_layers import LN_EPS, Linear, NormMLP, NumpyWindowState, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import VQVAENumpy
 from hope_models.data.features import FeatureSpec
@@ -131,6 +131,9 @@ class FastLoopNumpy:
         self._mean_d = np.full(self.d_model, 1.0 / self.d_model, np.float32)  # x @ this = the mean over d
         self._code_in = t.get("code_in.weight")
         self._kp: KeypointsNumpy | None = None
+        self._view_joint = int(mc.get("view_joint", -1))
+        self._view_mean = np.float32(mc.get("view_joint_mean", 0.0))
+        self._view_std = np.float32(mc.get("view_joint_std", 1.0))
         self.frame_vq: VQVAENumpy | None = None  # the frame VQ-VAE whose codes tick() reads
         if self.n_codes:  # the frozen VQ-VAE's encoder and codebook (hope_models/components/vqvae/numpy_form.py)
             self.groups = vqvae_groups(config)
@@ -140,7 +143,7 @@ class FastLoopNumpy:
             if frame is not None:
                 self.frame_vq = self._vq
                 if frame.layout == "grid":  # model.py: a grid's cells are read as keypoints
-                    self._kp = KeypointsNumpy(t, "keypoints", frame.grid_shape)
+                    self._kp = KeypointsNumpy(t, "keypoints", frame.grid_shape, keypoint_gain(mc))
         # The SSM: the decay constants as WindowSSM._consts computes them (float32 log_a; the powers
         # and the gain from it), the gain folded into B^T, then C^T and D.
         log_rate = np.clip(t["ssm.log_rate"], np.float32(math.log(RATE_MIN)), np.float32(math.log(RATE_MAX)))
@@ -265,7 +268,12 @@ class FastLoopNumpy:
         if self._kp is None:
             return None
         c = self._codes(obs_n, codes)
-        return self._kp(c, *self._kp_c) if flat and self._kp_c is not None else self._kp(c)
+        angle = None
+        if self._view_joint >= 0:  # model.py's view_angle: the joint angle, in radians
+            angle = obs_n[..., self._view_joint] * self._view_std + self._view_mean
+        if flat and self._kp_c is not None:
+            return self._kp(c, *self._kp_c, angle=angle)
+        return self._kp(c, angle=angle)
 
     def _encode(self, obs_n: np.ndarray, norm, codes: np.ndarray | None = None) -> np.ndarray:
         e = self._obs_in(obs_n)

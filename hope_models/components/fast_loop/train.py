@@ -17,11 +17,22 @@ class FastLoopComponent(TrainingComponent):
     clones_actions = True  # behaviour cloning: play episodes' actions are no labels (validation.anchor_sampler)
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
-        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), self._frames(batch), self._codes(batch))
+        frames, codes = self._frames(batch), self._codes(batch)
+        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), frames, codes)
         target = as_tensor(batch.target_act)
-        loss = F.mse_loss(pred, target)
+        mse = F.mse_loss(pred, target)
         # baseline: always predicting the dataset's mean action (0 once normalised)
-        return loss, {"mse": loss.item(), "mean_action_mse": float((target * target).mean())}
+        metrics = {"mse": mse.item(), "mean_action_mse": float((target * target).mean())}
+        render = None
+        if self._model.keypoints is not None and self._model.keypoints.reader == "frames":
+            # the acting point's codes: the ones the keypoints are read from
+            render = self._model.render_loss(codes[:, -1] if codes is not None else self._model.codes(
+                as_tensor(batch.obs)[:, -1], frames[:, -1] if frames is not None else None))
+        if render is None:
+            return mse, metrics
+        metrics["render_ce"] = render.item()
+        # validation's loss stays the action's MSE: the figure the gate compares between policies
+        return (mse + self._model.cfg.render_weight * render if training else mse), metrics
 
 
 def build(spec: Any, r: Any, vqvae: Any, data_fingerprint: str, vqvae_ref: dict | None) -> FastLoopComponent:
