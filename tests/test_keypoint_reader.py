@@ -134,3 +134,36 @@ def test_the_fast_loop_trains_its_points_on_the_drawing_and_is_validated_on_the_
     assert model.keypoints.score.weight.grad.abs().sum() > 0  # moved by the drawing
     with pytest.raises(ValueError, match="pass the joint angle"):
         model.keypoints(torch.zeros(1, 256, dtype=torch.long))
+
+
+def test_a_camera_policy_saved_before_the_frames_reader_loads_as_it_was_trained(tmp_path):
+    """Its config.json has neither keypoint_reader nor view_joint: its points were placed by its
+    own loss and read unturned, in torch and in the NumPy runtime alike."""
+    import json
+
+    from frame_fixtures import FAST_SMALL, _save, camera_checkpoints, camera_spec
+
+    from hope_models.components.build import build_component, component_from_checkpoint
+    from hope_models.components.fast_loop.numpy_form import FastLoopNumpy
+
+    torch.manual_seed(0)
+    vq = camera_checkpoints(tmp_path, "grid")["vq"]
+    old = build_component("fast_loop", camera_spec(), model_config={**FAST_SMALL, "keypoint_reader": "policy",
+                                                                    "view_joint": -1}, vqvae_dir=vq)
+    assert old.model.keypoints.render is None and old.model.keypoints.view is None
+    ckpt = _save(tmp_path / "old", old)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    for key in ("keypoint_reader", "view_joint", "view_joint_mean", "view_joint_std"):
+        del cfg["model_config"][key]
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    loaded = component_from_checkpoint(ckpt).model
+    assert (loaded.cfg.keypoint_reader, loaded.cfg.view_joint) == ("policy", -1)
+    runtime = FastLoopNumpy.from_checkpoint(ckpt)
+    obs = torch.randn(2, 5, 4)
+    codes = torch.randint(0, loaded.cfg.n_codes, (2, 5, 256))
+    with torch.no_grad():
+        want = loaded(obs, codes=codes).numpy()
+    got = runtime.forward(obs.numpy(), codes=codes.numpy())
+    assert np.abs(want - got).max() < 1e-4
+    fresh = build_component("fast_loop", camera_spec(), model_config=FAST_SMALL, vqvae_dir=vq).model
+    assert (fresh.cfg.keypoint_reader, fresh.cfg.view_joint) == ("frames", 0)  # a new run reads both ways

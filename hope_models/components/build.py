@@ -178,7 +178,7 @@ def _from_config(obj: dict, where: Path) -> TrainingComponent:
         if not isinstance(obj.get(key), dict):
             raise CheckpointError(f"{where}: '{key}' is missing or not an object")
     spec = spec_from_json_obj(obj["feature_spec"], f"{where}: feature_spec")
-    model_config = dict(obj["model_config"])
+    model_config = component.stored_config(obj["model_config"])
     model_config["window"] = dict(obj["window"])
     vq = None
     ref = obj.get("vqvae")

@@ -23,9 +23,8 @@ READER_GAIN = 10.0
 
 
 def keypoint_gain(model_config: dict) -> float:
-    """The gain a Fast Loop's keypoint scores are used with, from its model_config (the config's
-    default reader is "frames")."""
-    return READER_GAIN if model_config.get("keypoint_reader", "frames") == "frames" else 1.0
+    """The gain a Fast Loop's keypoint scores are used with, from its (stored) model_config."""
+    return READER_GAIN if model_config["keypoint_reader"] == "frames" else 1.0
 
 
 def cell_centres(grid: tuple[int, int]) -> np.ndarray:

@@ -11,7 +11,7 @@ inside a job's child process.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any, Callable
 
@@ -77,6 +77,13 @@ class ComponentSpec:
     # (validation figures, candidate, settings) -> (status, detail) of the gate's "baselines" check, or
     # None when it has no baselines to beat
     baselines: Callable[..., tuple[str, str]] | None = None
+    # model_config values a stored checkpoint made before the field existed was trained with (where
+    # the field's default for a new run differs): filled in when the checkpoint is loaded
+    stored_defaults: dict[str, Any] = field(default_factory=dict)
+
+    def stored_config(self, model_config: dict[str, Any]) -> dict[str, Any]:
+        """A stored checkpoint's model_config with the fields it predates filled in (stored_defaults)."""
+        return {**self.stored_defaults, **model_config}
 
     def __post_init__(self) -> None:
         if self.reads_vqvae not in READS_VQVAE:

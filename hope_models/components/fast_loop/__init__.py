@@ -36,10 +36,12 @@ def view_joint(spec: Any, vq_cfg: Any) -> dict[str, Any]:
 
 
 def _configure(spec: Any, window: Any, overrides: dict[str, Any], vq_cfg: Any) -> FastLoopConfig:
-    # window_k follows the window: the policy is window-exact over the K points it is trained on
+    # window_k follows the window: the policy is window-exact over the K points it is trained on.
+    # view_joint follows the spec, unless turned off (-1: by the request, or a checkpoint from before it)
+    view = {} if overrides.get("view_joint") == -1 else view_joint(spec, vq_cfg)
     return make_config(FastLoopConfig, {"obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "window_k": window.k,
-                                        "n_codes": 0 if vq_cfg is None else vq_cfg.n_codes,
-                                        **view_joint(spec, vq_cfg)}, overrides, "fast_loop")
+                                        "n_codes": 0 if vq_cfg is None else vq_cfg.n_codes, **view},
+                       overrides, "fast_loop")
 
 
 def _cannot_train(facts: EpisodeFacts, tokenizer_reason: str | None) -> str | None:
@@ -58,4 +60,6 @@ SPEC = ComponentSpec(
     cannot_train=_cannot_train,
     reads_vqvae="optional",
     acts=True,
+    # a camera policy from before the frames reader: keypoints placed by its loss, read unturned
+    stored_defaults={"keypoint_reader": "policy", "view_joint": -1},
 )

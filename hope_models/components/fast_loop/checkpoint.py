@@ -34,6 +34,7 @@ from hope_models.components.checkpoint_checks import (
     check_weights,
     read_component,
 )
+from hope_models.components.fast_loop import SPEC
 from hope_models.components.fast_loop.config import FastLoopConfig
 from hope_models.components.fast_loop.layers import layers
 from hope_models.components.layers import tensors
@@ -119,6 +120,9 @@ def check_config(config: Any, where: Path) -> FeatureSpec:
     check_header(config, where, "fast_loop", FastLoopNumpyError)
     mc = config.get("model_config")
     _check_model_config(mc, where)
+    # what a checkpoint from before a field was trained with (the torch loader fills in the same);
+    # the config dict is the one the runtime is then built from
+    mc = config["model_config"] = SPEC.stored_config(mc)
     window = config.get("window")
     if isinstance(window, dict) and window.get("k") != mc["window_k"]:
         raise FastLoopNumpyError(f"{where}: window.k={window.get('k')!r} differs from model_config.window_k="
