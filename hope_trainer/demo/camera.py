@@ -58,7 +58,7 @@ class CameraRecipe:
 
 CAMERA = CameraRecipe(members={
     TOKENIZER: Member(2500, {"lr": 2e-3, "threads": 2, "model_config": GRID_TOKENIZER}),
-    ACTOR: Member(8000),  # the Fast Loop's own defaults: its step count is the one knob here
+    ACTOR: Member(12000),  # the Fast Loop's own defaults; 12 000 steps: docs/reflex.md, "A reflex from pixels"
     PREDICTOR: Member(3000, {"lr": 2e-3}),  # the grid Mid Loop's documented rate
 })
 MIN_EPISODES = 3  # the validation split keeps at least one episode from 3 on (data/sampler.py)
