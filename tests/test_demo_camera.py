@@ -42,7 +42,9 @@ def _demo(tmp_path, recipe=CAMERA, **kw) -> CameraDemo:
 def test_the_recipe_is_the_documented_one():
     assert GRID_TOKENIZER == {"layout": "grid", "patch": 4, "n_codes": 256, "channels": 16, "decoder_channels": 32,
                               "fg_weight": 10}
-    assert [CAMERA.members[c].steps for c in (TOKENIZER, ACTOR, PREDICTOR)] == [2500, 8000, 3000]
+    # the Fast Loop's count is the knob the reflex's experiments turn (docs/reflex.md); the others are set
+    assert CAMERA.members[TOKENIZER].steps == 2500 and CAMERA.members[PREDICTOR].steps == 3000
+    assert CAMERA.members[ACTOR].steps >= 1000
     assert CAMERA.members[TOKENIZER].overrides == {"lr": 2e-3, "threads": 2, "model_config": GRID_TOKENIZER}
     assert CAMERA.members[ACTOR].overrides == {}  # the Fast Loop's own defaults
     assert (CAMERA.frame_size, CAMERA.record_processes, CAMERA.eval_processes) == (64, 2, 1)
@@ -94,7 +96,7 @@ def test_the_chain_gives_each_member_its_recipe_down_to_the_job(tmp_path):
                 for c, r in by.items()}
     tok, fast, mid = cfgs[TOKENIZER], cfgs[ACTOR], cfgs[PREDICTOR]
     assert (tok.steps, tok.lr, tok.threads, tok.model_config, tok.vqvae_dir) == (2500, 2e-3, 2, GRID_TOKENIZER, None)
-    assert (fast.steps, fast.lr, fast.threads, fast.model_config) == (8000, 1e-3, 1, {})
+    assert (fast.steps, fast.lr, fast.threads, fast.model_config) == (CAMERA.members[ACTOR].steps, 1e-3, 1, {})
     assert (mid.steps, mid.lr, mid.threads) == (3000, 2e-3, 1)
     assert by[ACTOR].config["vqvae_run"] == by[PREDICTOR].config["vqvae_run"] == by[TOKENIZER].id
     assert fast.vqvae_dir == mid.vqvae_dir == str(tmp_path / "vq")
