@@ -1,6 +1,8 @@
 """Fast Loop training speed on camera frames (through the frozen tokenizer's code table) against the
 same Fast Loop on the joints alone: steps/s of the real `train` command, alternating rounds in one
-run so the shared machine's noise falls on both. Target: frames >= 80 % of vectors.
+run so the shared machine's noise falls on both. Target: frames >= 80 % of vectors. "frames" is the
+default policy (its keypoints also learn by drawing the codes back); "frames_reading" the same
+with keypoint_reader "policy" (reading the codes alone, no drawing), which says what the drawing costs.
 
     .venv/bin/python bench/fast_loop_codes.py --data DS --vqvae VQ_RUN [--steps 400 --rounds 3]
 
@@ -32,12 +34,15 @@ def steps_per_s(run_dir: Path, warm: int) -> float:
     return (s1 - s0) / (t1 - t0)
 
 
-def train(data: Path, cache: Path, run_dir: Path, steps: int, threads: int, vqvae: Path | None) -> None:
+def train(data: Path, cache: Path, run_dir: Path, steps: int, threads: int, vqvae: Path | None,
+          model_config: dict | None = None) -> None:
     cmd = [sys.executable, "run_trainer.py", "train", "--component", "fast_loop", "--data", str(data),
            "--cache-dir", str(cache), "--run-dir", str(run_dir), "--steps", str(steps), "--threads", str(threads),
            "--log-every", "10", "--checkpoint-every", str(steps)]
     if vqvae is not None:
         cmd += ["--vqvae", str(vqvae)]
+    if model_config:
+        cmd += ["--model-config", json.dumps(model_config)]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
@@ -56,14 +61,17 @@ def main() -> None:
         root = Path(tmp)
         cache = root / "cache"
         train(args.data, cache, root / "prime", 20, args.threads, args.vqvae)  # cache + code table, untimed
-        rates: dict[str, list[float]] = {"vectors": [], "frames": []}
+        variants = (("vectors", None, None), ("frames", args.vqvae, None),
+                    ("frames_reading", args.vqvae, {"keypoint_reader": "policy"}))
+        rates: dict[str, list[float]] = {name: [] for name, _, _ in variants}
         for r in range(args.rounds):
-            for name, vq in (("vectors", None), ("frames", args.vqvae)):
+            for name, vq, mc in variants:
                 run = root / f"{name}-{r}"
-                train(args.data, cache, run, args.steps, args.threads, vq)
+                train(args.data, cache, run, args.steps, args.threads, vq, mc)
                 rates[name].append(steps_per_s(run, args.warm))
     med = {k: statistics.median(v) for k, v in rates.items()}
     print(json.dumps({"steps_per_s": rates, "median": med, "frames_over_vectors": med["frames"] / med["vectors"],
+                      "frames_reading_over_vectors": med["frames_reading"] / med["vectors"],
                       "target": 0.8, "steps": args.steps, "threads": args.threads}, indent=1))
 
 
