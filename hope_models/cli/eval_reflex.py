@@ -239,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.sim.evaluate import evaluate_policy, expert_factory, json_number, random_factory
 
     torch.set_num_threads(args.threads)
-    torch.set_flush_denormal(True)  # as training does (train/loop.py): subnormals only cost time
+    torch.set_flush_denormal(True)  # as training does (job_setup.torch_settings): subnormals only cost time
     try:
         policy = ReflexPolicy.from_checkpoint(ckpt_arg)
     except ReflexPolicyError as exc:

@@ -9,7 +9,7 @@ What makes a re-run after a kill end with the same weights, bit for bit, as a ru
   step counts, torch's (and numpy's and python's) global RNG state, the sampler cursor;
 - nothing that depends on wall time (checkpoints every T seconds, guards, throttling, metrics)
   touches the RNG or the tensors, and checkpoint writes only read them;
-- threads are fixed and torch.use_deterministic_algorithms(True).
+- threads are fixed, torch.use_deterministic_algorithms(True), subnormals flushed (job_setup).
 A resumed job rebuilds the component (whose init consumes the RNG), then loads all of the above
 over it, so the init draws do not matter.
 
@@ -254,11 +254,7 @@ class _Trainer:
         from hope_models.train.metrics import MetricsLog, convergence_summary  # lazy: loads mcap
 
         cfg = self.cfg
-        torch.set_num_threads(cfg.threads)
-        # A peaked softmax (a keypoint's cells, far from it) makes subnormal floats, which cost a CPU
-        # 10-15x per operation (measured on the Fast Loop's keypoint drawing) and carry no signal.
-        torch.set_flush_denormal(True)
-        torch.use_deterministic_algorithms(True)
+        job_setup.torch_settings(torch, cfg.threads)
         ckpt.clean_temp(self.run_dir)
         loaded = ckpt.load_latest(self.run_dir, warn=lambda m: self.log(m, "warning"))
         if loaded is not None:
