@@ -41,6 +41,7 @@ from hope_models.log_limits import PipeToLog, rate_limit, rotating_file_handler
 from hope_models.malloc_arenas import limit_malloc_arenas
 from hope_models.numbers import NumberError, int_from_text
 from hope_models.settings import SettingsError, load_settings
+from hope_trainer.console import say
 from webapp import create_app
 from webapp.door_process import DoorProcess
 from webapp.server import ConnectionLimits, HttpServer, ServerError
@@ -390,10 +391,10 @@ def run(args: argparse.Namespace) -> int:
         broker = "redis" if settings.redis_url else f"embedded ({settings.home / 'broker'})"
         worker = "no worker (--no-worker)" if args.no_worker else f"worker queue {args.queue}"
         assert serve.server is not None  # start() returned: it is listening
-        print(f"Robot Editor: {serve.server.url}  token: {token}", flush=True)
-        print(door_line(serve.door), flush=True)
-        print(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop", flush=True)
-        print(brain_summary(serve.brain), flush=True)
+        say(f"Robot Editor: {serve.server.url}  token: {token}")
+        say(door_line(serve.door))
+        say(f"state {settings.home}, broker {broker}, {worker}; Ctrl-C to stop")
+        say(brain_summary(serve.brain))
         while not serve.shutdown.is_set():
             serve.shutdown.wait(0.5)
         serve.stop()

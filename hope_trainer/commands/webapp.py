@@ -30,6 +30,7 @@ from hope_models.log_format import configure_logging, journal_prefix
 from hope_models.malloc_arenas import limit_malloc_arenas
 from hope_models.settings import SettingsError
 from hope_trainer.commands.serve import add_listen_arguments, brain_summary, door_line, listen_settings
+from hope_trainer.console import say
 from webapp import create_app
 from webapp.door_process import DoorProcess
 from webapp.server import ConnectionLimits, HttpServer, ServerError
@@ -126,9 +127,9 @@ def run(args: argparse.Namespace) -> int:
             t = threading.Thread(target=_tail_events, args=(registry, socketio, stop), name="events", daemon=True)
             t.start()
             threads.append(t)
-        print(f"Robot Editor: {server.url}  token in {token_path(settings)}", flush=True)
-        print(door_line(door), flush=True)
-        print(brain_summary(brain), flush=True)
+        say(f"Robot Editor: {server.url}  token in {token_path(settings)}")
+        say(door_line(door))
+        say(brain_summary(brain))
         notifier.ready(f"listening on {server.url}")
         ping_every = notifier.watchdog_s / 2 if notifier.watchdog_s else 5.0
         assert door.port is not None  # DoorProcess.start() set it from the child's ready message

@@ -3,6 +3,7 @@ early (Interrupted, DemoError) and `say`, its one way to print a line."""
 from __future__ import annotations
 
 from hope_models.components import COMPONENTS as TABLE
+from hope_trainer.console import say as say  # the demo's one way to print a line, written whole
 
 COMPONENTS = tuple(TABLE)  # the chain: every component, in the table's (training) order
 DEMO_SEED = 100000  # sim-demos' default; evaluation uses seeds 0..N-1, so the two never overlap
@@ -18,8 +19,3 @@ class Interrupted(Exception):
 
 class DemoError(Exception):
     """The demo cannot go on; the message says why."""
-
-
-def say(text: str = "") -> None:
-    print(text, flush=True)
-
