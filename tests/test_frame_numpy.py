@@ -106,3 +106,19 @@ def test_refuses_a_camera_fast_loop_whose_spec_has_another_frame(camera, tmp_pat
     with pytest.raises(FastLoopNumpyError, match=r"reads \[64, 64, 3\] camera frames, the feature spec's frame is "
                                                  r"\[96, 96, 3\]"):
         FastLoopNumpy.from_checkpoint(ckpt, verify_manifest=True)
+
+
+def test_a_grid_tokenizer_with_a_wider_decoder_is_served(tmp_path):
+    """decoder_channels widens only the decoder; the torch-free runtime must accept its tensors."""
+    import torch
+    from frame_fixtures import VQ_CONFIGS, _save, camera_spec
+
+    from hope_models.components.build import build_component
+    from hope_models.components.vqvae.numpy_form import VQVAERuntime
+
+    torch.manual_seed(0)
+    vq = build_component("vqvae", camera_spec(), model_config={**VQ_CONFIGS["grid"], "decoder_channels": 16})
+    with torch.no_grad():
+        vq.model(torch.randint(0, 256, (4, 64, 64, 3), dtype=torch.uint8), init_codebook=True)
+    served = VQVAERuntime.from_checkpoint(_save(tmp_path / "vq", vq))
+    assert served is not None

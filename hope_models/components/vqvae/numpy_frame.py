@@ -61,8 +61,12 @@ def frame_config(vq_cfg: Any, where: Any, error: type[Exception], max_width: int
         if not _positive_int(v, hi):
             raise error(f"{where}: vqvae model_config.{key}={v!r} must be an integer in 1-{hi}")
         values[key] = v
+    # the decoder's width (0: channels) shapes a served tokenizer's decoder tensors
+    dec = vq_cfg.get("decoder_channels", 0)
+    if dec != 0 and not _positive_int(dec, max_width):
+        raise error(f"{where}: vqvae model_config.decoder_channels={dec!r} must be 0 or an integer in 1-{max_width}")
     cfg = VQVAEConfig(input="frame", obs_dim=0, frame_shape=(shape[0], shape[1], shape[2]), layout=layout,
-                      **values)
+                      decoder_channels=dec, **values)
     try:
         cfg.validate()
     except ValueError as exc:
