@@ -55,7 +55,7 @@ class CodeKeypoints(nn.Module):
         if reader not in READERS:
             raise ValueError(f"keypoint reader={reader!r} must be one of {', '.join(READERS)}")
         self.n_codes, self.grid, self.keypoints = n_codes, (int(grid[0]), int(grid[1])), keypoints
-        self.reader, self.view_frame, self.sigma = reader, view_frame, float(sigma)
+        self.reader, self.sigma = reader, float(sigma)
         self.score = nn.Embedding(n_codes, keypoints)
         self.gain = READER_GAIN if reader == "frames" else 1.0
         if reader == "frames":  # the scores in use start as a policy reader's (N(0, 1))
@@ -68,15 +68,19 @@ class CodeKeypoints(nn.Module):
         self.view = JointView() if view_frame else None
         self.render = KeypointRender(self.cells, keypoints, n_codes, DRAW_START / self.gain) if reader == "frames" else None
 
-    def locate(self, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """codes [..., G] (long, cell-local) -> where [..., C, 2], there [..., C]."""
+    def _scores(self, codes: torch.Tensor) -> torch.Tensor:
+        """codes [..., G] (long, cell-local) -> each keypoint's score of each cell [..., C, G]."""
         if codes.shape[-1] != self.cells:
             raise ValueError(f"codes have {codes.shape[-1]} cells, the grid {self.grid} has {self.cells}")
         # index_select: its backward (index_add) is half the cost of nn.Embedding's on a CPU
         s = self.score.weight.index_select(0, codes.reshape(-1).long()).view(*codes.shape, self.keypoints)
         if self.gain != 1.0:
             s = s * self.gain
-        s = s.transpose(-1, -2).contiguous()  # [..., C, G]: the reductions run along memory
+        return s.transpose(-1, -2).contiguous()  # the reductions over the cells run along memory
+
+    def locate(self, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """codes [..., G] (long, cell-local) -> where [..., C, 2], there [..., C]."""
+        s = self._scores(codes)
         lse = torch.logsumexp(s, dim=-1, keepdim=True)
         where = torch.exp(s - lse) @ self.centres  # softmax over the cells, [..., C, 2]
         return where, lse[..., 0] - self._log_g
@@ -102,8 +106,7 @@ class CodeKeypoints(nn.Module):
         instead finds its way to a lone target only when it starts near one (tests)."""
         assert self.render is not None, "reader 'policy' has no drawing"
         codes = codes.reshape(-1, self.cells)[:RENDER_BATCH].long()
-        s = self.score.weight.index_select(0, codes.reshape(-1)).view(*codes.shape, self.keypoints) * self.gain
-        w = torch.softmax(s.transpose(-1, -2), -1)  # [N, C, G]
+        w = torch.softmax(self._scores(codes), -1)  # [N, C, G]
         where = w @ self.centres  # [N, C, 2]
         d2 = (self.centres[None, None] - where[:, :, None]).pow(2).sum(-1)  # [N, C, G]
         heat = torch.exp(d2 * (-1.0 / (self.sigma * self.sigma)))

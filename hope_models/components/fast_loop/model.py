@@ -127,11 +127,6 @@ class FastLoop(nn.Module):
         j = self.cfg.view_joint
         return None if j < 0 else obs[..., j] * self.cfg.view_joint_std + self.cfg.view_joint_mean
 
-    def render_loss(self, codes: torch.Tensor) -> torch.Tensor | None:
-        """The keypoints' self-supervised loss on codes [..., G] (None: they have none)."""
-        kp = self.keypoints
-        return None if kp is None or kp.reader != "frames" else kp.render_loss(codes)
-
     # -- the two forms ---------------------------------------------------------------------------
 
     def _trunk(self, obs: torch.Tensor, mask: torch.Tensor | None, frames: torch.Tensor | None,

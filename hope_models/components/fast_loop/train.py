@@ -23,13 +23,13 @@ class FastLoopComponent(TrainingComponent):
         mse = F.mse_loss(pred, target)
         # baseline: always predicting the dataset's mean action (0 once normalised)
         metrics = {"mse": mse.item(), "mean_action_mse": float((target * target).mean())}
-        render = None
-        if self._model.keypoints is not None and self._model.keypoints.reader == "frames":
-            # the acting point's codes: the ones the keypoints are read from
-            render = self._model.render_loss(codes[:, -1] if codes is not None else self._model.codes(
-                as_tensor(batch.obs)[:, -1], frames[:, -1] if frames is not None else None))
-        if render is None:
+        kp = self._model.keypoints
+        if kp is None or kp.render is None:  # no keypoints, or placed by this loss alone
             return mse, metrics
+        # the acting point's codes: the ones the keypoints are read from
+        last = codes[:, -1] if codes is not None else self._model.codes(
+            as_tensor(batch.obs)[:, -1], frames[:, -1] if frames is not None else None)
+        render = kp.render_loss(last)
         metrics["render_ce"] = render.item()
         # validation's loss stays the action's MSE: the figure the gate compares between policies
         return (mse + self._model.cfg.render_weight * render if training else mse), metrics
