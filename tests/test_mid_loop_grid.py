@@ -13,12 +13,14 @@ from safetensors.torch import save_file
 
 from hope_models.components.build import build_component, component_from_checkpoint
 from hope_models.components.layers import expand
-from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError, read_mid_loop
+from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError
 from hope_models.components.mid_loop.grid_metrics import grid_loss
 from hope_models.components.mid_loop.grid_model import GridMidLoop
 from hope_models.components.mid_loop.held_out import held_out_line, mid_loop_verdict
 from hope_models.components.mid_loop.layers import decoded_cells
 from hope_models.components.mid_loop.model import MidLoopConfig, previous_actions
+from hope_models.components.mid_loop.numpy_form import MidLoopNumpy, MidLoopRuntime
+from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
 from hope_models.components.resolve import resolve
 from hope_models.components.vqvae.model import VQVAE, VQVAEConfig
 from hope_models.data.cache import load_or_build
@@ -167,7 +169,7 @@ def _save(comp, d: Path) -> Path:
     return d
 
 
-def test_a_grid_mid_loop_component_trains_on_frames_round_trips_and_the_numpy_runtime_refuses_it(
+def test_a_grid_mid_loop_component_trains_on_frames_round_trips_and_the_numpy_runtime_loads_it(
         frame_cache, tmp_path):
     torch.manual_seed(0)
     vq = build_component("vqvae", frame_cache.spec, model_config={"layout": "grid", "patch": 8, "n_codes": 16,
@@ -191,8 +193,10 @@ def test_a_grid_mid_loop_component_trains_on_frames_round_trips_and_the_numpy_ru
     ev = back.evaluate(batch)
     assert ev == comp.evaluate(batch)
     assert {"nll_0.5s", "copy_last_nll_1s", "code_freq_nll_1s", "joint_mse_0.5s", "copy_last_joint_mse_1s"} <= set(ev)
-    with pytest.raises(MidLoopNumpyError, match="camera frames"):
-        read_mid_loop(ck)
+    served = MidLoopRuntime.from_checkpoint(ck)  # numpy_grid.py (tests/test_mid_loop_numpy_grid.py: equal to torch)
+    assert isinstance(served, GridMidLoopNumpy) and served.obs_dim == 4 and served.frame_shape == (64, 64, 3)
+    with pytest.raises(MidLoopNumpyError, match="a grid Mid Loop"):
+        MidLoopNumpy.from_checkpoint(ck)
 
 
 def test_the_layer_table_is_the_grid_models_and_the_estimate_counts_its_decoded_cells():

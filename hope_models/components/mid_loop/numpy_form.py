@@ -12,7 +12,8 @@ mode within 1e-4): x = code_in(rows).sum(G) + act_in(prev_act); per block u = LN
 h_t = sum_{s<=t} a^(t-s) g (B u_s) (the parallel form over the window, from a zero state),
 x += C h + D u, x += GatedMLP(LN2(x)); then ln_f and the head. Dropout is the identity at
 inference. The checkpoint's own frozen VQ-VAE (tensors vqvae.*) encodes observations and decodes
-the prediction: a Mid Loop carries the VQ-VAE it was trained with. code_counts/stay_counts (the
+the prediction: a Mid Loop carries the VQ-VAE it was trained with. A Mid Loop over a grid frame
+VQ-VAE is numpy_grid.py's GridMidLoopNumpy; MidLoopRuntime (RUNTIME) loads either. code_counts/stay_counts (the
 baselines' statistics) and any `wm_*` tensor (a world model's action-conditioned heads) are not
 read. What is refused, and why, is hope_models/components/mid_loop/checkpoint.py's.
 
@@ -28,35 +29,12 @@ from typing import Any
 
 import numpy as np
 
-from hope_models.components.mid_loop.checkpoint import read_mid_loop
-from hope_models.components.numpy_layers import Linear, NormMLP, layer_norm
+from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError, grid_frame, read_mid_loop
+from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
+from hope_models.components.mid_loop.numpy_ssm import SSMBlockNumpy, run_window
+from hope_models.components.numpy_layers import Linear, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
-
-
-class _Block:
-    """One SSMBlock's weights, with DiagonalSSM's constants computed as torch does (float32)."""
-
-    def __init__(self, t: dict[str, np.ndarray], p: str, k: int):
-        self.ln1_w, self.ln1_b = t[f"{p}.ln1.weight"], t[f"{p}.ln1.bias"]
-        self.mlp = NormMLP.fold(t, f"{p}.ln2", f"{p}.mlp")
-        log_a = -np.exp(t[f"{p}.ssm.log_rate"].astype(np.float32))  # DiagonalSSM.log_a: no clamp
-        gain = np.sqrt(-np.expm1(np.float32(2.0) * log_a)).astype(np.float32)
-        self.a = np.exp(log_a).astype(np.float32)
-        self.bg_t = np.ascontiguousarray(t[f"{p}.ssm.B"].T * gain[None, :])  # [d, N]
-        self.c_t = np.ascontiguousarray(t[f"{p}.ssm.C"].T)  # [N, d]
-        self.d = t[f"{p}.ssm.D"]
-        lag = np.arange(k, dtype=np.float32)[:, None] - np.arange(k, dtype=np.float32)[None, :]
-        causal = lag >= 0
-        # kernel[t, s] = a^(t-s) for s <= t: DiagonalSSM._chunk's, which depends on t - s only, so
-        # the top-left [L, L] corner is the kernel of an L-point window
-        self.kernel = (np.exp(np.where(causal, lag, 0.0)[..., None] * log_a) * causal[..., None]).astype(np.float32)
-
-    def ln1(self, x: np.ndarray, mean: np.ndarray) -> np.ndarray:
-        u = layer_norm(x, mean)
-        u *= self.ln1_w
-        u += self.ln1_b
-        return u
 
 
 class MidLoopNumpy:
@@ -91,7 +69,7 @@ class MidLoopNumpy:
         t = tensors
         self._code_in = t["code_in.weight"]  # [G * n, d]
         self._act_in = Linear(np.ascontiguousarray(t["act_in.weight"].T), t["act_in.bias"])
-        self._blocks = [_Block(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
+        self._blocks = [SSMBlockNumpy(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
         self._lnf_w, self._lnf_b = t["ssm.ln_f.weight"], t["ssm.ln_f.bias"]
         self._head = Linear(np.ascontiguousarray(t["head.weight"].T), t["head.bias"])
         d = self._code_in.shape[1]
@@ -103,6 +81,9 @@ class MidLoopNumpy:
     def from_checkpoint(cls, path: str | Path, *, expected_sha256: str | None = None,
                         verify_manifest: bool = False) -> "MidLoopNumpy":
         ck = read_mid_loop(path, expected_sha256=expected_sha256, verify_manifest=verify_manifest)
+        if grid_frame(ck.config) is not None:
+            raise MidLoopNumpyError(f"{ck.path}: a grid Mid Loop (it reads camera frames): its form is "
+                                    "numpy_grid.GridMidLoopNumpy (MidLoopRuntime.from_checkpoint picks it)")
         return cls(checkpoint=ck.path, config=ck.config, spec=ck.spec, tensors=ck.tensors, sha256=ck.sha256,
                    version=ck.version)
 
@@ -120,7 +101,7 @@ class MidLoopNumpy:
         x += self._code_in[rows].sum(-2)
         return x
 
-    def _mlp(self, blk: _Block, x: np.ndarray) -> np.ndarray:
+    def _mlp(self, blk: SSMBlockNumpy, x: np.ndarray) -> np.ndarray:
         x = x + blk.mlp(layer_norm(x, self._mean))
         return x
 
@@ -139,17 +120,7 @@ class MidLoopNumpy:
         if not 0 < length <= self.window_k:
             raise ValueError(f"a window holds 1 to {self.window_k} grid points, got {length}")
         x = self._inputs(rows, np.asarray(prev_act_n, dtype=np.float32))
-        for i, blk in enumerate(self._blocks):
-            u = blk.ln1(x, self._mean)
-            v = u.dot(blk.bg_t)  # [L, N]
-            # [L, N]: sum_{s<=t} a^(t-s) v_s (einsum: 2.5x faster than a broadcast product and a sum at K=20)
-            h = np.einsum("tsn,sn->tn", blk.kernel[:length, :length], v)
-            y = h.dot(blk.c_t)
-            y += u * blk.d
-            x = x + y
-            if last_only and i == self.n_layers - 1:
-                x = x[-1:]
-            x = self._mlp(blk, x)
+        x = run_window(self._blocks, x, self._mean, last_only)
         return self._logits(x)
 
     def init_state(self) -> np.ndarray:
@@ -185,6 +156,22 @@ class MidLoopNumpy:
         """As prediction_n, in raw units (the mid_loop's feature spec, spec order), float64."""
         return self.norm.raw_obs(self.prediction_n(logp))
 
+    # -- what serving.py calls (GridMidLoopNumpy answers the same) ----------------------------------
+    def point(self, values: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
+        """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is read)."""
+        return self.codes_of(values)
+
+    def predict(self, points: list[np.ndarray], acts_n: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The window's last point -> (expected observation per horizon [H, obs_dim] raw units, its
+        log-probabilities [H, G, n] for a later surprise, finite)."""
+        logp = self.log_probs(self.forward(self.rows(np.stack(points)), acts_n, last_only=True)[-1])
+        pred = self.prediction(logp)
+        return pred, logp, bool(np.isfinite(pred).all() and np.isfinite(logp).all())
+
+    def surprise(self, logp: np.ndarray, h: int, codes: np.ndarray) -> float:
+        """-sum over the groups of log P(the point's code) under horizon h of logp (nats)."""
+        return float(-logp[h, np.arange(self.groups), codes].sum())
+
     def warm(self) -> None:
         """A full window and a one-point one, so the first request after a swap pays no first-call costs."""
         zeros = np.zeros((self.window_k, self.groups), np.int64)
@@ -202,7 +189,20 @@ class MidLoopNumpy:
                 f"K={self.window_k}, horizons {self.horizon_names})")
 
 
-__all__ = ["MidLoopNumpy"]
+class MidLoopRuntime:
+    """What BrainService loads a mid_loop checkpoint with: the form its VQ-VAE asks for (a grid frame
+    VQ-VAE's cells: numpy_grid.GridMidLoopNumpy; a vector VQ-VAE's codes: MidLoopNumpy)."""
+
+    @staticmethod
+    def from_checkpoint(path: str | Path, *, expected_sha256: str | None = None,
+                        verify_manifest: bool = False) -> "MidLoopNumpy | GridMidLoopNumpy":
+        ck = read_mid_loop(path, expected_sha256=expected_sha256, verify_manifest=verify_manifest)
+        form = GridMidLoopNumpy if grid_frame(ck.config) is not None else MidLoopNumpy
+        return form(checkpoint=ck.path, config=ck.config, spec=ck.spec, tensors=ck.tensors, sha256=ck.sha256,
+                    version=ck.version)
 
 
-RUNTIME = MidLoopNumpy  # what BrainService serves for this component
+__all__ = ["MidLoopNumpy", "MidLoopRuntime"]
+
+
+RUNTIME = MidLoopRuntime  # what BrainService serves for this component

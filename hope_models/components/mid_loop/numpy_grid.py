@@ -1,0 +1,225 @@
+"""The grid Mid Loop (grid_model.GridMidLoop) in NumPy: a K-point window of a camera's cell codes, the
+joints and the previous actions -> the joints at each horizon and each cell's code distribution.
+
+    model = GridMidLoopNumpy(...)                  # numpy_form.MidLoopRuntime.from_checkpoint picks it
+    codes = model.frame_vq.codes(frame)           # its OWN frozen VQ-VAE's cell codes [G] of a uint8 frame
+    y = model.context(codes [L, G], prev_act_n [L, A], obs_n [L, D])     # [L, d], L <= K (last_only: [1, d])
+    model.joints(y, obs_n)                        # [..., H, D] normalised joints at each horizon
+    model.cell_log_probs(y [d], h, codes_now [G]) # [G, n] log P of each cell's code s_h points later
+
+The arithmetic is grid_model.py's in eval mode (dropout the identity), float32 like torch
+(tests/test_mid_loop_numpy_grid.py checks it within 1e-4): the input of a point is
+keypoints(codes) (components/numpy_keypoints.py, CodeKeypoints with reader "policy") + the mean
+over cells of code_in[code] + act_in(previous action) + obs_in(joints); SSMStack over the window
+(numpy_ssm.py) and ln_f give y. The shared cell decoder of horizon h: z_g = cell_ctx(y)[h] +
+cell_pos[g] + cell_code[c_g], u = z + GatedMLP(LN(z)), logits = cell_out(u). Each cell's
+distribution is then mixed with copy-last's as the loss and the metrics read it (grid_metrics.py,
+copy_mix): P = (1 - copy_mix) P_decoder + copy_mix P_copy, P_copy keeping the cell's code with the
+training probability (stay_counts, +1/+2 smoothed) that that cell's code stays over the horizon
+and spreading the rest over the other codes. code_counts is not read.
+
+Serving (mid_loop/serving.py) keeps, per grid point, the point's input without its action
+(point()), runs the window's last point only (predict(): the joints per horizon in raw units,
+and what a later surprise needs, y and the codes now), and decodes one horizon's cells only when
+its target arrives (surprise()): no [H, G, n_codes] tensor is made at a grid point. Torch-free.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hope_models.components.mid_loop.checkpoint import grid_frame
+from hope_models.components.mid_loop.config import MidLoopConfig
+from hope_models.components.mid_loop.numpy_ssm import SSMBlockNumpy, run_window
+from hope_models.components.numpy_keypoints import KeypointsNumpy
+from hope_models.components.numpy_layers import Linear, NormMLP, layer_norm
+from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
+from hope_models.data.features import FeatureSpec
+
+
+@dataclass(frozen=True)
+class GridPoint:
+    """What a session's window keeps of one grid point: its codes, its input without the action, its joints."""
+    codes: np.ndarray  # [G] cell codes of the frame
+    x: np.ndarray  # [d]: keypoints + mean code embedding + obs_in(joints)
+    obs_n: np.ndarray  # [D] normalised joints
+
+
+def horizon_fields(model: Any, config: dict[str, Any]) -> None:
+    """The window and horizons of a checked mid_loop config, as attributes both forms answer with."""
+    mc, window = config["model_config"], config["window"]
+    model.horizon_steps = [int(s) for s in mc["horizon_steps"]]
+    model.window_k = int(window["k"])
+    model.grid_step_s = float(window["duration_s"]) / model.window_k
+    model.horizons_s = [s * model.grid_step_s for s in model.horizon_steps]
+    model.horizon_names = [f"{round(h, 6):g}s" for h in model.horizons_s]  # "0.5s", "1s"
+
+
+class GridMidLoopNumpy:
+    """One grid mid_loop checkpoint, runnable on windows of grid points. Immutable after load."""
+
+    name = "mid_loop"
+
+    def status_fields(self) -> dict:
+        """What BrainService.status() adds for this component: the shape of its answer."""
+        return {"horizons": self.horizon_names, "grid_step_s": self.grid_step_s, "window_k": self.window_k,
+                "groups": self.groups, "n_codes": self.n_codes, "grid": list(self.grid), "copy_mix": self.copy_mix}
+
+    def __init__(self, *, checkpoint: Path, config: dict[str, Any], spec: FeatureSpec,
+                 tensors: dict[str, np.ndarray], sha256: str, version: str):
+        self.checkpoint, self.config, self.spec, self.sha256, self.version = checkpoint, config, spec, sha256, version
+        mc, t = config["model_config"], tensors
+        frame = grid_frame(config)
+        assert frame is not None, "checkpoint.check_config has checked that this Mid Loop reads a grid"
+        horizon_fields(self, config)
+        self.obs_dim, self.act_dim = spec.obs_dim, spec.act_dim
+        self.n_codes, self.n_layers, self.cell_rank = int(mc["n_codes"]), int(mc["n_layers"]), int(mc["cell_rank"])
+        self.copy_mix = float(mc.get("copy_mix", MidLoopConfig.copy_mix))
+        self.observation_fields = [(f.path, f.size) for f in spec.observation.fields]
+        self.action_fields = [(f.path, f.size) for f in spec.action.fields]
+        # it reads the request's camera frame: a replacement must read the same size of frame
+        self.frame_shape: tuple[int, ...] = tuple(frame.frame_shape)
+        self.fit_fields = (self.observation_fields, self.action_fields, self.frame_shape)
+        self.vqvae_sha256 = config["vqvae"].get("weights_sha256")
+        self.frame_vq = VQVAENumpy(t, groups=frame.groups, n_codes=self.n_codes, prefix="vqvae.", decoder=False,
+                                   frame=frame)
+        self.groups, self.grid = frame.groups, tuple(frame.grid_shape)
+        self.norm = Normaliser(spec)
+
+        def lin(name: str) -> Linear:
+            return Linear(np.ascontiguousarray(t[f"{name}.weight"].T), t[f"{name}.bias"])
+
+        self._kp = KeypointsNumpy(t, "keypoints", self.grid)
+        self._code_in = t["code_in.weight"]  # [n, d], shared by every cell
+        self._act_in, self._obs_in = lin("act_in"), lin("obs_in")
+        self._blocks = [SSMBlockNumpy(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
+        self._lnf_w, self._lnf_b = t["ssm.ln_f.weight"], t["ssm.ln_f.bias"]
+        self.d_model = d = self._code_in.shape[1]
+        self._mean = np.full(d, 1.0 / d, np.float32)
+        self._mean_r = np.full(self.cell_rank, 1.0 / self.cell_rank, np.float32)
+        r, h = self.cell_rank, len(self.horizon_steps)
+        ctx = lin("cell_ctx")
+        self._cell_ctx = [Linear(np.ascontiguousarray(ctx.w_t[:, i * r:(i + 1) * r]), ctx.b[i * r:(i + 1) * r])
+                          for i in range(h)]
+        self._cell_pos, self._cell_code = t["cell_pos.weight"], t["cell_code.weight"]  # [G, r], [n, r]
+        self._cell_mlp = NormMLP.fold(t, "cell_ln", "cell_mlp")
+        self._cell_out = lin("cell_out")  # [r, n]
+        self._joint_out = lin("joint_out")  # [d, H * D]
+        # copy-last's per-cell log-probabilities, as grid_metrics._log_copy computes them (float32)
+        stay = t["stay_counts"].astype(np.float32)  # [H, G, 2]: [changed, stayed]
+        p = (stay[..., 1] + np.float32(1.0)) / (stay.sum(-1) + np.float32(2.0))
+        self._log_stay = np.log(p).astype(np.float64)
+        self._log_move = np.log((np.float32(1.0) - p) / np.float32(self.n_codes - 1)).astype(np.float64)
+
+    # -- the window ----------------------------------------------------------------------------------
+    def point_inputs(self, codes: np.ndarray, obs_n: np.ndarray) -> np.ndarray:
+        """Cell codes [..., G], normalised joints [..., D] -> the points' inputs without the action [..., d]."""
+        codes = np.asarray(codes)
+        flat = codes.reshape(-1, self.groups)
+        hist = np.zeros((flat.shape[0], self.n_codes), np.float32)  # the mean of the cells' embeddings
+        np.add.at(hist, (np.arange(flat.shape[0])[:, None], flat), np.float32(1.0 / self.groups))
+        x = self._kp(codes)
+        x += hist.dot(self._code_in).reshape(x.shape)
+        x += self._obs_in(np.asarray(obs_n, np.float32))
+        return x
+
+    def _context(self, x: np.ndarray, last_only: bool) -> np.ndarray:
+        if not 0 < x.shape[0] <= self.window_k:
+            raise ValueError(f"a window holds 1 to {self.window_k} grid points, got {x.shape[0]}")
+        y = layer_norm(run_window(self._blocks, x, self._mean, last_only), self._mean)
+        y *= self._lnf_w
+        y += self._lnf_b
+        return y
+
+    def context(self, codes: np.ndarray, prev_act_n: np.ndarray, obs_n: np.ndarray,
+                last_only: bool = False) -> np.ndarray:
+        """A window from a zero state: codes [L, G], normalised previous actions [L, A] (zeros at the
+        first point), normalised joints [L, D] -> y [L, d] (last_only: [1, d])."""
+        x = self.point_inputs(codes, obs_n)
+        x += self._act_in(np.asarray(prev_act_n, np.float32))
+        return self._context(x, last_only)
+
+    def joints(self, y: np.ndarray, obs_n: np.ndarray) -> np.ndarray:
+        """Context [..., d], joints now [..., D] -> the joints at each horizon [..., H, D] (normalised)."""
+        delta = self._joint_out(y).reshape(*y.shape[:-1], len(self.horizon_steps), self.obs_dim)
+        return np.asarray(obs_n, np.float32)[..., None, :] + delta
+
+    def cell_logits(self, y: np.ndarray, h: int, now: np.ndarray) -> np.ndarray:
+        """Context [..., d], horizon index h, codes now [..., G] -> logits [..., G, n_codes] of each
+        cell's code s_h grid points later (GridMidLoop.cell_logits)."""
+        z = self._cell_ctx[h](y)[..., None, :] + self._cell_pos + self._cell_code[now]  # [..., G, r]
+        z += self._cell_mlp(layer_norm(z, self._mean_r))
+        return self._cell_out(z)
+
+    def cell_log_probs(self, y: np.ndarray, h: int, now: np.ndarray) -> np.ndarray:
+        """log P of every code of every cell [..., G, n] (float64): the decoder's mixed with copy-last's."""
+        z = self.cell_logits(y, h, now).astype(np.float64)
+        z -= z.max(-1, keepdims=True)
+        z -= np.log(np.exp(z).sum(-1, keepdims=True))
+        eps = self.copy_mix
+        if eps <= 0:
+            return z
+        copy = np.broadcast_to(self._log_move[h][:, None], z.shape).copy()  # [..., G, n]
+        np.put_along_axis(copy, np.asarray(now)[..., None], np.broadcast_to(self._log_stay[h], now.shape)[..., None],
+                          -1)
+        return np.logaddexp(math.log1p(-eps) + z, math.log(eps) + copy)
+
+    def observed_log_prob(self, y: np.ndarray, h: int, now: np.ndarray, later: np.ndarray) -> np.ndarray:
+        """log P [G] of each cell's code `later` under the distribution predicted from (y [d], now [G])
+        for horizon h; only those G entries of the mixture are computed."""
+        z = self.cell_logits(y, h, now).astype(np.float64)  # [G, n]
+        top = z.max(-1)
+        cells = np.arange(self.groups)
+        lp = z[cells, later] - top - np.log(np.exp(z - top[:, None]).sum(-1))
+        eps = self.copy_mix
+        if eps <= 0:
+            return lp
+        copy = np.where(later == now, self._log_stay[h], self._log_move[h])
+        return np.logaddexp(math.log1p(-eps) + lp, math.log(eps) + copy)
+
+    # -- what serving.py calls -------------------------------------------------------------------
+    def point(self, values: np.ndarray, codes: np.ndarray | None) -> GridPoint:
+        """A grid point from the raw joints [D] and the frame's cell codes [G] (by frame_vq)."""
+        if codes is None:
+            raise ValueError(f"{self.version} reads the camera: a grid point needs the frame's codes")
+        obs_n = self.norm.obs(values)
+        return GridPoint(np.asarray(codes), self.point_inputs(codes, obs_n), obs_n)
+
+    def predict(self, points: list[GridPoint], acts_n: np.ndarray) -> tuple[np.ndarray, Any, bool]:
+        """The window's last point -> (joints per horizon [H, D] raw units float64, what surprise()
+        reads later, finite)."""
+        x = np.stack([p.x for p in points])
+        x += self._act_in(np.asarray(acts_n, np.float32))
+        y = self._context(x, last_only=True)[-1]
+        pred = self.norm.raw_obs(self.joints(y, points[-1].obs_n))
+        return pred, (y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
+
+    def surprise(self, memo: Any, h: int, point: GridPoint) -> float:
+        """-sum over the cells of log P(the point's code) under horizon h's distribution of memo (nats)."""
+        y, now = memo
+        return float(-self.observed_log_prob(y, h, now, point.codes).sum())
+
+    def warm(self) -> None:
+        """A full window, a one-point one and a surprise, so the first request after a swap pays no first-call costs."""
+        codes = self.frame_vq.codes(np.zeros(self.frame_shape, np.uint8))
+        p = self.point(np.zeros(self.obs_dim), codes)
+        acts = np.zeros((self.window_k, self.act_dim), np.float32)
+        _, memo, _ = self.predict([p] * self.window_k, acts)
+        self.predict([p], acts[:1])
+        self.surprise(memo, 0, p)
+
+    def describe_observation(self, limit: int = 12) -> str:
+        names = self.spec.observation.dim_names()
+        return ", ".join(names[:limit]) + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
+
+    def __repr__(self) -> str:
+        return (f"GridMidLoopNumpy({self.version}, {'x'.join(map(str, self.grid))} cells x {self.n_codes} codes + "
+                f"joints {self.obs_dim} + act {self.act_dim}, K={self.window_k}, horizons {self.horizon_names}, "
+                f"copy_mix {self.copy_mix:g})")
+
+
+__all__ = ["GridMidLoopNumpy", "GridPoint", "horizon_fields"]
