@@ -53,8 +53,10 @@ It is decoded once per size and encoded once per frame encoder (brain_seen.py: t
 reflex carrying the same VQ-VAE share the codes), before any session moves. No frame when one is
 read, or a frame when no served component of the answer reads one, is a 400 saying so (never
 ignored: a robot sending its camera to a model that cannot see should hear it). A replacement must
-read the same frame size as the served model (fit_fields). The Mid Loop reads vector codes only, so
-far: a frame Mid Loop's codes would come from the same SeenFrame (frame_codes[PREDICTOR]).
+read the same frame size as the served model (fit_fields). A grid Mid Loop (mid_loop/numpy_grid.py)
+reads the frame's cells by its own VQ-VAE from the same SeenFrame (frame_codes[PREDICTOR]: one
+encode when its VQ-VAE's weights are the reflex's or the tokenizer's) with the joints; a request
+without a frame to it is the same 400.
 
 Every answer is finite. An observation value beyond +-MAX_ABS_OBSERVATION (1e6) is refused (400).
 If the fast_loop computes NaN or Inf from a valid observation, that is the model's fault: BrainError
@@ -342,7 +344,7 @@ class BrainService:
                "code": None if code is None else [int(c) for c in code]}
         out.update(mid_serving.EMPTY if mid is None else
                    mid_serving.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
-                                    fast.model if fast else None, self.max_sessions))
+                                      fast.model if fast else None, self.max_sessions, frame_codes.get(PREDICTOR)))
         # a component with none of the roles above answers with its NumPy form's own output
         others = {name: p.model.answer(np.asarray(values)) for name, p in peers.items()
                   if p is not None and name not in (ACTOR, TOKENIZER, PREDICTOR)}

@@ -7,20 +7,29 @@ Besides the fast_loop's action it answers:
 - `code`: the promoted vqvae's codes of the observation (its own normalisation), G ints, every tick.
 - Mid Loop fields, computed only at the mid_loop's grid points: a grid point falls every
   round(mid grid step / control period) ticks of the session (5 at 0.1 s / 0.02 s), starting at its
-  first tick. At grid point k the observation is encoded by the Mid Loop's OWN VQ-VAE (the one it
-  was trained with, under vqvae.* in its checkpoint, with its own normalisation); the point's
-  action input is the action taken on the previous tick (the request's `action` when given, else
-  the fast_loop's answer of the previous tick, else zeros). The prediction is computed from the
-  session's last K grid points as a training window (a zero state at its first point, whose
-  action input is zeros, as previous_actions makes it), not from a state stepped since the start.
-  - `prediction`: {horizon: expected observation in raw units (mid_loop feature spec, spec order)}.
+  first tick. At grid point k the Mid Loop reads what its OWN VQ-VAE (the one it was trained with,
+  under vqvae.* in its checkpoint) makes of the tick: a vector Mid Loop the observation's codes
+  (its own normalisation), a grid Mid Loop (numpy_grid.py) the cell codes of the request's camera
+  frame (BrainService encodes the frame once per encoder: brain_seen.py) and the joints. The
+  point's action input is the action taken on the previous tick (the request's `action` when
+  given, else the fast_loop's answer of the previous tick, else zeros). The prediction is computed
+  from the session's last K grid points as a training window (a zero state at its first point,
+  whose action input is zeros, as previous_actions makes it), not from a state stepped since the
+  start, and only at the window's last point.
+  - `prediction`: {horizon: in raw units (mid_loop feature spec, spec order)}: the expected
+    observation (a vector Mid Loop), or the predicted joints (a grid Mid Loop).
   - `surprise_by_horizon[h]` at grid point k: -sum_g log P_{k - s_h, h, g}(c_g(k)), nats, where
-    c(k) is the observed code at k (G groups) and P_{j, h} the distribution the Mid Loop predicted
-    at grid point j of this session for horizon h (s_h grid steps ahead); null until grid point
-    s_h of the session. `surprise` is the one of the shortest horizon.
+    c(k) is the observed code at k (G groups; a grid Mid Loop: G cells, summed over the cells)
+    and P_{j, h} the distribution the Mid Loop predicted at grid point j of this session for
+    horizon h (s_h grid steps ahead; a grid Mid Loop's each cell's decoder mixed with copy-last
+    as its metrics read it, decoded only now, for the cells of that one horizon); null until grid
+    point s_h of the session. `surprise` is the one of the shortest horizon.
   Between grid points the latest values are answered again, with `mid_tick` (the session tick)
   and `mid_grid_point` (k) they were computed at. A request without a session is a fresh one-point
   window: its prediction, never a surprise.
+
+The model's part is its form's point() (what the window keeps of a grid point), predict() (the
+window's last point: the prediction, and what a later surprise reads) and surprise().
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -53,8 +62,8 @@ class MidSession:
     lock: threading.Lock = field(default_factory=threading.Lock)
     ticks: int = 0
     points: int = 0
-    window: deque = field(default=None)  # (rows [G], previous action normalised [A]) of the last K points
-    logp: deque = field(default=None)  # log-probabilities [H, G, n] predicted at each recent point (or None)
+    window: deque = field(default=None)  # (the form's point, previous action normalised [A]) of the last K points
+    logp: deque = field(default=None)  # what each recent point predicted, for surprise (None: not finite)
     last_action: np.ndarray | None = None  # the action answered on the previous tick (raw)
     answer: dict[str, Any] | None = None
 
@@ -91,58 +100,54 @@ def new_session(mid: Any) -> MidSession:
     return MidSession(mid.version, max(mid.horizon_steps), mid.window_k)
 
 
-def stateless(mid: Any, values: np.ndarray) -> tuple[dict[str, Any], bool]:
-    """A fresh one-point window (grid point 0, action input zeros) -> (the mid fields, finite)."""
-    rows = mid.rows(mid.codes_of(values))[None]
-    logp = mid.log_probs(mid.forward(rows, np.zeros((1, mid.act_dim), np.float32), last_only=True)[-1])
-    pred = mid.prediction(logp)
-    finite = bool(np.isfinite(pred).all())
+def stateless(mid: Any, values: np.ndarray, codes: np.ndarray | None = None) -> tuple[dict[str, Any], bool]:
+    """A fresh one-point window (grid point 0, action input zeros) -> (the mid fields, finite).
+    codes: the frame's cell codes by the Mid Loop's VQ-VAE (a grid Mid Loop), else None."""
+    pred, _, finite = mid.predict([mid.point(values, codes)], np.zeros((1, mid.act_dim), np.float32))
     return _fields(mid, pred if finite else None, {n: None for n in mid.horizon_names}, 0, 0), finite
 
 
 def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray | None,
-         answered: np.ndarray | None, every: int) -> bool:
+         answered: np.ndarray | None, every: int, codes: np.ndarray | None = None) -> bool:
     """One tick of a session (under its lock): at a grid point, encode, predict and score the point
     (sess.answer updated). prev_action: the action the client says it took on the previous tick
     (None: the fast_loop's answer of the previous tick, else zeros); answered: this tick's action
-    (the next tick's default). False when the Mid Loop computed a non-finite prediction."""
+    (the next tick's default); codes: the tick's frame codes by the Mid Loop's own VQ-VAE (a grid
+    Mid Loop). False when the Mid Loop computed a non-finite prediction."""
     finite = True
     if sess.ticks % every == 0:
-        finite = _grid_point(mid, sess, values, prev_action if prev_action is not None else sess.last_action)
+        finite = _grid_point(mid, sess, mid.point(values, codes),
+                             prev_action if prev_action is not None else sess.last_action)
     sess.last_action = answered
     sess.ticks += 1
     return finite
 
 
-def _grid_point(mid: Any, sess: MidSession, values: np.ndarray, prev: np.ndarray | None) -> bool:
-    codes = mid.codes_of(values)  # [G], group-local
+def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None) -> bool:
     act_n = np.zeros(mid.act_dim, np.float32) if prev is None else mid.norm.act(prev)
-    sess.window.append((mid.rows(codes), act_n))
-    groups = np.arange(mid.groups)
+    sess.window.append((point, act_n))
     by_h: dict[str, float | None] = {}
     for h, (name, s) in enumerate(zip(mid.horizon_names, mid.horizon_steps, strict=True)):
         past = sess.logp[-s] if len(sess.logp) >= s else None  # predicted at grid point k - s
-        by_h[name] = None if past is None else float(-past[h, groups, codes].sum())
-    rows = np.stack([r for r, _ in sess.window])
+        by_h[name] = None if past is None else mid.surprise(past, h, point)
     acts = np.stack([a for _, a in sess.window])
     acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
-    logp = mid.log_probs(mid.forward(rows, acts, last_only=True)[-1])
-    pred = mid.prediction(logp)
-    finite = bool(np.isfinite(pred).all() and np.isfinite(logp).all())
-    sess.logp.append(logp if finite else None)
+    pred, memo, finite = mid.predict([p for p, _ in sess.window], acts)
+    sess.logp.append(memo if finite else None)
     sess.answer = _fields(mid, pred if finite else None, by_h, sess.ticks, sess.points)
     sess.points += 1
     return finite
 
 
 def answer(slot: Any, served: Any, x: np.ndarray, session: str | None, reset: bool, given: np.ndarray | None,
-           answered: np.ndarray | None, fast: Any, max_sessions: int) -> dict[str, Any]:
+           answered: np.ndarray | None, fast: Any, max_sessions: int, codes: np.ndarray | None = None) -> dict[str, Any]:
     """The Mid Loop fields of one request: slot = BrainService's mid_loop slot (its sessions LRU and
     counters), served = the version read for this request, x = the raw observation, given = the
-    request's `action`, answered = this tick's fast_loop action, fast = the served fast_loop model."""
+    request's `action`, answered = this tick's fast_loop action, fast = the served fast_loop model,
+    codes = the frame's codes by the Mid Loop's own VQ-VAE (a grid Mid Loop; None otherwise)."""
     mid = served.model
     if session is None:
-        fields, finite = stateless(mid, x)
+        fields, finite = stateless(mid, x, codes)
     else:
         with slot.lock:
             sess = slot.sessions.get(session)
@@ -155,7 +160,7 @@ def answer(slot: Any, served: Any, x: np.ndarray, session: str | None, reset: bo
             if reset or sess.version != served.version:  # a swap since: the history was other weights'
                 sess.reset(served.version)
             every = ticks_per_point(mid, fast.control_period_s if fast is not None else None)
-            finite = tick(mid, sess, x, given, answered, every)
+            finite = tick(mid, sess, x, given, answered, every, codes)
             fields = dict(sess.answer or EMPTY)
     if not finite:  # the model's fault: counted and logged; the robot's action is still answered
         with slot.lock:
