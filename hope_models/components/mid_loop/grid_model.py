@@ -25,8 +25,9 @@ camera world model that forgets where its arm is cannot plan with it. The code h
 vector Mid Loop's, are not conditioned on actions still to be taken (only on the past ones).
 
 Two forms: context() over a window, init_state()/step() one grid point at a time (the same
-context at every point from a zero state, tested). No action-conditioned world model (wm_*) yet,
-and no torch-free form: the NumPy runtime refuses its checkpoints (mid_loop/checkpoint.py).
+context at every point from a zero state, tested). No action-conditioned world model (wm_*) yet.
+Its torch-free form is numpy_grid.py (GridMidLoopNumpy, equal to this one in eval mode: what
+BrainService serves, the joints ahead and each cell's code distribution mixed with copy-last).
 """
 from __future__ import annotations
 

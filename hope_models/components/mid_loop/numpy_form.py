@@ -168,9 +168,11 @@ class MidLoopNumpy:
         pred = self.prediction(logp)
         return pred, logp, bool(np.isfinite(pred).all() and np.isfinite(logp).all())
 
-    def surprise(self, logp: np.ndarray, h: int, codes: np.ndarray) -> float:
-        """-sum over the groups of log P(the point's code) under horizon h of logp (nats)."""
-        return float(-logp[h, np.arange(self.groups), codes].sum())
+    def surprises(self, due: dict[int, np.ndarray], codes: np.ndarray) -> dict[int, float]:
+        """{horizon index: logp predicted s_h points ago} -> {h: -sum over the groups of log P(the
+        point's code) under that horizon} (nats)."""
+        groups = np.arange(self.groups)
+        return {h: float(-logp[h, groups, codes].sum()) for h, logp in due.items()}
 
     def warm(self) -> None:
         """A full window and a one-point one, so the first request after a swap pays no first-call costs."""

@@ -20,8 +20,9 @@ and spreading the rest over the other codes. code_counts is not read.
 
 Serving (mid_loop/serving.py) keeps, per grid point, the point's input without its action
 (point()), runs the window's last point only (predict(): the joints per horizon in raw units,
-and what a later surprise needs, y and the codes now), and decodes one horizon's cells only when
-its target arrives (surprise()): no [H, G, n_codes] tensor is made at a grid point. Torch-free.
+and what a later surprise needs, y and the codes now), and decodes a horizon's cells only when
+its target arrives (surprises(): the horizons due at a point in one pass), so no [K, H, G, n]
+tensor is made. Torch-free.
 """
 from __future__ import annotations
 
@@ -120,8 +121,9 @@ class GridMidLoopNumpy:
         """Cell codes [..., G], normalised joints [..., D] -> the points' inputs without the action [..., d]."""
         codes = np.asarray(codes)
         flat = codes.reshape(-1, self.groups)
-        hist = np.zeros((flat.shape[0], self.n_codes), np.float32)  # the mean of the cells' embeddings
-        np.add.at(hist, (np.arange(flat.shape[0])[:, None], flat), np.float32(1.0 / self.groups))
+        # the mean of the cells' embeddings as a histogram of codes times the table (GridMidLoop._inputs)
+        hist = np.stack([np.bincount(c, minlength=self.n_codes) for c in flat]).astype(np.float32)
+        hist *= np.float32(1.0 / self.groups)
         x = self._kp(codes)
         x += hist.dot(self._code_in).reshape(x.shape)
         x += self._obs_in(np.asarray(obs_n, np.float32))
@@ -169,16 +171,30 @@ class GridMidLoopNumpy:
         return np.logaddexp(math.log1p(-eps) + z, math.log(eps) + copy)
 
     def observed_log_prob(self, y: np.ndarray, h: int, now: np.ndarray, later: np.ndarray) -> np.ndarray:
-        """log P [G] of each cell's code `later` under the distribution predicted from (y [d], now [G])
-        for horizon h; only those G entries of the mixture are computed."""
-        z = self.cell_logits(y, h, now).astype(np.float64)  # [G, n]
-        top = z.max(-1)
-        cells = np.arange(self.groups)
-        lp = z[cells, later] - top - np.log(np.exp(z - top[:, None]).sum(-1))
+        """log P [G] (float64) of each cell's code `later` under the distribution predicted from
+        (y [d], now [G]) for horizon h; only those G entries of the mixture are computed."""
+        return self._observed([(y, h, now)], later)[0]
+
+    def _observed(self, due: list[tuple[np.ndarray, int, np.ndarray]], later: np.ndarray) -> np.ndarray:
+        """observed_log_prob of several (y, h, now) at once [M, G]: one decoder pass over M x G cells.
+        The log-softmax is float32 like torch's cross-entropy (a float64 one of the [M, G, n] logits
+        would cost as much as the decoder), shifted by each cell's max first; the sums over the
+        cells are float64."""
+        ctx = np.stack([self._cell_ctx[h](y) for y, h, _ in due])  # [M, r]
+        now = np.stack([n for _, _, n in due])  # [M, G]
+        z = ctx[:, None, :] + self._cell_pos + self._cell_code[now]  # [M, G, r]
+        z += self._cell_mlp(layer_norm(z, self._mean_r))
+        logits = self._cell_out(z)  # [M, G, n]
+        top = logits.max(-1)
+        picked = np.take_along_axis(logits, np.broadcast_to(later, now.shape)[..., None], -1)[..., 0] - top
+        logits -= top[..., None]
+        np.exp(logits, out=logits)
+        lp = picked.astype(np.float64) - np.log(logits.sum(-1)).astype(np.float64)
         eps = self.copy_mix
         if eps <= 0:
             return lp
-        copy = np.where(later == now, self._log_stay[h], self._log_move[h])
+        hs = [h for _, h, _ in due]
+        copy = np.where(later == now, self._log_stay[hs], self._log_move[hs])
         return np.logaddexp(math.log1p(-eps) + lp, math.log(eps) + copy)
 
     # -- what serving.py calls -------------------------------------------------------------------
@@ -190,7 +206,7 @@ class GridMidLoopNumpy:
         return GridPoint(np.asarray(codes), self.point_inputs(codes, obs_n), obs_n)
 
     def predict(self, points: list[GridPoint], acts_n: np.ndarray) -> tuple[np.ndarray, Any, bool]:
-        """The window's last point -> (joints per horizon [H, D] raw units float64, what surprise()
+        """The window's last point -> (joints per horizon [H, D] raw units float64, what surprises()
         reads later, finite)."""
         x = np.stack([p.x for p in points])
         x += self._act_in(np.asarray(acts_n, np.float32))
@@ -198,10 +214,13 @@ class GridMidLoopNumpy:
         pred = self.norm.raw_obs(self.joints(y, points[-1].obs_n))
         return pred, (y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
 
-    def surprise(self, memo: Any, h: int, point: GridPoint) -> float:
-        """-sum over the cells of log P(the point's code) under horizon h's distribution of memo (nats)."""
-        y, now = memo
-        return float(-self.observed_log_prob(y, h, now, point.codes).sum())
+    def surprises(self, due: dict[int, Any], point: GridPoint) -> dict[int, float]:
+        """{horizon index: what predict() returned s_h points ago} -> {h: -sum over the cells of
+        log P(the point's code) under that horizon's distribution} (nats), all decoded in one pass."""
+        if not due:
+            return {}
+        lp = self._observed([(memo[0], h, memo[1]) for h, memo in due.items()], point.codes)
+        return {h: float(-v) for h, v in zip(due, lp.sum(-1), strict=True)}
 
     def warm(self) -> None:
         """A full window, a one-point one and a surprise, so the first request after a swap pays no first-call costs."""
@@ -210,7 +229,7 @@ class GridMidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         _, memo, _ = self.predict([p] * self.window_k, acts)
         self.predict([p], acts[:1])
-        self.surprise(memo, 0, p)
+        self.surprises(dict.fromkeys(range(len(self.horizon_steps)), memo), p)
 
     def describe_observation(self, limit: int = 12) -> str:
         names = self.spec.observation.dim_names()

@@ -29,7 +29,7 @@ Besides the fast_loop's action it answers:
   window: its prediction, never a surprise.
 
 The model's part is its form's point() (what the window keeps of a grid point), predict() (the
-window's last point: the prediction, and what a later surprise reads) and surprise().
+window's last point: the prediction, and what a later surprise reads) and surprises().
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -126,10 +126,10 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
 def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None) -> bool:
     act_n = np.zeros(mid.act_dim, np.float32) if prev is None else mid.norm.act(prev)
     sess.window.append((point, act_n))
-    by_h: dict[str, float | None] = {}
-    for h, (name, s) in enumerate(zip(mid.horizon_names, mid.horizon_steps, strict=True)):
-        past = sess.logp[-s] if len(sess.logp) >= s else None  # predicted at grid point k - s
-        by_h[name] = None if past is None else mid.surprise(past, h, point)
+    due = {h: sess.logp[-s] for h, s in enumerate(mid.horizon_steps)  # predicted at grid point k - s
+           if len(sess.logp) >= s and sess.logp[-s] is not None}
+    scored = mid.surprises(due, point)
+    by_h = {name: scored.get(h) for h, name in enumerate(mid.horizon_names)}
     acts = np.stack([a for _, a in sess.window])
     acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
     pred, memo, finite = mid.predict([p for p, _ in sess.window], acts)
