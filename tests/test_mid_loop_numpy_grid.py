@@ -18,7 +18,7 @@ from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError
 from hope_models.components.mid_loop.grid_metrics import _mixed
 from hope_models.components.mid_loop.model import previous_actions
 from hope_models.components.mid_loop.numpy_form import MidLoopNumpy, MidLoopRuntime
-from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
+from hope_models.components.mid_loop.numpy_grid import GridMemo, GridMidLoopNumpy, GridPoint
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -73,8 +73,17 @@ def test_the_numpy_grid_mid_loop_computes_what_torch_does(ckpts):
             assert np.abs(got + nll.numpy()).max() < 1e-4
             one = mid.observed_log_prob(y_np[-1], h, codes.numpy()[-1], later.numpy())
             assert np.abs(one + nll.numpy()[-1]).max() < 1e-4
-            # the frame's figure is the sum over its cells: what BrainService answers as surprise
-            assert abs(-one.sum() - float(nll[-1].sum())) < 1e-3
+            # the frame's figure is the sum over its cells: what BrainService answers as surprise,
+            # decoded whole at the grid point or from the normalisers prepare() computed before it
+            memo = GridMemo(y_np[-1], codes.numpy()[-1])
+            target = GridPoint(later.numpy(), np.zeros(mid.d_model, np.float32), np.zeros(4, np.float32))
+            whole = mid.surprises({h: memo}, target)[h]
+            while mid.prepare(memo):
+                pass
+            assert set(memo.lse) == {0, 1}
+            prepared = mid.surprises({h: memo}, target)[h]
+            for value in (-one.sum(), whole, prepared):
+                assert abs(value - float(nll[-1].sum())) < 1e-3, (value, float(nll[-1].sum()))
 
 
 def test_the_grid_checkpoint_is_refused_by_field(ckpts, tmp_path):

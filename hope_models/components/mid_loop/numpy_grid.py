@@ -20,14 +20,20 @@ and spreading the rest over the other codes. code_counts is not read.
 
 Serving (mid_loop/serving.py) keeps, per grid point, the point's input without its action
 (point()), runs the window's last point only (predict(): the joints per horizon in raw units,
-and what a later surprise needs, y and the codes now), and decodes a horizon's cells only when
+and what a later surprise needs, y and the codes now: GridMemo), and scores a horizon's cells when
 its target arrives (surprises(): the horizons due at a point in one pass), so no [K, H, G, n]
-tensor is made. Torch-free.
+tensor is made. The [G, n] logits' normaliser of each cell does not depend on the target: on the
+control ticks between grid points (4 of 5 at 20 ms / 100 ms) prepare() computes it for the newest
+prediction, one horizon a tick, and the grid point then decodes only the target code's row of
+each cell (a [G, r] product instead of [G, r] x [r, n] and G x n exponentials): the grid point's
+work is spread over the ticks after it. A session with no tick between grid points, or a
+prediction not yet prepared, takes the whole decode at the grid point (the same figure). Memory:
+G floats a horizon a prediction (2 KB at 256 cells), at most the longest horizon's points. Torch-free.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +46,15 @@ from hope_models.components.numpy_keypoints import KeypointsNumpy
 from hope_models.components.numpy_layers import Linear, NormMLP, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
+
+
+@dataclass(eq=False)
+class GridMemo:
+    """What a grid point predicted, for the surprise s_h points later: the context and the codes
+    then, and per horizon each cell's log-normaliser once prepare() has computed it [G]."""
+    y: np.ndarray
+    now: np.ndarray
+    lse: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -109,6 +124,7 @@ class GridMidLoopNumpy:
         self._cell_pos, self._cell_code = t["cell_pos.weight"], t["cell_code.weight"]  # [G, r], [n, r]
         self._cell_mlp = NormMLP.fold(t, "cell_ln", "cell_mlp")
         self._cell_out = lin("cell_out")  # [r, n]
+        self._cell_v = np.ascontiguousarray(t["cell_out.weight"])  # [n, r]: a code's row
         self._joint_out = lin("joint_out")  # [d, H * D]
         # copy-last's per-cell log-probabilities, as grid_metrics._log_copy computes them (float32)
         stay = t["stay_counts"].astype(np.float32)  # [H, G, 2]: [changed, stayed]
@@ -173,29 +189,54 @@ class GridMidLoopNumpy:
     def observed_log_prob(self, y: np.ndarray, h: int, now: np.ndarray, later: np.ndarray) -> np.ndarray:
         """log P [G] (float64) of each cell's code `later` under the distribution predicted from
         (y [d], now [G]) for horizon h; only those G entries of the mixture are computed."""
-        return self._observed([(y, h, now)], later)[0]
+        return self._observed([(GridMemo(y, now), h)], later)[0]
 
-    def _observed(self, due: list[tuple[np.ndarray, int, np.ndarray]], later: np.ndarray) -> np.ndarray:
-        """observed_log_prob of several (y, h, now) at once [M, G]: one decoder pass over M x G cells.
-        The log-softmax is float32 like torch's cross-entropy (a float64 one of the [M, G, n] logits
-        would cost as much as the decoder), shifted by each cell's max first; the sums over the
-        cells are float64."""
-        ctx = np.stack([self._cell_ctx[h](y) for y, h, _ in due])  # [M, r]
-        now = np.stack([n for _, _, n in due])  # [M, G]
-        z = ctx[:, None, :] + self._cell_pos + self._cell_code[now]  # [M, G, r]
+    def _cells(self, due: list[tuple[GridMemo, int]]) -> np.ndarray:
+        """The shared cell decoder's last hidden u [M, G, r] of several (prediction, horizon)."""
+        ctx = np.stack([self._cell_ctx[h](m.y) for m, h in due])  # [M, r]
+        z = ctx[:, None, :] + self._cell_pos + self._cell_code[np.stack([m.now for m, _ in due])]  # [M, G, r]
         z += self._cell_mlp(layer_norm(z, self._mean_r))
-        logits = self._cell_out(z)  # [M, G, n]
+        return z
+
+    def _log_norm(self, logits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each cell's max [M, G] and log sum exp(logits - max) [M, G], float32 like torch's
+        cross-entropy, shifted by the max first (logits is overwritten)."""
         top = logits.max(-1)
-        picked = np.take_along_axis(logits, np.broadcast_to(later, now.shape)[..., None], -1)[..., 0] - top
         logits -= top[..., None]
         np.exp(logits, out=logits)
-        lp = picked.astype(np.float64) - np.log(logits.sum(-1)).astype(np.float64)
+        return top, np.log(logits.sum(-1))
+
+    def _observed(self, due: list[tuple[GridMemo, int]], later: np.ndarray) -> np.ndarray:
+        """observed_log_prob of several (prediction, horizon) at once [M, G] (float64): one decoder
+        pass over M x G cells. A prediction whose normaliser prepare() has computed needs only the
+        decoder's hidden and one row of cell_out per cell; the others the whole [G, n] logits."""
+        u = self._cells(due)
+        if all(h in m.lse for m, h in due):
+            v = self._cell_v[later]  # [G, r]: cell_out's row of each cell's code
+            picked = np.einsum("mgr,gr->mg", u, v) + self._cell_out.b[later]
+            lp = picked.astype(np.float64) - np.stack([m.lse[h] for m, h in due])
+        else:
+            logits = self._cell_out(u)  # [M, G, n]
+            picked = np.take_along_axis(logits, np.broadcast_to(later, logits.shape[:-1])[..., None], -1)[..., 0]
+            top, lse = self._log_norm(logits)
+            lp = (picked - top).astype(np.float64) - lse
         eps = self.copy_mix
         if eps <= 0:
             return lp
-        hs = [h for _, h, _ in due]
-        copy = np.where(later == now, self._log_stay[hs], self._log_move[hs])
+        hs = [h for _, h in due]
+        copy = np.where(later == np.stack([m.now for m, _ in due]), self._log_stay[hs], self._log_move[hs])
         return np.logaddexp(math.log1p(-eps) + lp, math.log(eps) + copy)
+
+    def prepare(self, memo: GridMemo) -> bool:
+        """Between grid points (serving.py calls it on the ticks after one): the normaliser of the
+        newest prediction's next horizon, so the grid point that scores it decodes one row per cell.
+        False when every horizon is done."""
+        h = next((h for h in range(len(self.horizon_steps)) if h not in memo.lse), None)
+        if h is None:
+            return False
+        top, lse = self._log_norm(self._cell_out(self._cells([(memo, h)])))
+        memo.lse[h] = (top + lse)[0].astype(np.float64)
+        return True
 
     # -- what serving.py calls -------------------------------------------------------------------
     def point(self, values: np.ndarray, codes: np.ndarray | None) -> GridPoint:
@@ -212,14 +253,14 @@ class GridMidLoopNumpy:
         x += self._act_in(np.asarray(acts_n, np.float32))
         y = self._context(x, last_only=True)[-1]
         pred = self.norm.raw_obs(self.joints(y, points[-1].obs_n))
-        return pred, (y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
+        return pred, GridMemo(y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
 
     def surprises(self, due: dict[int, Any], point: GridPoint) -> dict[int, float]:
         """{horizon index: what predict() returned s_h points ago} -> {h: -sum over the cells of
         log P(the point's code) under that horizon's distribution} (nats), all decoded in one pass."""
         if not due:
             return {}
-        lp = self._observed([(memo[0], h, memo[1]) for h, memo in due.items()], point.codes)
+        lp = self._observed([(memo, h) for h, memo in due.items()], point.codes)
         return {h: float(-v) for h, v in zip(due, lp.sum(-1), strict=True)}
 
     def warm(self) -> None:
@@ -229,6 +270,9 @@ class GridMidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         _, memo, _ = self.predict([p] * self.window_k, acts)
         self.predict([p], acts[:1])
+        self.surprises(dict.fromkeys(range(len(self.horizon_steps)), memo), p)
+        while self.prepare(memo):
+            pass
         self.surprises(dict.fromkeys(range(len(self.horizon_steps)), memo), p)
 
     def describe_observation(self, limit: int = 12) -> str:
@@ -241,4 +285,4 @@ class GridMidLoopNumpy:
                 f"copy_mix {self.copy_mix:g})")
 
 
-__all__ = ["GridMidLoopNumpy", "GridPoint", "horizon_fields"]
+__all__ = ["GridMemo", "GridMidLoopNumpy", "GridPoint", "horizon_fields"]

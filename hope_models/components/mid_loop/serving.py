@@ -29,7 +29,9 @@ Besides the fast_loop's action it answers:
   window: its prediction, never a surprise.
 
 The model's part is its form's point() (what the window keeps of a grid point), predict() (the
-window's last point: the prediction, and what a later surprise reads) and surprises().
+window's last point: the prediction, and what a later surprise reads) and surprises(); a grid
+Mid Loop's prepare() is called on the ticks between grid points (numpy_grid.py: the newest
+prediction's per-cell normalisers, so a grid point's work is spread over the ticks after it).
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -118,6 +120,8 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
     if sess.ticks % every == 0:
         finite = _grid_point(mid, sess, mid.point(values, codes),
                              prev_action if prev_action is not None else sess.last_action)
+    elif sess.logp and sess.logp[-1] is not None and hasattr(mid, "prepare"):
+        mid.prepare(sess.logp[-1])  # a grid Mid Loop: part of the next grid points' surprise, now
     sess.last_action = answered
     sess.ticks += 1
     return finite
