@@ -88,6 +88,7 @@ def test_a_session_of_frames_answers_the_joints_ahead_and_the_surprise_of_the_ce
         # the ticks between grid points prepared each prediction's normalisers (numpy_grid.prepare)
         memos = list(brain._slots["mid_loop"].sessions["cam"].logp)  # the last: tick 55, a grid point
         assert all(set(m.lse) == {0, 1} for m in memos[:-1]) and not memos[-1].lse
+        assert not any(m.u for m in memos)  # a decoder's hidden is kept only until its grid point
         assert answers[25]["surprise"] is not None and answers[25]["surprise_by_horizon"]["1s"] is None
         assert answers[50]["surprise_by_horizon"]["1s"] is not None
         # without a session: a fresh one-point window, a prediction and never a surprise

@@ -78,11 +78,13 @@ def test_the_numpy_grid_mid_loop_computes_what_torch_does(ckpts):
             memo = GridMemo(y_np[-1], codes.numpy()[-1])
             target = GridPoint(later.numpy(), np.zeros(mid.d_model, np.float32), np.zeros(4, np.float32))
             whole = mid.surprises({h: memo}, target)[h]
-            while mid.prepare(memo):
+            while mid.prepare(memo, {h: memo}):
                 pass
-            assert set(memo.lse) == {0, 1}
+            assert set(memo.lse) == {0, 1} and set(memo.u) == {h}  # due next for h: its hidden too
             prepared = mid.surprises({h: memo}, target)[h]
-            for value in (-one.sum(), whole, prepared):
+            assert not memo.u  # used once, not kept
+            normalised = mid.surprises({h: memo}, target)[h]  # the normaliser alone
+            for value in (-one.sum(), whole, prepared, normalised):
                 assert abs(value - float(nll[-1].sum())) < 1e-3, (value, float(nll[-1].sum()))
 
 

@@ -22,13 +22,16 @@ Serving (mid_loop/serving.py) keeps, per grid point, the point's input without i
 (point()), runs the window's last point only (predict(): the joints per horizon in raw units,
 and what a later surprise needs, y and the codes now: GridMemo), and scores a horizon's cells when
 its target arrives (surprises(): the horizons due at a point in one pass), so no [K, H, G, n]
-tensor is made. The [G, n] logits' normaliser of each cell does not depend on the target: on the
-control ticks between grid points (4 of 5 at 20 ms / 100 ms) prepare() computes it for the newest
-prediction, one horizon a tick, and the grid point then decodes only the target code's row of
-each cell (a [G, r] product instead of [G, r] x [r, n] and G x n exponentials): the grid point's
-work is spread over the ticks after it. A session with no tick between grid points, or a
-prediction not yet prepared, takes the whole decode at the grid point (the same figure). Memory:
-G floats a horizon a prediction (2 KB at 256 cells), at most the longest horizon's points. Torch-free.
+tensor is made. Neither the [G, n] logits' normaliser of each cell nor the decoder's hidden
+depends on the target, so the control ticks between grid points (4 of 5 at 20 ms / 100 ms) do
+that work, one horizon's decode a tick (prepare()): the newest prediction's normalisers, then the
+hidden of the predictions the next grid point scores; that grid point then reads one row of
+cell_out per cell (a [G, r] product instead of the decoder, [G, r] x [r, n] and G x n
+exponentials). A session with no tick between grid points, or a prediction not yet prepared, takes
+the whole decode at the grid point (the same figures). Memory per session: G floats a horizon a
+prediction (2 KB at 256 cells) for the longest horizon's points, and the hidden [G, r] of the
+predictions due at the next grid point (32 KB a horizon at rank 32), dropped once scored.
+Torch-free.
 """
 from __future__ import annotations
 
@@ -51,10 +54,12 @@ from hope_models.data.features import FeatureSpec
 @dataclass(eq=False)
 class GridMemo:
     """What a grid point predicted, for the surprise s_h points later: the context and the codes
-    then, and per horizon each cell's log-normaliser once prepare() has computed it [G]."""
+    then; per horizon, once prepare() has computed them, each cell's log-normaliser [G] and, on
+    the tick before the grid point that scores it, the decoder's hidden [G, r] (dropped once used)."""
     y: np.ndarray
     now: np.ndarray
     lse: dict[int, np.ndarray] = field(default_factory=dict)
+    u: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -208,15 +213,19 @@ class GridMidLoopNumpy:
 
     def _observed(self, due: list[tuple[GridMemo, int]], later: np.ndarray) -> np.ndarray:
         """observed_log_prob of several (prediction, horizon) at once [M, G] (float64): one decoder
-        pass over M x G cells. A prediction whose normaliser prepare() has computed needs only the
-        decoder's hidden and one row of cell_out per cell; the others the whole [G, n] logits."""
-        u = self._cells(due)
+        pass over M x G cells. Where prepare() has computed the normaliser (and the decoder's
+        hidden u), only one row of cell_out per cell is read; else the whole [G, n] logits."""
+        u = [m.u.pop(h, None) for m, h in due]  # a hidden is used once: not kept past its grid point
+        missing = [i for i, v in enumerate(u) if v is None]
+        if missing:
+            for i, v in zip(missing, self._cells([due[i] for i in missing]), strict=True):
+                u[i] = v
+        hidden = np.stack(u)  # [M, G, r]
         if all(h in m.lse for m, h in due):
-            v = self._cell_v[later]  # [G, r]: cell_out's row of each cell's code
-            picked = np.einsum("mgr,gr->mg", u, v) + self._cell_out.b[later]
+            picked = np.einsum("mgr,gr->mg", hidden, self._cell_v[later]) + self._cell_out.b[later]
             lp = picked.astype(np.float64) - np.stack([m.lse[h] for m, h in due])
         else:
-            logits = self._cell_out(u)  # [M, G, n]
+            logits = self._cell_out(hidden)  # [M, G, n]
             picked = np.take_along_axis(logits, np.broadcast_to(later, logits.shape[:-1])[..., None], -1)[..., 0]
             top, lse = self._log_norm(logits)
             lp = (picked - top).astype(np.float64) - lse
@@ -227,15 +236,21 @@ class GridMidLoopNumpy:
         copy = np.where(later == np.stack([m.now for m, _ in due]), self._log_stay[hs], self._log_move[hs])
         return np.logaddexp(math.log1p(-eps) + lp, math.log(eps) + copy)
 
-    def prepare(self, memo: GridMemo) -> bool:
-        """Between grid points (serving.py calls it on the ticks after one): the normaliser of the
-        newest prediction's next horizon, so the grid point that scores it decodes one row per cell.
-        False when every horizon is done."""
-        h = next((h for h in range(len(self.horizon_steps)) if h not in memo.lse), None)
-        if h is None:
+    def prepare(self, newest: GridMemo, due_next: dict[int, GridMemo]) -> bool:
+        """One step of the next grid points' surprise, on a tick between grid points (serving.py):
+        the newest prediction's normaliser for its next horizon, else the decoder's hidden of a
+        prediction the next grid point scores (due_next: {h: memo}). False when nothing is left."""
+        todo = [(newest, h) for h in range(len(self.horizon_steps)) if h not in newest.lse]
+        todo += [(m, h) for h, m in due_next.items() if h not in m.u]
+        if not todo:
             return False
-        top, lse = self._log_norm(self._cell_out(self._cells([(memo, h)])))
-        memo.lse[h] = (top + lse)[0].astype(np.float64)
+        memo, h = todo[0]
+        u = self._cells([(memo, h)])
+        if h not in memo.lse:
+            top, lse = self._log_norm(self._cell_out(u))
+            memo.lse[h] = (top + lse)[0].astype(np.float64)
+        if due_next.get(h) is memo:
+            memo.u[h] = u[0]
         return True
 
     # -- what serving.py calls -------------------------------------------------------------------
@@ -270,10 +285,11 @@ class GridMidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         _, memo, _ = self.predict([p] * self.window_k, acts)
         self.predict([p], acts[:1])
-        self.surprises(dict.fromkeys(range(len(self.horizon_steps)), memo), p)
-        while self.prepare(memo):
+        every = dict.fromkeys(range(len(self.horizon_steps)), memo)
+        self.surprises(every, p)
+        while self.prepare(memo, every):
             pass
-        self.surprises(dict.fromkeys(range(len(self.horizon_steps)), memo), p)
+        self.surprises(every, p)
 
     def describe_observation(self, limit: int = 12) -> str:
         names = self.spec.observation.dim_names()

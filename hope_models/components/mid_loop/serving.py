@@ -31,7 +31,8 @@ Besides the fast_loop's action it answers:
 The model's part is its form's point() (what the window keeps of a grid point), predict() (the
 window's last point: the prediction, and what a later surprise reads) and surprises(); a grid
 Mid Loop's prepare() is called on the ticks between grid points (numpy_grid.py: the newest
-prediction's per-cell normalisers, so a grid point's work is spread over the ticks after it).
+prediction's per-cell normalisers and the decoder of the predictions the next grid point scores,
+so a grid point's work is spread over the ticks between grid points).
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -121,7 +122,7 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
         finite = _grid_point(mid, sess, mid.point(values, codes),
                              prev_action if prev_action is not None else sess.last_action)
     elif sess.logp and sess.logp[-1] is not None and hasattr(mid, "prepare"):
-        mid.prepare(sess.logp[-1])  # a grid Mid Loop: part of the next grid points' surprise, now
+        mid.prepare(sess.logp[-1], _due(mid, sess))  # a grid Mid Loop: part of the next grid points' surprise
     sess.last_action = answered
     sess.ticks += 1
     return finite
@@ -130,9 +131,7 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
 def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None) -> bool:
     act_n = np.zeros(mid.act_dim, np.float32) if prev is None else mid.norm.act(prev)
     sess.window.append((point, act_n))
-    due = {h: sess.logp[-s] for h, s in enumerate(mid.horizon_steps)  # predicted at grid point k - s
-           if len(sess.logp) >= s and sess.logp[-s] is not None}
-    scored = mid.surprises(due, point)
+    scored = mid.surprises(_due(mid, sess), point)
     by_h = {name: scored.get(h) for h, name in enumerate(mid.horizon_names)}
     acts = np.stack([a for _, a in sess.window])
     acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
@@ -141,6 +140,11 @@ def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None)
     sess.answer = _fields(mid, pred if finite else None, by_h, sess.ticks, sess.points)
     sess.points += 1
     return finite
+
+
+def _due(mid: Any, sess: MidSession) -> dict[int, Any]:
+    """{horizon index: the prediction the session's next grid point k scores}: made at k - s_h."""
+    return {h: sess.logp[-s] for h, s in enumerate(mid.horizon_steps) if len(sess.logp) >= s and sess.logp[-s] is not None}
 
 
 def answer(slot: Any, served: Any, x: np.ndarray, session: str | None, reset: bool, given: np.ndarray | None,
