@@ -13,10 +13,11 @@ from frame_fixtures import camera_checkpoints, moving_frames
 from grid_mid_fixtures import grid_mid_checkpoint
 
 from hope_models.components.mid_loop.numpy_form import MidLoopRuntime
+from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
 from hope_models.components.vqvae import numpy_frame
 from hope_models.runtime.brain_service import BrainError, BrainService
 
-JOINTS = np.random.default_rng(4).normal(0, 1, (64, 4))
+JOINTS = np.random.default_rng(4).normal(0, 1, (128, 4))
 
 
 @pytest.fixture(scope="module")
@@ -61,19 +62,23 @@ def test_a_session_of_frames_answers_the_joints_ahead_and_the_surprise_of_the_ce
     encodes = []
     real = numpy_frame.FrameEncoder.encode
     monkeypatch.setattr(numpy_frame.FrameEncoder, "encode", lambda self, f: encodes.append(1) or real(self, f))
-    frames = moving_frames(60, seed=3)
+    frames = moving_frames(120, seed=3)
+    ahead = []
+    real_ahead = GridMidLoopNumpy.window_ahead
+    monkeypatch.setattr(GridMidLoopNumpy, "window_ahead", lambda self, *a: ahead.append(1) or real_ahead(self, *a))
     with BrainService(home) as brain:
+        ahead.clear()  # the load's warm-up
         status = brain.status()["mid_loop"]
         assert status["frame_shape"] == [64, 64, 3] and status["grid"] == [16, 16] and status["vqvae_matches_promoted"]
         every = 5  # the fast_loop's 20 ms ticks, the Mid Loop's 100 ms grid
         actions, answers = [], []
-        for t in range(56):
+        for t in range(116):  # 24 grid points: the window (K=20) slides from grid point 20 on
             encodes.clear()
             out = brain.infer("fast_loop", JOINTS[t].tolist(), session="cam", frame=_raw(frames[t]))
             assert len(encodes) == 1  # the tokenizer, the reflex and the Mid Loop read one encode
             actions.append(np.asarray(out["action"]))
             answers.append(out)
-        for t in (0, 25, 50, 55):
+        for t in (0, 25, 50, 55, 100, 105, 115):
             out, k = answers[t], t // every
             assert out["mid_tick"] == k * every and out["mid_grid_point"] == k
             pred, surprise = _expected(mid, frames, JOINTS, actions, k, every)
@@ -86,9 +91,10 @@ def test_a_session_of_frames_answers_the_joints_ahead_and_the_surprise_of_the_ce
                     assert value == pytest.approx(want, rel=1e-6) and value > 0  # float32 sums in another order
             assert out["surprise"] == out["surprise_by_horizon"]["0.5s"]
         # the ticks between grid points prepared each prediction's normalisers (numpy_grid.prepare)
-        memos = list(brain._slots["mid_loop"].sessions["cam"].logp)  # the last: tick 55, a grid point
+        memos = list(brain._slots["mid_loop"].sessions["cam"].logp)  # the last: tick 115, a grid point
         assert all(set(m.lse) == {0, 1} for m in memos[:-1]) and not memos[-1].lse
         assert not any(m.u for m in memos)  # a decoder's hidden is kept only until its grid point
+        assert len(ahead) == 23  # every next window's states were run before its grid point
         assert answers[25]["surprise"] is not None and answers[25]["surprise_by_horizon"]["1s"] is None
         assert answers[50]["surprise_by_horizon"]["1s"] is not None
         # without a session: a fresh one-point window, a prediction and never a surprise

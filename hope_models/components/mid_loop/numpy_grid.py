@@ -23,15 +23,17 @@ Serving (mid_loop/serving.py) keeps, per grid point, the point's input without i
 and what a later surprise needs, y and the codes now: GridMemo), and scores a horizon's cells when
 its target arrives (surprises(): the horizons due at a point in one pass), so no [K, H, G, n]
 tensor is made. Neither the [G, n] logits' normaliser of each cell nor the decoder's hidden
-depends on the target, so the control ticks between grid points (4 of 5 at 20 ms / 100 ms) do
-that work, one horizon's decode a tick (prepare()): the newest prediction's normalisers, then the
-hidden of the predictions the next grid point scores; that grid point then reads one row of
-cell_out per cell (a [G, r] product instead of the decoder, [G, r] x [r, n] and G x n
-exponentials). A session with no tick between grid points, or a prediction not yet prepared, takes
-the whole decode at the grid point (the same figures). Memory per session: G floats a horizon a
-prediction (2 KB at 256 cells) for the longest horizon's points, and the hidden [G, r] of the
-predictions due at the next grid point (32 KB a horizon at rank 32), dropped once scored.
-Torch-free.
+depends on the target, and the next window's points but its last are known a grid step ahead, so
+the control ticks between grid points (4 of 5 at 20 ms / 100 ms) do that work, one step a tick
+(prepare(), then window_ahead()): the newest prediction's normalisers, the hidden of the
+predictions the next grid point scores, the blocks' states over the next window's first K-1
+points. The grid point then runs its new point through one recurrent step a block and reads one
+row of cell_out per cell (a [G, r] product instead of the decoder, [G, r] x [r, n] and G x n
+exponentials). A session with no tick between grid points, or a step not yet done, takes the
+whole of it at the grid point (the same figures). Memory per session: G floats a horizon a
+prediction (2 KB at 256 cells) for the longest horizon's points, the hidden [G, r] of the
+predictions due at the next grid point (32 KB a horizon at rank 32, dropped once scored) and
+n_layers x d_state floats of states. Torch-free.
 """
 from __future__ import annotations
 
@@ -238,20 +240,54 @@ class GridMidLoopNumpy:
 
     def prepare(self, newest: GridMemo, due_next: dict[int, GridMemo]) -> bool:
         """One step of the next grid points' surprise, on a tick between grid points (serving.py):
-        the newest prediction's normaliser for its next horizon, else the decoder's hidden of a
-        prediction the next grid point scores (due_next: {h: memo}). False when nothing is left."""
+        the newest prediction's normalisers (every horizon at once), else the decoder's hidden of
+        the predictions the next grid point scores (due_next: {h: memo}). False when nothing is left."""
         todo = [(newest, h) for h in range(len(self.horizon_steps)) if h not in newest.lse]
-        todo += [(m, h) for h, m in due_next.items() if h not in m.u]
-        if not todo:
-            return False
-        memo, h = todo[0]
-        u = self._cells([(memo, h)])
-        if h not in memo.lse:
+        if todo:
+            u = self._cells(todo)
             top, lse = self._log_norm(self._cell_out(u))
-            memo.lse[h] = (top + lse)[0].astype(np.float64)
-        if due_next.get(h) is memo:
-            memo.u[h] = u[0]
-        return True
+            for i, (memo, h) in enumerate(todo):
+                memo.lse[h] = (top[i] + lse[i]).astype(np.float64)
+                if due_next.get(h) is memo:
+                    memo.u[h] = u[i]
+            return True
+        todo = [(m, h) for h, m in due_next.items() if h not in m.u]
+        if todo:
+            for (memo, h), u in zip(todo, self._cells(todo), strict=True):
+                memo.u[h] = u
+            return True
+        return False
+
+    def window_ahead(self, points: list[GridPoint], acts_n: np.ndarray) -> np.ndarray:
+        """The next window but its last point (points, their normalised previous actions, zeros at
+        the first) -> each block's SSM state after them [n_layers, N]: predict() then runs the new
+        point alone, one recurrent step a block (the same sums as the window's parallel form)."""
+        states = np.zeros((len(self._blocks), self._blocks[0].a.shape[0]), np.float32)
+        if not points:
+            return states
+        x = np.stack([p.x for p in points])
+        x += self._act_in(np.asarray(acts_n, np.float32))
+        length = x.shape[0]
+        for i, blk in enumerate(self._blocks):
+            u = blk.ln1(x, self._mean)
+            h = np.einsum("tsn,sn->tn", blk.kernel[:length, :length], u.dot(blk.bg_t))
+            states[i] = h[-1]
+            if i < len(self._blocks) - 1:  # the last block's outputs are not read: only its state
+                x = x + h.dot(blk.c_t) + u * blk.d
+                x = x + blk.mlp(layer_norm(x, self._mean))
+        return states
+
+    def _step_last(self, x: np.ndarray, ahead: np.ndarray) -> np.ndarray:
+        """The window's last point [d] from the states of the points before it -> y [d] (after ln_f)."""
+        for i, blk in enumerate(self._blocks):
+            u = blk.ln1(x, self._mean)
+            h = blk.a * ahead[i] + u.dot(blk.bg_t)
+            x = x + h.dot(blk.c_t) + u * blk.d
+            x = x + blk.mlp(layer_norm(x, self._mean))
+        y = layer_norm(x, self._mean)
+        y *= self._lnf_w
+        y += self._lnf_b
+        return y
 
     # -- what serving.py calls -------------------------------------------------------------------
     def point(self, values: np.ndarray, codes: np.ndarray | None) -> GridPoint:
@@ -261,12 +297,17 @@ class GridMidLoopNumpy:
         obs_n = self.norm.obs(values)
         return GridPoint(np.asarray(codes), self.point_inputs(codes, obs_n), obs_n)
 
-    def predict(self, points: list[GridPoint], acts_n: np.ndarray) -> tuple[np.ndarray, Any, bool]:
+    def predict(self, points: list[GridPoint], acts_n: np.ndarray,
+                ahead: np.ndarray | None = None) -> tuple[np.ndarray, Any, bool]:
         """The window's last point -> (joints per horizon [H, D] raw units float64, what surprises()
-        reads later, finite)."""
-        x = np.stack([p.x for p in points])
-        x += self._act_in(np.asarray(acts_n, np.float32))
-        y = self._context(x, last_only=True)[-1]
+        reads later, finite). ahead: window_ahead() of points[:-1], acts_n[:-1] (then only the
+        last point is run)."""
+        if ahead is None:
+            x = np.stack([p.x for p in points])
+            x += self._act_in(np.asarray(acts_n, np.float32))
+            y = self._context(x, last_only=True)[-1]
+        else:
+            y = self._step_last(points[-1].x + self._act_in(np.asarray(acts_n[-1], np.float32)), ahead)
         pred = self.norm.raw_obs(self.joints(y, points[-1].obs_n))
         return pred, GridMemo(y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
 
@@ -285,6 +326,7 @@ class GridMidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         _, memo, _ = self.predict([p] * self.window_k, acts)
         self.predict([p], acts[:1])
+        self.predict([p] * self.window_k, acts, self.window_ahead([p] * (self.window_k - 1), acts[1:]))
         every = dict.fromkeys(range(len(self.horizon_steps)), memo)
         self.surprises(every, p)
         while self.prepare(memo, every):

@@ -30,9 +30,10 @@ Besides the fast_loop's action it answers:
 
 The model's part is its form's point() (what the window keeps of a grid point), predict() (the
 window's last point: the prediction, and what a later surprise reads) and surprises(); a grid
-Mid Loop's prepare() is called on the ticks between grid points (numpy_grid.py: the newest
-prediction's per-cell normalisers and the decoder of the predictions the next grid point scores,
-so a grid point's work is spread over the ticks between grid points).
+Mid Loop's prepare() and window_ahead() are called on the ticks between grid points
+(numpy_grid.py: the newest prediction's per-cell normalisers, the decoder of the predictions the
+next grid point scores and the next window's states but its last point, so a grid point's work
+is spread over the ticks between grid points).
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -69,12 +70,14 @@ class MidSession:
     logp: deque = field(default=None)  # what each recent point predicted, for surprise (None: not finite)
     last_action: np.ndarray | None = None  # the action answered on the previous tick (raw)
     answer: dict[str, Any] | None = None
+    ahead: tuple[int, Any] | None = None  # (grid point, a grid form's window_ahead for it)
 
     def __post_init__(self) -> None:
         self.reset(self.version)
 
     def reset(self, version: str) -> None:
         self.version, self.ticks, self.points, self.last_action, self.answer = version, 0, 0, None, None
+        self.ahead = None
         self.window, self.logp = deque(maxlen=self.k), deque(maxlen=self.horizons)
 
 
@@ -122,7 +125,12 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
         finite = _grid_point(mid, sess, mid.point(values, codes),
                              prev_action if prev_action is not None else sess.last_action)
     elif sess.logp and sess.logp[-1] is not None and hasattr(mid, "prepare"):
-        mid.prepare(sess.logp[-1], _due(mid, sess))  # a grid Mid Loop: part of the next grid points' surprise
+        # a grid Mid Loop: part of the next grid point's work, one step a tick (numpy_grid.py)
+        if not mid.prepare(sess.logp[-1], _due(mid, sess)) and sess.ahead is None:
+            earlier = list(sess.window)[max(0, len(sess.window) + 1 - sess.k):]  # the next window but its last
+            acts = np.stack([a for _, a in earlier]) if earlier else np.zeros((0, mid.act_dim), np.float32)
+            acts[:1] = 0.0  # the next window's first point (previous_actions)
+            sess.ahead = (sess.points, mid.window_ahead([p for p, _ in earlier], acts))
     sess.last_action = answered
     sess.ticks += 1
     return finite
@@ -135,7 +143,10 @@ def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None)
     by_h = {name: scored.get(h) for h, name in enumerate(mid.horizon_names)}
     acts = np.stack([a for _, a in sess.window])
     acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
-    pred, memo, finite = mid.predict([p for p, _ in sess.window], acts)
+    ahead = sess.ahead[1] if sess.ahead is not None and sess.ahead[0] == sess.points else None
+    sess.ahead = None
+    points = [p for p, _ in sess.window]
+    pred, memo, finite = mid.predict(points, acts) if ahead is None else mid.predict(points, acts, ahead)
     sess.logp.append(memo if finite else None)
     sess.answer = _fields(mid, pred if finite else None, by_h, sess.ticks, sess.points)
     sess.points += 1
