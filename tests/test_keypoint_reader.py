@@ -31,12 +31,14 @@ def _scenes(n: int, gen: torch.Generator, size: int = 2) -> tuple[torch.Tensor, 
     return ball.reshape(n, -1).long(), centre
 
 
+@pytest.mark.parametrize("draw", ["vectors", "codes"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_drawing_the_codes_back_puts_a_point_on_the_target_without_a_label(seed):
+def test_drawing_the_codes_back_puts_a_point_on_the_target_without_a_label(seed, draw):
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed + 100)
     # several points, as the Fast Loop has (16): one that starts far from everything may stay idle
-    kp = CodeKeypoints(n_codes=4, grid=GRID, keypoints=4, d_out=4, reader="frames")
+    kp = CodeKeypoints(n_codes=4, grid=GRID, keypoints=4, d_out=4, reader="frames", draw=draw, code_dim=8)
+    vectors = torch.nn.functional.layer_norm(torch.randn(4, 8, generator=gen), (8,))  # a codebook's rows
     opt = torch.optim.Adam(kp.parameters(), lr=1e-2)
 
     def miss(codes, centre) -> float:  # frame units from the ball to the nearest point, mean
@@ -48,7 +50,7 @@ def test_drawing_the_codes_back_puts_a_point_on_the_target_without_a_label(seed)
         before = miss(test_codes, test_cell)
     first = last = None
     for _ in range(300):
-        loss = kp.render_loss(_scenes(32, gen)[0])
+        loss = kp.render_loss(_scenes(32, gen)[0], vectors)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -118,9 +120,11 @@ def test_the_view_joint_is_the_observations_first_joint_angle_with_its_statistic
     assert view_joint(reacher, VQVAEConfig(input="vector", obs_dim=4, n_codes=32)) == {"view_joint": -1}
 
 
-def test_the_fast_loop_trains_its_points_on_the_drawing_and_is_validated_on_the_action_alone():
+@pytest.mark.parametrize("draw", ["vectors", "codes"])
+def test_the_fast_loop_trains_its_points_on_the_drawing_and_is_validated_on_the_action_alone(draw):
     torch.manual_seed(0)
-    cfg = FastLoopConfig(obs_dim=4, act_dim=2, n_codes=32, view_joint=0, view_joint_mean=0.5, view_joint_std=2.0)
+    cfg = FastLoopConfig(obs_dim=4, act_dim=2, n_codes=32, view_joint=0, view_joint_mean=0.5, view_joint_std=2.0,
+                         keypoint_draw=draw)
     model = FastLoop(cfg, _grid_vq())
     obs = torch.randn(4, 5, 4)
     assert torch.allclose(model.view_angle(obs), obs[..., 0] * 2.0 + 0.5)
@@ -128,7 +132,8 @@ def test_the_fast_loop_trains_its_points_on_the_drawing_and_is_validated_on_the_
                             codes=np.random.default_rng(0).integers(0, 32, (4, 5, 256)), frames=None)
     comp = FastLoopComponent(None, model, cfg, SimpleNamespace(k=5), "fp")
     loss, metrics = comp.loss(batch)
-    assert metrics["render_ce"] > 0 and math.isclose(float(loss), metrics["mse"] + metrics["render_ce"], rel_tol=1e-5)
+    drawn = metrics["render_ce" if draw == "codes" else "render_mse"]
+    assert drawn > 0 and math.isclose(float(loss), metrics["mse"] + drawn, rel_tol=1e-5)
     assert math.isclose(comp.evaluate(batch)["loss"], comp.evaluate(batch)["mse"], rel_tol=1e-6)
     loss.backward()
     assert model.keypoints.score.weight.grad.abs().sum() > 0  # moved by the drawing
@@ -167,3 +172,30 @@ def test_a_camera_policy_saved_before_the_frames_reader_loads_as_it_was_trained(
     assert np.abs(want - got).max() < 1e-4
     fresh = build_component("fast_loop", camera_spec(), model_config=FAST_SMALL, vqvae_dir=vq).model
     assert (fresh.cfg.keypoint_reader, fresh.cfg.view_joint) == ("frames", 0)  # a new run reads both ways
+
+
+def test_a_camera_policy_that_drew_codes_loads_and_trains_as_it_was_made(tmp_path):
+    """A frames-reader checkpoint from before the vector drawing has no keypoint_draw: its drawing's
+    background is n_codes logits a cell, and it loads (and resumes) with that drawing."""
+    import json
+
+    from frame_fixtures import FAST_SMALL, _save, camera_checkpoints, camera_spec
+
+    from hope_models.components.build import build_component, component_from_checkpoint
+
+    torch.manual_seed(0)
+    vq = camera_checkpoints(tmp_path, "grid")["vq"]
+    old = build_component("fast_loop", camera_spec(), model_config={**FAST_SMALL, "keypoint_draw": "codes"},
+                          vqvae_dir=vq)
+    n_codes = old.model.cfg.n_codes
+    assert old.model.keypoints.render.background.shape == (256, n_codes)
+    ckpt = _save(tmp_path / "old", old)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    del cfg["model_config"]["keypoint_draw"]
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    loaded = component_from_checkpoint(ckpt).model
+    assert loaded.cfg.keypoint_draw == "codes" and loaded.keypoints.draw == "codes"
+    assert torch.equal(loaded.keypoints.render.background, old.model.keypoints.render.background)
+    fresh = build_component("fast_loop", camera_spec(), model_config=FAST_SMALL, vqvae_dir=vq).model
+    assert fresh.cfg.keypoint_draw == "vectors"  # a new run draws the cells' code vectors
+    assert fresh.keypoints.render.background.shape == (256, fresh.vqvae.codebook.shape[1])

@@ -60,6 +60,7 @@ SPEC = ComponentSpec(
     cannot_train=_cannot_train,
     reads_vqvae="optional",
     acts=True,
-    # a camera policy from before the frames reader: keypoints placed by its loss, read unturned
-    stored_defaults={"keypoint_reader": "policy", "view_joint": -1},
+    # a camera policy from before the frames reader: keypoints placed by its loss, read unturned;
+    # from before the vector drawing: its points drew codes
+    stored_defaults={"keypoint_reader": "policy", "view_joint": -1, "keypoint_draw": "codes"},
 )

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from hope_models.components.ssm_config import check_timescales
 
 KEYPOINT_READERS = ("policy", "frames")  # code_keypoints.READERS, without torch
+DRAWINGS = ("vectors", "codes")  # code_keypoints.DRAWINGS
 
 
 @dataclass
@@ -24,6 +25,9 @@ class FastLoopConfig:
     # the policy reads them without gradient; "policy": behaviour cloning alone places them
     keypoint_reader: str = "frames"
     render_weight: float = 1.0  # the drawing loss beside the action's MSE (keypoint_reader "frames")
+    # what a "frames" reader's points draw back: each cell's code vector ("vectors", MSE) or its
+    # code as one of n_codes classes ("codes", cross-entropy: ~30x the work a step)
+    keypoint_draw: str = "vectors"
     # The observation's first joint angle (set from the feature spec: -1 when it has none): the
     # keypoints are also read turned into that joint's frame, where a reach is the same wherever
     # the target stands around the robot. Its mean and std undo the observation's normalisation.
@@ -42,6 +46,8 @@ class FastLoopConfig:
             raise ValueError(f"keypoints={self.keypoints} must be >= 1")
         if self.keypoint_reader not in KEYPOINT_READERS:
             raise ValueError(f"keypoint_reader={self.keypoint_reader!r} must be one of {', '.join(KEYPOINT_READERS)}")
+        if self.keypoint_draw not in DRAWINGS:
+            raise ValueError(f"keypoint_draw={self.keypoint_draw!r} must be one of {', '.join(DRAWINGS)}")
         if not self.render_weight >= 0:
             raise ValueError(f"render_weight={self.render_weight} must be >= 0")
         if not -1 <= self.view_joint < self.obs_dim:

@@ -22,9 +22,11 @@ def layers(cfg: FastLoopConfig, vq: VQVAEConfig | None) -> list[Layer]:
         if view:
             codes.append(Layer("JointView", ((2,),), True, name="keypoints.view"))
         if cfg.keypoint_reader == "frames":
-            # drawn at the acting point only: per window, G cells x n_codes logits once
-            codes.append(Layer("KeypointRender", ((vq.grid_shape[0] * vq.grid_shape[1], cfg.n_codes), (c,)),
-                               True, name="keypoints.render", per_sample=vq.grid_shape[0] * vq.grid_shape[1]))
+            # drawn at the acting point only: per window, G cells x (n_codes logits or a code vector) once
+            cells = vq.grid_shape[0] * vq.grid_shape[1]
+            width = cfg.n_codes if cfg.keypoint_draw == "codes" else vq.code_dim // vq.groups
+            codes.append(Layer("KeypointRender", ((cells, width), (c,)), True, name="keypoints.render",
+                               per_sample=cells))
     elif vq is not None:
         codes = [embedding(cfg.n_codes * vq.groups, d, True, "code_in")]
     return [linear(cfg.obs_dim, d, True, "obs_in"), *codes, layer_norm(d, True, "enc_ln"),

@@ -63,7 +63,8 @@ class FastLoop(nn.Module):
         self.code_in = self.keypoints = None
         if vqvae is not None and vqvae.cfg.input == "frame" and vqvae.cfg.layout == "grid":
             self.keypoints = CodeKeypoints(vqvae.cfg.n_codes, vqvae.cfg.grid_shape, cfg.keypoints, d,
-                                           reader=cfg.keypoint_reader, view_frame=cfg.view_joint >= 0)
+                                           reader=cfg.keypoint_reader, view_frame=cfg.view_joint >= 0,
+                                           draw=cfg.keypoint_draw, code_dim=vqvae.cfg.code_dim // vqvae.cfg.groups)
         elif vqvae is not None:
             self.code_in = nn.Embedding(vqvae.codebook.shape[0], d)
         self.enc_ln = nn.LayerNorm(d)
@@ -112,13 +113,13 @@ class FastLoop(nn.Module):
         return e + self.enc_mlp(self.enc_ln(e))
 
     def _head(self, z: torch.Tensor, obs: torch.Tensor, frames: torch.Tensor | None,
-              codes: torch.Tensor | None) -> torch.Tensor:
+              codes: torch.Tensor | None, located: tuple | None = None) -> torch.Tensor:
         if self.keypoints is not None:
             # Where things are in view enters here, at the acting point only: 256 cells x K points
             # through the SSM cost 5x more per step and a static scene gains nothing from a window.
             if codes is None:
                 codes = self.codes(obs, frames)
-            z = z + self.keypoints(codes, self.view_angle(obs))
+            z = z + self.keypoints(codes, self.view_angle(obs), located)
         z = z + self.head_mlp(self.head_ln(z))
         return self.out(self.out_ln(z))
 
@@ -139,13 +140,16 @@ class FastLoop(nn.Module):
         return x + y
 
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
-                frames: torch.Tensor | None = None, codes: torch.Tensor | None = None) -> torch.Tensor:
+                frames: torch.Tensor | None = None, codes: torch.Tensor | None = None,
+                located: tuple | None = None) -> torch.Tensor:
         """obs [B, K, obs_dim], mask [B, K] (True = real point; the last must be real) -> action [B, act_dim].
         A frame tokenizer's codes come from `frames` [B, K, H, W, 3], or precomputed as `codes` [B, K, G].
 
-        A window longer than K gives the action of its last K points."""
+        A window longer than K gives the action of its last K points. located: the last point's
+        keypoints (where, there), when the drawing has located them this step."""
         last = (lambda t: None if t is None else t[:, -1])  # noqa: E731
-        return self._head(self._trunk(obs, mask, frames, codes)[:, -1], obs[:, -1], last(frames), last(codes))
+        return self._head(self._trunk(obs, mask, frames, codes)[:, -1], obs[:, -1], last(frames), last(codes),
+                          located)
 
     def actions(self, obs: torch.Tensor, mask: torch.Tensor | None = None,
                 frames: torch.Tensor | None = None) -> torch.Tensor:

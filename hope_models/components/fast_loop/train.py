@@ -17,20 +17,23 @@ class FastLoopComponent(TrainingComponent):
     clones_actions = True  # behaviour cloning: play episodes' actions are no labels (validation.anchor_sampler)
 
     def _loss(self, batch, training: bool) -> tuple[torch.Tensor, dict[str, float]]:
-        frames, codes = self._frames(batch), self._codes(batch)
-        pred = self._model(as_tensor(batch.obs), as_tensor(batch.mask), frames, codes)
+        frames, codes, obs = self._frames(batch), self._codes(batch), as_tensor(batch.obs)
+        kp, vq = self._model.keypoints, self._model.vqvae
+        render = located = None
+        if kp is not None and kp.render is not None:  # the points learn from the frames (reader "frames")
+            # the acting point's codes: the ones the keypoints are read from
+            last = codes[:, -1] if codes is not None else self._model.codes(
+                obs[:, -1], frames[:, -1] if frames is not None else None)
+            # the drawing locates the points the policy reads: one softmax over the cells, not two
+            render, located = kp.draw_back(last, vq.codebook[:vq.cfg.n_codes] if vq is not None else None)
+        pred = self._model(obs, as_tensor(batch.mask), frames, codes, located)
         target = as_tensor(batch.target_act)
         mse = F.mse_loss(pred, target)
         # baseline: always predicting the dataset's mean action (0 once normalised)
         metrics = {"mse": mse.item(), "mean_action_mse": float((target * target).mean())}
-        kp = self._model.keypoints
-        if kp is None or kp.render is None:  # no keypoints, or placed by this loss alone
+        if render is None:  # no keypoints, or placed by this loss alone
             return mse, metrics
-        # the acting point's codes: the ones the keypoints are read from
-        last = codes[:, -1] if codes is not None else self._model.codes(
-            as_tensor(batch.obs)[:, -1], frames[:, -1] if frames is not None else None)
-        render = kp.render_loss(last)
-        metrics["render_ce"] = render.item()
+        metrics["render_ce" if kp.draw == "codes" else "render_mse"] = render.item()
         # validation's loss stays the action's MSE: the figure the gate compares between policies
         return (mse + self._model.cfg.render_weight * render if training else mse), metrics
 
