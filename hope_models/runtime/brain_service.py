@@ -35,7 +35,9 @@ waits for the webapp's registry write (`wait_hooks()` waits for it; `stop()` run
 A hook that raises is logged, never propagated. A refused pointer is not retried until it changes.
 
 Torch-free (the `serve` process's memory budget has no room for torch): each NumPy form is tested
-equal to its torch model.
+equal to its torch model. Construction puts NumPy's OpenBLAS on one thread for the whole process
+(blas_threads.py, no environment variable a child would inherit; `self.blas_threads` says what was
+done): its default of a thread per core made the frame answer ~15x slower on busy cores.
 
 A request is one control tick of a session and answers from every served component that reads the
 observation's layout; `component` names the one the caller needs (503 while it is not served).
@@ -81,7 +83,7 @@ from hope_models.components import ACTOR, COMPONENTS, PREDICTOR, TOKENIZER
 from hope_models.components.checkpoint_checks import CheckpointRefused
 from hope_models.components.mid_loop import serving as mid_serving
 from hope_models.promoted import PointerError, pointer_path, read_pointer
-from hope_models.runtime import brain_input, fast_sessions
+from hope_models.runtime import blas_threads, brain_input, fast_sessions
 from hope_models.runtime.brain_input import MAX_ABS_OBSERVATION, MAX_SESSIONS, BrainError, observation_values
 from hope_models.runtime.brain_seen import check_frame, describe_shape, frame_shape
 from hope_models.runtime.brain_status import status_extra
@@ -139,6 +141,9 @@ class BrainService:
             raise ValueError(f"BrainService: poll_s={poll_s!r} must be within (0, 1] (changes are noticed within 1 s)")
         if max_sessions < 1:
             raise ValueError(f"BrainService: max_sessions={max_sessions} must be >= 1")
+        # every serving process builds one before it answers: NumPy's BLAS on one thread for this
+        # process only (blas_threads.py; children keep their own defaults)
+        self.blas_threads = blas_threads.limit_numpy_blas_threads()
         self.home = Path(home)
         self.poll_s = float(poll_s)
         self.max_sessions = int(max_sessions)
