@@ -108,7 +108,7 @@ def open_openblas(path: str) -> OpenBlas | None:
     return None
 
 
-def numpy_openblas() -> OpenBlas | None | str:
+def numpy_openblas() -> OpenBlas | str:
     """NumPy's loaded OpenBLAS, or a sentence saying why there is none to use."""
     paths = mapped_openblas()
     if paths is None:
