@@ -50,7 +50,7 @@ def test_drawing_the_codes_back_puts_a_point_on_the_target_without_a_label(seed,
         before = miss(test_codes, test_cell)
     first = last = None
     for _ in range(300):
-        loss = kp.render_loss(_scenes(32, gen)[0], vectors)
+        loss, _ = kp.draw_back(_scenes(32, gen)[0], vectors)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -66,7 +66,7 @@ def test_drawing_the_codes_back_puts_a_point_on_the_target_without_a_label(seed,
 def test_a_policy_reader_has_no_drawing():
     kp = CodeKeypoints(n_codes=4, grid=GRID, keypoints=2, d_out=4)
     with pytest.raises(AssertionError, match="no drawing"):
-        kp.render_loss(torch.zeros(1, 64, dtype=torch.long))
+        kp.draw_back(torch.zeros(1, 64, dtype=torch.long))
     with pytest.raises(ValueError, match="keypoint reader='x'"):
         CodeKeypoints(n_codes=4, grid=GRID, keypoints=2, d_out=4, reader="x")
 

@@ -28,8 +28,8 @@ from hope_models.components.numpy_keypoints import cell_centres as _cell_centres
 READERS = ("policy", "frames")
 DRAWINGS = ("vectors", "codes")  # fast_loop/config.py DRAWINGS, without torch
 RENDER_SIGMA = 0.15  # frame units ([-1, 1] across): a point's drawing reaches about one cell either side
-# The drawing's cross-entropy over G cells x n_codes is most of a training step's cost: it is taken
-# on this many frames of the batch (a probe drawing 32 frames a step put one point on the reacher's
+# Drawing "codes": its cross-entropy over G cells x n_codes is most of a training step's cost, so it
+# is taken on this many frames of the batch (a probe drawing 32 frames a step put one point on the reacher's
 # target to 0.9 cm, held-out, within 3000 steps: docs/reflex.md).
 RENDER_BATCH = 32
 # READER_GAIN: the drawing's logits and a "frames" reader's scores are used times this gain. Adam
@@ -50,7 +50,7 @@ def cell_centres(grid: tuple[int, int]) -> torch.Tensor:
 
 class CodeKeypoints(nn.Module):
     """reader "policy": the keypoints are whatever the loss of their user makes of them.
-    reader "frames": they are learned by drawing the codes back from them (render_loss), and their
+    reader "frames": they are learned by drawing the codes back from them (draw_back), and their
     user reads them without gradient. view_frame adds each point turned into the frame of a joint."""
 
     def __init__(self, n_codes: int, grid: tuple[int, int], keypoints: int, d_out: int, *,
@@ -103,11 +103,15 @@ class CodeKeypoints(nn.Module):
         # logsumexp over the cells = s - log_softmax(s) at any cell, without a second pass
         return w, where, s[..., 0] - log_w[..., 0] - self._log_g
 
-    def forward(self, codes: torch.Tensor, angle: torch.Tensor | None = None,
+    def forward(self, codes: torch.Tensor | None, angle: torch.Tensor | None = None,
                 located: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """codes [..., G] (long, cell-local), angle [...] (radians; view_frame only) -> [..., d_out].
         located: these codes' (where, there) when already computed (draw_back's, the same step)."""
-        where, there = self.locate(codes) if located is None else located
+        if located is None:
+            if codes is None:
+                raise ValueError("pass the codes, or the points located from them")
+            located = self.locate(codes)
+        where, there = located
         if self.reader == "frames":
             where, there = where.detach(), there.detach()
         feats = [where.flatten(-2), there]
@@ -116,9 +120,6 @@ class CodeKeypoints(nn.Module):
                 raise ValueError("this keypoint reader turns its points into a joint's frame: pass the joint angle")
             feats += turned(where - self.view.pivot, angle)
         return self.out(torch.cat(feats, -1))
-
-    def render_loss(self, codes: torch.Tensor, vectors: torch.Tensor | None = None) -> torch.Tensor:
-        return self.draw_back(codes, vectors)[0]
 
     def draw_back(self, codes: torch.Tensor, vectors: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
@@ -143,14 +144,20 @@ class CodeKeypoints(nn.Module):
         w, where, there = self._located(self._scores(codes))  # [N, C, G], [N, C, 2], [N, C]
         if self.draw == "vectors":
             return self._blend_loss(codes, w, where, vectors), (where.detach(), there.detach())
-        # |c - p|^2 expanded: a [C, 2] x [2, G] product instead of a [N, C, G, 2] difference
-        d2 = (self.centres.pow(2).sum(-1) - 2.0 * where @ self.centres.T) + where.pow(2).sum(-1, keepdim=True)
-        heat = torch.exp(d2 * (-1.0 / (self.sigma * self.sigma)))  # [N, C, G]
+        heat = self._log_near(where, torch.zeros_like(self.render.strength)).exp()  # [N, G, C]
         under = torch.zeros(codes.shape[0], self.keypoints, self.n_codes, dtype=w.dtype)
         under.scatter_add_(2, codes[:, None, :].expand(-1, self.keypoints, -1), w)  # [N, C, n_codes]
         drawn = under * self.render.strength[None, :, None]
-        logits = (self.render.background + torch.einsum("ncg,nck->ngk", heat, drawn)) * self.gain
+        logits = (self.render.background + torch.einsum("ngc,nck->ngk", heat, drawn)) * self.gain
         return nn.functional.cross_entropy(logits.reshape(-1, self.n_codes), codes.reshape(-1)), None
+
+    def _log_near(self, where: torch.Tensor, log_strength: torch.Tensor) -> torch.Tensor:
+        """log(strength_c x exp(-|cell g - point c|^2 / sigma^2)) [N, G, C] for points where [N, C, 2]:
+        |c - p|^2 expanded, k |c|^2 + (k |p|^2 + log strength) - 2k c.p, one broadcast add and one
+        product instead of a [N, C, G, 2] difference."""
+        k = -1.0 / (self.sigma * self.sigma)
+        near = (self.centres.pow(2).sum(-1) * k)[None, :, None] + (where.pow(2).sum(-1) * k + log_strength)[:, None, :]
+        return torch.baddbmm(near, self.centres.expand(where.shape[0], -1, -1), where.transpose(1, 2), alpha=-2.0 * k)
 
     def _blend_loss(self, codes: torch.Tensor, w: torch.Tensor, where: torch.Tensor,
                     vectors: torch.Tensor) -> torch.Tensor:
@@ -162,11 +169,7 @@ class CodeKeypoints(nn.Module):
         # [N, G, D]: what each cell holds (the frozen codebook's rows); index_select, not [codes]: 1/4 the time
         held = vectors.detach().index_select(0, codes.reshape(-1)).view(n, self.cells, -1)
         drawn = w @ held  # [N, C, D]
-        k = -1.0 / (self.sigma * self.sigma)
-        # log a = k |c|^2 + (k |p|^2 + log strength) - 2k c.p : one broadcast add and one product
-        near = (self.centres.pow(2).sum(-1) * k)[None, :, None] + (
-            where.pow(2).sum(-1) * k + self.render.strength * self.gain)[:, None, :]
-        a = torch.baddbmm(near, self.centres.expand(n, -1, -1), where.transpose(1, 2), alpha=-2.0 * k).exp()
+        a = self._log_near(where, self.render.strength * self.gain).exp()  # [N, G, C]
         num = torch.baddbmm(self.render.background * self.gain, a, drawn)  # [N, G, D]
         pred = num / (1.0 + a.sum(-1, keepdim=True))
         return nn.functional.mse_loss(pred, held)
@@ -189,7 +192,7 @@ class KeypointRender(nn.Module):
         super().__init__()
         self.background = nn.Parameter(torch.zeros(cells, width))
         self.strength = nn.Parameter(torch.full((keypoints,), float(strength)))
-        self.estimate_per_sample = cells  # train/estimate.py: G cells x n_codes logits per sample, once
+        self.estimate_per_sample = cells  # train/estimate.py: G cells x width values per sample, once
 
 
 def turned(r: torch.Tensor, angle: torch.Tensor) -> list[torch.Tensor]:

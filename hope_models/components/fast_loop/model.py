@@ -117,7 +117,7 @@ class FastLoop(nn.Module):
         if self.keypoints is not None:
             # Where things are in view enters here, at the acting point only: 256 cells x K points
             # through the SSM cost 5x more per step and a static scene gains nothing from a window.
-            if codes is None:
+            if codes is None and located is None:  # located: the drawing has read the codes already
                 codes = self.codes(obs, frames)
             z = z + self.keypoints(codes, self.view_angle(obs), located)
         z = z + self.head_mlp(self.head_ln(z))

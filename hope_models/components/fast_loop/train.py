@@ -25,7 +25,7 @@ class FastLoopComponent(TrainingComponent):
             last = codes[:, -1] if codes is not None else self._model.codes(
                 obs[:, -1], frames[:, -1] if frames is not None else None)
             # the drawing locates the points the policy reads: one softmax over the cells, not two
-            render, located = kp.draw_back(last, vq.codebook[:vq.cfg.n_codes] if vq is not None else None)
+            render, located = kp.draw_back(last, vq.codebook[:vq.cfg.n_codes])  # keypoints read a VQ-VAE's grid
         pred = self._model(obs, as_tensor(batch.mask), frames, codes, located)
         target = as_tensor(batch.target_act)
         mse = F.mse_loss(pred, target)

@@ -195,6 +195,8 @@ class MidLoopRuntime:
     """What BrainService loads a mid_loop checkpoint with: the form its VQ-VAE asks for (a grid frame
     VQ-VAE's cells: numpy_grid.GridMidLoopNumpy; a vector VQ-VAE's codes: MidLoopNumpy)."""
 
+    name = "mid_loop"  # the component it serves, as every RUNTIME names it
+
     @staticmethod
     def from_checkpoint(path: str | Path, *, expected_sha256: str | None = None,
                         verify_manifest: bool = False) -> "MidLoopNumpy | GridMidLoopNumpy":

@@ -176,9 +176,14 @@ class GridMidLoopNumpy:
     def cell_logits(self, y: np.ndarray, h: int, now: np.ndarray) -> np.ndarray:
         """Context [..., d], horizon index h, codes now [..., G] -> logits [..., G, n_codes] of each
         cell's code s_h grid points later (GridMidLoop.cell_logits)."""
-        z = self._cell_ctx[h](y)[..., None, :] + self._cell_pos + self._cell_code[now]  # [..., G, r]
+        return self._cell_out(self._hidden(self._cell_ctx[h](y), now))
+
+    def _hidden(self, ctx: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """The shared cell decoder's last hidden u [..., G, r] from a horizon's context ctx [..., r]
+        and the codes now [..., G]."""
+        z = ctx[..., None, :] + self._cell_pos + self._cell_code[now]  # [..., G, r]
         z += self._cell_mlp(layer_norm(z, self._mean_r))
-        return self._cell_out(z)
+        return z
 
     def cell_log_probs(self, y: np.ndarray, h: int, now: np.ndarray) -> np.ndarray:
         """log P of every code of every cell [..., G, n] (float64): the decoder's mixed with copy-last's."""
@@ -200,10 +205,7 @@ class GridMidLoopNumpy:
 
     def _cells(self, due: list[tuple[GridMemo, int]]) -> np.ndarray:
         """The shared cell decoder's last hidden u [M, G, r] of several (prediction, horizon)."""
-        ctx = np.stack([self._cell_ctx[h](m.y) for m, h in due])  # [M, r]
-        z = ctx[:, None, :] + self._cell_pos + self._cell_code[np.stack([m.now for m, _ in due])]  # [M, G, r]
-        z += self._cell_mlp(layer_norm(z, self._mean_r))
-        return z
+        return self._hidden(np.stack([self._cell_ctx[h](m.y) for m, h in due]), np.stack([m.now for m, _ in due]))
 
     def _log_norm(self, logits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each cell's max [M, G] and log sum exp(logits - max) [M, G], float32 like torch's
