@@ -56,7 +56,7 @@ def test_the_camera_observation_holds_the_joints_and_the_frame_and_nothing_privi
         assert all(f.shape == (64, 64, 3) and f.dtype == np.uint8 for f in frames)
         assert not np.array_equal(frames[0], frames[-1])  # the arm moved and the camera saw it
         sim = json.loads((Path(ep["path"]) / "metadata.json").read_text())["provenance"]["sim"]
-        assert sim["observation"] == "camera" and sim["frame_size"] == 64
+        assert sim["observation"] == "camera" and sim["frame_size"] == 64 and sim["render"] == "flat"
     # the joints are the state's own
     for cam_ep, state_ep in zip(camera, state, strict=True):
         for c, s in zip(_steps(cam_ep["path"]), _steps(state_ep["path"]), strict=True):

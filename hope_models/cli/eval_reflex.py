@@ -12,6 +12,9 @@ object is printed:
      "random_success_rate", "reached", "per_episode": [{"seed", "return", "success", "time_to_reach_s",
      "expert_return", "random_return"}], "elapsed_s"}
 
+and, for a camera reflex, "render": {"style", "from"}: how its frames were drawn (`--render`, or by
+default as in the episodes it was trained on: hope_models/promote/render_style.py).
+
 `--checkpoint promoted` reads the promotion pointer $HOPE_HOME/promoted/fast_loop.json, a JSON object
 whose "checkpoint" names the checkpoint dir (absolute, or relative to $HOPE_HOME). Until a fast_loop
 has been promoted there is none, and the command says so (exit 2).
@@ -68,7 +71,7 @@ POINTER_FILE = "fast_loop.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hope_models.sim.reacher import TASKS  # lazy: loads numpy
+    from hope_models.sim.reacher import RENDER_STYLES, TASKS  # lazy: loads numpy
 
     parser.add_argument("--checkpoint", required=True, metavar="PATH|promoted",
                         help="a fast_loop run dir or checkpoints/<step> dir, or 'promoted' for the promoted one")
@@ -76,6 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=non_negative_int, default=0,
                         help="first seed (default 0); seeds S..S+N-1, held out from sim-demos' default 100000+")
     parser.add_argument("--task", choices=TASKS, default="reach", help="reach or track (default reach)")
+    parser.add_argument("--render", choices=RENDER_STYLES, default=None,
+                        help="how a camera reflex's frames are drawn (default: as in the episodes it was trained on, "
+                             "provenance.sim.render; flat when they are not here)")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1: one tick is tiny)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     add_result_argument(parser)
@@ -246,6 +252,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(args, str(exc))
     if (problem := _camera_gl(policy, args)) is not None:
         return _fail(args, problem)
+    if args.render is not None:
+        policy.render_style, policy.render_from = args.render, "--render"
     seeds = list(range(args.seed, args.seed + args.episodes))
     stream = on_tick = surprise = None
     if args.stream_frames is not None:
@@ -281,7 +289,9 @@ def run(args: argparse.Namespace) -> int:
             for p, e, r in zip(res.episodes, expert.episodes, rand.episodes, strict=True)],
         "elapsed_s": round(time.perf_counter() - started, 2),
     }
-    extras = {"target_jump_s": jump, "frames": None if stream is None else stream.summary(), "surprise": surprise}
+    camera = {"style": policy.render_style, "from": policy.render_from} if policy.frame is not None else None
+    extras = {"render": camera, "target_jump_s": jump, "frames": None if stream is None else stream.summary(),
+              "surprise": surprise}
     out.update({k: v for k, v in extras.items() if v is not None})
     write_result(args.result_file, out)
     if args.json:

@@ -15,7 +15,8 @@ FastLoop.forward over the last K observations of the episode (window-exact; test
 
 A fast_loop over a frame tokenizer also reads the camera: the observation dict carries the frame
 (uint8 [H, W, 3], the spec's size) at the spec's camera path (`observation.camera` for the
-reacher's camera observation); `frame_size` says which, and evaluate.run_episode renders it.
+reacher's camera observation); `frame_size` says which, and evaluate.run_episode renders it in
+`render_style`, the style of the frames it was trained on (render_style.py).
 
 `from_checkpoint` refuses what this runtime cannot drive, with the reason: a component that is not
 a fast_loop, a frame fast_loop whose spec names no camera, or (by default) a spec whose fields are not the
@@ -40,7 +41,8 @@ import numpy as np
 from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, version_name
 from hope_models.checkpoints import open_checkpoint
 from hope_models.components import ACTOR
-from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS
+from hope_models.promote.render_style import trained_render_style
+from hope_models.sim.reacher import ACTION_FIELD, ACTION_HIGH, ACTION_LOW, OBS_FIELDS, RENDER_STYLE
 
 SIM_OBSERVATION: tuple[tuple[str, int], ...] = OBS_FIELDS
 SIM_ACTION: tuple[tuple[str, int], ...] = (ACTION_FIELD,)
@@ -112,6 +114,7 @@ class ReflexPolicy:
         self.action_bounds = action_bounds
         # A camera reflex reads the frame at the spec's camera path of each observation (uint8 [H, W, 3]).
         self.frame = spec.frame if model.wants_frames else None
+        self.render_style, self.render_from = RENDER_STYLE, "the default"  # how evaluate draws its frames
         self.ticks = 0
         self._state = None
         self.reset()
@@ -144,7 +147,10 @@ class ReflexPolicy:
             raise ReflexPolicyError(f"{where}: this fast_loop reads camera frames but its feature spec names no "
                                     "camera (frame) to read them from")
         check_spec(comp.spec, where, expect_observation, expect_action)
-        return cls(comp.model, comp.spec, version, action_bounds, ckpt)
+        policy = cls(comp.model, comp.spec, version, action_bounds, ckpt)
+        if policy.frame is not None:  # evaluated on frames drawn like the ones it learned from
+            policy.render_style, policy.render_from = trained_render_style(ckpt)
+        return policy
 
     # -- the tick -------------------------------------------------------------------------------
     def reset(self) -> None:

@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from hope_models.sim.expert import ExpertController, RandomPolicy
-from hope_models.sim.reacher import CAMERA_KEY, CONTROL_PERIOD_S, EPISODE_STEPS, TASKS, make_env
+from hope_models.sim.reacher import CAMERA_KEY, CONTROL_PERIOD_S, EPISODE_STEPS, RENDER_STYLE, TASKS, make_env
 
 REACH_DEADLINE_S = 2.0
 ON_TARGET_FRACTION = 0.8
@@ -120,7 +120,8 @@ def run_episode(policy, task: str, seed: int, steps: int = EPISODE_STEPS, frames
     reacher.make_env's target jump."""
     # A policy with a frame_size sees what a robot has: the joints and the camera, nothing else.
     frame_size = getattr(policy, "frame_size", None)
-    env = make_env(task, seed, frames=frames is not None or frame_size is not None, target_jump_s=target_jump_s)
+    env = make_env(task, seed, frames=frames is not None or frame_size is not None, target_jump_s=target_jump_s,
+                   render_style=getattr(policy, "render_style", RENDER_STYLE))
     obs = env.reset()
     reset = getattr(policy, "reset", None)
     if reset is not None:

@@ -57,7 +57,7 @@ commands in [-1, 1] (gear 0.05 N m).
 Rendering: MUJOCO_GL picks MuJoCo's GL backend and must be set before dm_control is first imported.
 This module sets it (os.environ.setdefault, so a value the user exported wins) to "disabled" unless
 frames are asked for, in which case it sets "egl" (headless GPU/Mesa rendering). Frames are 64x64
-uint8 RGB from the fixed top-down camera. A process that imported dm_control with "disabled" cannot
+uint8 RGB from the fixed top-down camera, drawn "flat" by default (RENDER_STYLES). A process that imported dm_control with "disabled" cannot
 render later: `make_env(..., frames=True)` then raises a RuntimeError saying so.
 """
 from __future__ import annotations
@@ -78,6 +78,12 @@ FRAME_SIZES = (64, 96)  # what the camera observation renders (the cache's frame
 OBSERVATIONS = ("state", "camera")  # the engineered state (with target_offset) / what a robot has
 CAMERA_KEY = "camera"
 CAMERA = "fixed"  # top-down camera of reacher.xml
+# How frames are drawn. "flat" turns off the shadow map and the floor's reflection: under Mesa's
+# software rasteriser they were ~90 % of a 64x64 frame's cost (25 ms against 3.5 ms, antialiasing
+# kept), and a robot's own camera shows no mirror floor. "shaded": MuJoCo's defaults, what the
+# recordings before 2026-12-07 hold (an episode's provenance.sim.render says which; none = shaded).
+RENDER_STYLES = ("flat", "shaded")
+RENDER_STYLE = "flat"
 
 LINK_LENGTHS_M = (0.12, 0.12)  # shoulder->wrist, wrist->fingertip (reacher.xml)
 TARGET_SIZE_M = 0.05  # reacher/easy target radius
@@ -231,9 +237,14 @@ def jump_position(seed: int, old_xy) -> tuple[float, float]:
 class ReacherEnv:
     """One seeded episode source: reset() -> obs, step(action) -> (obs, reward, done)."""
 
-    def __init__(self, task: str = "reach", seed: int = 0, frames: bool = False, target_jump_s: float | None = None):
+    def __init__(self, task: str = "reach", seed: int = 0, frames: bool = False, target_jump_s: float | None = None,
+                 render_style: str = RENDER_STYLE):
         if task not in TASKS:
             raise ValueError(f"task {task!r} is not one of {', '.join(TASKS)}")
+        if render_style not in RENDER_STYLES:
+            raise ValueError(f"render style {render_style!r} is not one of {', '.join(RENDER_STYLES)}")
+        self.render_style = render_style
+        self._cameras: dict[int, Any] = {}  # by frame size: one scene each, kept (a new one per frame costs ~2 ms)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed={seed!r} must be a non-negative integer")
         self.task_name, self.seed, self.frames = task, int(seed), frames
@@ -334,11 +345,24 @@ class ReacherEnv:
         """The current scene from the top-down camera, uint8 [size, size, 3]."""
         if not self.frames:
             raise RuntimeError("this env was made without frames=True (MUJOCO_GL must be a GL backend)")
-        return np.ascontiguousarray(self.physics.render(size, size, camera_id=CAMERA), dtype=np.uint8)
+        camera = self._cameras.get(size)
+        if camera is None:
+            camera = self._cameras[size] = self._camera(size)
+        return np.ascontiguousarray(camera.render(), dtype=np.uint8)
+
+    def _camera(self, size: int):
+        from dm_control.mujoco.engine import Camera  # lazy: loads dm_control
+        from dm_control.mujoco.wrapper.mjbindings import enums  # lazy: loads dm_control
+
+        camera = Camera(self.physics, size, size, camera_id=CAMERA)
+        if self.render_style == "flat":
+            camera.scene.flags[enums.mjtRndFlag.mjRND_SHADOW] = 0
+            camera.scene.flags[enums.mjtRndFlag.mjRND_REFLECTION] = 0
+        return camera
 
 
 def make_env(task: str = "reach", seed: int = 0, frames: bool = False,
-             target_jump_s: float | None = None) -> ReacherEnv:
+             target_jump_s: float | None = None, render_style: str = RENDER_STYLE) -> ReacherEnv:
     """A seeded reacher env for `task` ("reach" or "track"); frames=True needs MUJOCO_GL=egl;
-    target_jump_s: move the target at that time (the module docstring)."""
-    return ReacherEnv(task, seed, frames, target_jump_s)
+    target_jump_s: move the target at that time (the module docstring); render_style: RENDER_STYLES."""
+    return ReacherEnv(task, seed, frames, target_jump_s, render_style)

@@ -35,7 +35,7 @@ fast_loop never clones them; noise is refused (the executed command already is t
 
 Metadata: schema_version "1.1", robot_model "dmc-reacher", environment_id "dm_control/reacher-<task>",
 provenance.origin = `origin` ("sim:dm_control"), provenance.sim = {task, seed, control_period_s,
-noise_std, policy, observation, frame_size (with frames)}, tags ["sim", "dm_control", "reacher", <task>, ...tags], xr_mode "workstation",
+noise_std, policy, observation, frame_size and render (with frames)}, tags ["sim", "dm_control", "reacher", <task>, ...tags], xr_mode "workstation",
 control_role "sim_expert" (outside the documented human roles, so validation gives one warning:
 undocumented value kept as a string; the episode is accepted), software versions. Every episode is
 validated with the train profile before it is written; an error there is a bug and raises.
@@ -60,6 +60,8 @@ from hope_models.sim.reacher import (
     FRAME_SIZE,
     FRAME_SIZES,
     OBSERVATIONS,
+    RENDER_STYLE,
+    RENDER_STYLES,
     ROBOT_MODEL,
     TASKS,
     camera_observation,
@@ -180,7 +182,7 @@ def _is_play(policy) -> bool:
 def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, noise: float | None = None,
                    origin: str = DEFAULT_ORIGIN, tags: Sequence[str] = (), episode_id: str | None = None,
                    frame_dir: str | Path | None = None, steps: int = EPISODE_STEPS, observation: str = "state",
-                   frame_size: int = FRAME_SIZE) -> tuple[Episode, float]:
+                   frame_size: int = FRAME_SIZE, render_style: str = RENDER_STYLE) -> tuple[Episode, float]:
     """One episode as an in-memory canonical Episode (frames saved under frame_dir/blobs/), and its
     return (the sum of the rewards of the executed actions). policy="play" records play;
     observation="camera" records the joints and the camera frame instead of the state (frames on)."""
@@ -200,7 +202,7 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
     policy = PlayPolicy(seed) if play else policy if policy is not None else ExpertController()
     is_expert = isinstance(policy, ExpertController)
     noisy = bool(noise)
-    env = make_env(task, seed, frames=frames)
+    env = make_env(task, seed, frames=frames, render_style=render_style)
     obs = env.reset()
     if hasattr(policy, "reset"):
         policy.reset()
@@ -226,7 +228,7 @@ def record_episode(task: str, seed: int, policy=None, *, frames: bool = False, n
                                         "control_period_s": CONTROL_PERIOD_S,
                                         "noise_std": float(noise) if noisy else 0.0, "policy": str(policy_name),
                                         "observation": observation,
-                                        **({"frame_size": frame_size} if frames else {}),
+                                        **({"frame_size": frame_size, "render": render_style} if frames else {}),
                                         **({"policy_config": policy.config()} if hasattr(policy, "config") else {}),
                                         "return": total},
                             })
@@ -239,7 +241,8 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
                    policy=None, frames: bool = False, noise: float | None = None, origin: str = DEFAULT_ORIGIN,
                    tags: Sequence[str] = (), episode_id_prefix: str = "dmc-reacher",
                    progress: Callable[[RecordedEpisode], None] | None = None,
-                   steps: int = EPISODE_STEPS, observation: str = "state", frame_size: int = FRAME_SIZE) -> RecordResult:
+                   steps: int = EPISODE_STEPS, observation: str = "state", frame_size: int = FRAME_SIZE,
+                   render_style: str = RENDER_STYLE) -> RecordResult:
     """record_episodes with the per-episode returns (see the module doc); `steps` shortens the
     episodes (smoke tests), the default is the full 1000. policy="play" records play episodes."""
     if task not in TASKS:
@@ -257,6 +260,8 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
         raise ValueError(f"observation={observation!r} must be one of {', '.join(OBSERVATIONS)}")
     if frame_size not in FRAME_SIZES:
         raise ValueError(f"frame_size={frame_size} must be one of {', '.join(map(str, FRAME_SIZES))}")
+    if render_style not in RENDER_STYLES:
+        raise ValueError(f"render_style={render_style!r} must be one of {', '.join(RENDER_STYLES)}")
     frames = frames or observation == "camera"
     ids = [episode_id_for(episode_id_prefix, task, seed + i, _is_play(policy)) for i in range(episodes)]
     taken = [i for i in ids if (out / i).exists()]
@@ -270,7 +275,7 @@ def record_dataset(out_dir: str | Path, episodes: int, seed: int = DEFAULT_SEED_
         with tempfile.TemporaryDirectory(prefix=".frames-", dir=out) as tmp:
             ep, ret = record_episode(task, s, policy, frames=frames, noise=noise, origin=origin, tags=tags,
                                      episode_id=ep_id, frame_dir=tmp if frames else None, steps=steps,
-                                     observation=observation, frame_size=frame_size)
+                                     observation=observation, frame_size=frame_size, render_style=render_style)
             errors = [p for p in validate_episode(ep, "train") if p.severity == "error"]
             if errors:
                 raise RuntimeError(f"recorded episode {ep_id} fails the train profile: "
