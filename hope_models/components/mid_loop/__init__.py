@@ -56,4 +56,5 @@ SPEC = ComponentSpec(
     held_out=held_out.held_out,
     held_out_line=held_out.held_out_line,
     baselines=held_out.baselines,
+    stored_defaults={"grid_world_model": 0},  # grid checkpoints before it have no wm_* weights
 )

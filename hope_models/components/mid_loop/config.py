@@ -20,7 +20,7 @@ class MidLoopConfig:
     dropout: float = 0.1  # on the SSM's input and the head's: a few dozen episodes overfit without it
     # The action-conditioned world model (mid_loop.py, "World model"): from the context at a grid
     # point, the exact observation there and the actions held over the next wm_horizon grid steps,
-    # the observation after each of them. 0 = none. A vector VQ-VAE only (it predicts vectors).
+    # the observation after each of them. 0 = none. Over a grid frame VQ-VAE: the joints (grid_world_model).
     wm_horizon: int = 4
     wm_hidden: int = 128
     wm_weight: float = 1.0  # of its MSE (normalised units) beside the codes' NLL in the loss
@@ -37,6 +37,10 @@ class MidLoopConfig:
     # (grid_metrics.py): on held-out episodes the decoder alone is sure of changes that do not come
     copy_mix: float = 0.2
     joint_weight: float = 1.0  # of the joints' MSE (normalised units) beside the codes' NLL per cell
+    # the grid Mid Loop's world model (wm_* heads, wm_horizon steps): the joints after each held action,
+    # what `imagine --method model` plans in on a camera robot; 1 = it has one, 0 = none (the grid
+    # checkpoints made before it: mid_loop's stored_defaults)
+    grid_world_model: int = 1
 
     def ssm_config(self) -> SSMConfig:
         return SSMConfig(self.d_model, self.d_state, self.n_layers, self.mlp_ratio, self.min_timescale,
@@ -60,4 +64,6 @@ class MidLoopConfig:
         if not self.joint_weight >= 0 or not 0.0 < self.stay_sample <= 1.0 or not 0.0 <= self.copy_mix < 1.0:
             raise ValueError(f"joint_weight={self.joint_weight} must be >= 0, stay_sample={self.stay_sample} "
                              f"within (0, 1] and copy_mix={self.copy_mix} within [0, 1)")
+        if self.grid_world_model not in (0, 1):
+            raise ValueError(f"grid_world_model={self.grid_world_model} must be 1 (a world model over the joints) or 0")
         check_timescales(self.min_timescale, self.max_timescale)

@@ -25,7 +25,12 @@ camera world model that forgets where its arm is cannot plan with it. The code h
 vector Mid Loop's, are not conditioned on actions still to be taken (only on the past ones).
 
 Two forms: context() over a window, init_state()/step() one grid point at a time (the same
-context at every point from a zero state, tested). No action-conditioned world model (wm_*) yet.
+context at every point from a zero state, tested).
+
+World model (wm_*, when wm_horizon > 0 and grid_world_model): model.py's action-conditioned heads over
+the joints, h = wm_enc(context y detached, joints_k); h <- h + wm_cell(h, act_{k+i}); joints_{k+i+1} =
+joints_k + wm_out(h): what `imagine --method model` plans in (hope_models/imagine/). The frame of an
+imagined step is not predicted here: imagine/frame_goal.py draws it from the joints.
 Its torch-free form is numpy_grid.py (GridMidLoopNumpy, equal to this one in eval mode: what
 BrainService serves, the joints ahead and each cell's code distribution mixed with copy-last).
 """
@@ -39,6 +44,7 @@ from torch import nn
 from hope_models.components.code_keypoints import CodeKeypoints
 from hope_models.components.mid_loop.config import MidLoopConfig
 from hope_models.components.mid_loop.layers import decoded_cells
+from hope_models.components.mid_loop.model import MidLoop
 from hope_models.components.ssm import GatedMLP, SSMStack, count_params
 from hope_models.components.vqvae.config import VQVAEConfig
 from hope_models.components.vqvae.model import VQVAE
@@ -77,6 +83,12 @@ class GridMidLoop(nn.Module):
         self.cell_mlp = GatedMLP(r, 2 * r)
         self.cell_out = nn.Linear(r, n)  # V and a bias: one row per code of the shared codebook
         self.joint_out = nn.Linear(d, h * cfg.obs_dim)
+        self.wm_enc = self.wm_cell = self.wm_out = None
+        if cfg.wm_horizon > 0 and cfg.grid_world_model:  # model.py's world model, over the joints
+            o, w = cfg.obs_dim, cfg.wm_hidden
+            self.wm_enc = nn.Sequential(nn.Linear(d + o, w), nn.SiLU(), nn.Linear(w, w))
+            self.wm_cell = nn.Sequential(nn.Linear(w + cfg.act_dim, w), nn.SiLU(), nn.Linear(w, w))
+            self.wm_out = nn.Linear(w, o)
         self.vqvae = vqvae.requires_grad_(False)  # frozen, saved with our weights (see model.py)
         # what the memory estimate must know of these layers (layers.py): how often each runs
         # (setattr: nn.Module's typed __setattr__ takes only tensors and modules)
@@ -100,7 +112,12 @@ class GridMidLoop(nn.Module):
 
     @property
     def has_world_model(self) -> bool:
-        return False
+        return self.wm_enc is not None
+
+    # the same heads and arithmetic as the vector Mid Loop's (they read only wm_enc, wm_cell, wm_out)
+    wm_predict = MidLoop.wm_predict
+    wm_encode = MidLoop.wm_encode
+    wm_unroll = MidLoop.wm_unroll
 
     def codes(self, obs: torch.Tensor | None, frames: torch.Tensor | None = None) -> torch.Tensor:
         """Codes of frames [..., H, W, 3] -> [..., G] long (obs is not read: the codes are the frame's)."""

@@ -2,7 +2,8 @@
 model.py registers them: code embedding, action input, the SSM blocks (one description, repeated
 n_layers times), the code heads, the action-conditioned world model (a vector VQ-VAE only) and the
 frozen VQ-VAE. Over a grid frame VQ-VAE, grid_model.py's: keypoints and the shared code embedding
-in, the shared cell decoder (run only on the cells it decodes: decoded_cells) and the joints out."""
+in, the shared cell decoder (run only on the cells it decodes: decoded_cells), the joints out and its
+world model over the joints (grid_world_model)."""
 from __future__ import annotations
 
 import dataclasses
@@ -37,7 +38,17 @@ def _grid(cfg: MidLoopConfig, vq: VQVAEConfig, block: list[Layer]) -> list[Layer
             *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), layer_norm(d, True, "ssm.ln_f"),
             linear(d, h * r, True, "cell_ctx"), embedding(g, r, True, "cell_pos"),
             *(dataclasses.replace(layer, per_sample=m) for layer in cell), linear(d, h * cfg.obs_dim, True, "joint_out"),
-            *vqvae_layers(vq, False, "vqvae.")]
+            *(_wm(cfg, cfg.obs_dim) if cfg.grid_world_model else []), *vqvae_layers(vq, False, "vqvae.")]
+
+
+def _wm(cfg: MidLoopConfig, obs_dim: int) -> list[Layer]:
+    """The action-conditioned world model over obs_dim observed values (none at wm_horizon 0)."""
+    if cfg.wm_horizon <= 0:
+        return []
+    d, w = cfg.d_model, cfg.wm_hidden
+    return [linear(d + obs_dim, w, True, "wm_enc.0"), linear(w, w, True, "wm_enc.2"),
+            linear(w + cfg.act_dim, w, True, "wm_cell.0"), linear(w, w, True, "wm_cell.2"),
+            linear(w, obs_dim, True, "wm_out")]
 
 
 def layers(cfg: MidLoopConfig, vq: VQVAEConfig) -> list[Layer]:
@@ -47,12 +58,7 @@ def layers(cfg: MidLoopConfig, vq: VQVAEConfig) -> list[Layer]:
              layer_norm(d, True, "ssm.blocks.{i}.ln2"), *gated_mlp(d, hidden, True, "ssm.blocks.{i}.mlp")]
     if vq.input == "frame" and vq.layout == "grid":
         return _grid(cfg, vq, block)
-    wm = []
-    if cfg.wm_horizon > 0 and vq.input == "vector":
-        w, o = cfg.wm_hidden, vq.obs_dim
-        wm = [linear(d + o, w, True, "wm_enc.0"), linear(w, w, True, "wm_enc.2"),
-              linear(w + cfg.act_dim, w, True, "wm_cell.0"), linear(w, w, True, "wm_cell.2"),
-              linear(w, o, True, "wm_out")]
+    wm = _wm(cfg, vq.obs_dim) if vq.input == "vector" else []
     return [embedding(cfg.n_codes * vq.groups, d, True, "code_in"), linear(cfg.act_dim, d, True, "act_in"),
             *(dataclasses.replace(layer, repeat=cfg.n_layers) for layer in block), layer_norm(d, True, "ssm.ln_f"),
             linear(d, len(cfg.horizon_steps) * cfg.n_codes * vq.groups, True, "head"), *wm,

@@ -2,7 +2,8 @@
 (frozen VQ-VAE, required) + past actions -> codes ahead; loss cross-entropy, + the
 action-conditioned world model (wm_*, vector VQ-VAE): obs of the next points given the actions to
 be held, + wm_weight x its MSE. Over a grid frame VQ-VAE the model is grid_model.GridMidLoop: codes
-and joints in, each cell's code and the joints at each horizon out (grid_metrics.py); its held-out
+and joints in, each cell's code and the joints at each horizon out (grid_metrics.py), + its world model
+over the joints as the vector one's; its held-out
 picture is a few windows' predicted frames beside the real ones (grid_picture.py)."""
 from __future__ import annotations
 
@@ -42,9 +43,10 @@ class MidLoopComponent(TrainingComponent):
         if isinstance(model, GridMidLoop):
             obs = as_tensor(batch.obs)
             y = model.context(codes, previous_actions(act), obs, mask)
-            return grid_loss(model, y, codes, obs, mask, future_codes=future_codes, future_mask=future_mask,
-                             future_obs=None if batch.future_obs is None else as_tensor(batch.future_obs),
-                             labels=labels, training=training)
+            loss, metrics = grid_loss(model, y, codes, obs, mask, future_codes=future_codes, future_mask=future_mask,
+                                      future_obs=None if batch.future_obs is None else as_tensor(batch.future_obs),
+                                      labels=labels, training=training)
+            return self._with_world_model(model, loss, metrics, y, obs, act, mask)
         y = model.context(codes, previous_actions(act), mask)
         logits = model.heads(y)
         vector = not self.wants_frames
@@ -53,8 +55,13 @@ class MidLoopComponent(TrainingComponent):
             future_codes=future_codes, future_mask=future_mask,
             future_obs=as_tensor(batch.future_obs) if vector and batch.future_obs is not None else None,
             labels=labels, training=training)
-        if model.has_world_model:  # the action-conditioned world model (mid_loop.py), trained alongside
-            wm_loss, wm_metrics = world_model_loss(model, y, as_tensor(batch.obs), act, mask, self._window.grid_step_s)
+        return self._with_world_model(model, loss, metrics, y, as_tensor(batch.obs), act, mask)
+
+    def _with_world_model(self, model, loss, metrics, y, obs, act, mask) -> tuple[torch.Tensor, dict[str, float]]:
+        """+ wm_weight x the action-conditioned world model's loss (model.py), when it has one: over
+        the observation vector (vector VQ-VAE) or the joints (grid)."""
+        if model.has_world_model:
+            wm_loss, wm_metrics = world_model_loss(model, y, obs, act, mask, self._window.grid_step_s)
             metrics.update(wm_metrics)
             loss = loss + model.cfg.wm_weight * wm_loss
         return loss, metrics
