@@ -11,7 +11,9 @@ hope_models/sim/imagine.py), is searched by DART (the expert with noise injected
 executed, labelled with the expert's correction) or CEM (sampling-based MPC with the simulator as
 the model). model searches in a learned world model and never imports the simulator: a trained
 mid_loop's action-conditioned heads, CEM inside them, start states and the goal from the recorded
---demos (and --play) episodes, --seed seeding the draws (hope_models/imagine/model_imagine.py).
+--demos (and --play) episodes, --seed seeding the draws (hope_models/imagine/model_imagine.py); from a
+camera world model (a grid mid_loop) the goal is read off the frames and each step gets a frame
+(hope_models/imagine/frame_goal.py, camera_scene.py).
 Every episode is written as a canonical RLDS dir with provenance origin `imagined:<method>` and
 the tag `continuon.imagined`, validated with the train profile. Exit 0 on success, 2 for a usage
 error (bad option, seeds overlapping the reserved ranges or the given demos, an episode dir that
@@ -78,7 +80,8 @@ def run_model(args: argparse.Namespace) -> int:
     if args.model is None:
         return _error(args, ValueError("--method model needs --model RUN_DIR (a trained mid_loop)"))
     if args.frames:
-        return _error(args, ValueError("--frames: a world model of observation vectors imagines no frames"))
+        return _error(args, ValueError("--frames: --method model writes a frame per step when its world model "
+                                       "reads a camera (a grid mid_loop), and none otherwise"))
     plan = PlanConfig()
     for name in ("horizon", "population", "iterations", "elites"):
         if getattr(args, name) is not None:

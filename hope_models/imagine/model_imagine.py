@@ -21,6 +21,13 @@
    the model thinks the state is from the goal), provenance origin "imagined:model" and the tag
    "continuon.imagined", validated with the train profile before it is written.
 
+From a camera world model (a grid mid_loop, whose wm_* heads predict the joints): the recorded
+frames are encoded with its tokenizer (the Mid Loop's context reads the codes), the goal is read off
+the frames (frame_goal.FrameGoal: the target is what the joints do not explain, the tip where the
+rewarded steps put it; the cost is their distance in cells), each imagined step's codes are drawn
+from its joints over the start frame's scene (camera_scene.CameraScene) and written as frames (the
+tokenizer's decoder; write.py).
+
 The same model, data, seed and settings give the same episodes (torch runs deterministic CPU ops).
 """
 from __future__ import annotations
@@ -33,6 +40,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from hope_models.imagine.camera_scene import CameraScene
+from hope_models.imagine.frame_goal import FrameGoal
 from hope_models.imagine.planner import ACTION_BOUNDS, ModelCEM, PlanConfig, WorldModel
 from hope_models.imagine.recorded import Goal, Recorded, control_period_s, grid_history, read_recorded
 from hope_models.imagine.write import ModelEpisode, episode_id_for, write_model_episode
@@ -71,23 +80,26 @@ def _lerp(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
     return a + (b - a) * f
 
 
-def imagine_batch(wm: WorldModel, goal: Goal, eps: Sequence[Recorded], starts: list[tuple[int, int]], *,
-                  steps: int, period_s: float, noise: float, plan: PlanConfig, seed: int) -> list[ModelEpisode]:
-    """Roll all starts forward together (module doc, 3-4); the episodes in memory, normalised."""
+def imagine_batch(wm: WorldModel, goal: Goal | Any, eps: Sequence[Recorded], starts: list[tuple[int, int]], *,
+                  steps: int, period_s: float, noise: float, plan: PlanConfig, seed: int,
+                  scene: CameraScene | None = None) -> list[ModelEpisode]:
+    """Roll all starts forward together (module doc, 3-4); the episodes in memory, normalised. scene:
+    a camera world model's (camera_scene.py): its goal replaces `goal`, and every step gets its codes."""
     sub = int(round(wm.grid_s / period_s))
     if sub < 1 or abs(sub * period_s - wm.grid_s) > 1e-6:
         raise ValueError(f"the world model's grid step {wm.grid_s:g} s is not a whole number of the recordings' "
                          f"{period_s:g} s control periods")
     hist = [grid_history(eps[e], s, wm.k, wm.grid_s) for e, s in starts]
     h_obs, h_act, h_mask = (np.stack([h[i] for h in hist]) for i in range(3))
+    h_codes = None if scene is None else scene.history_codes
     b = len(starts)
-    cem = ModelCEM(wm, goal, plan, seed, b)
+    cem = ModelCEM(wm, goal if scene is None else scene.goal, plan, seed, b)
     rng = np.random.default_rng([int(seed), 0xDA27, 3])
     out = [ModelEpisode(eps[e].episode_id, s) for e, s in starts]
     lo, hi = ACTION_BOUNDS
     obs0 = h_obs[:, -1].copy()
     for _ in range(-(-steps // sub)):
-        y = wm.context(h_obs, h_act, h_mask)
+        y = wm.context(h_obs, h_act, h_mask, h_codes)
         label, cost = cem.plan(y, obs0)
         executed = np.clip(label + noise * rng.standard_normal(label.shape), lo, hi) if noise else label
         obs1 = wm.predict(y, obs0, wm.norm_act(executed)[:, None].astype(np.float32))[:, 0].numpy()
@@ -96,10 +108,13 @@ def imagine_batch(wm: WorldModel, goal: Goal, eps: Sequence[Recorded], starts: l
             if j:
                 label, cost = cem.plan(y, state)
             dist = cem.goal_distance(torch.from_numpy(state)).numpy()
+            codes = None if scene is None else scene.draw(state)
             for i, ep in enumerate(out):
                 if len(ep.obs) < steps:
-                    ep.add(state[i], label[i], executed[i], float(dist[i]))
+                    ep.add(state[i], label[i], executed[i], float(dist[i]), None if codes is None else codes[i])
         cem.shift()
+        if scene is not None and h_codes is not None:
+            h_codes = np.concatenate([h_codes[:, 1:], scene.draw(obs1)[:, None]], axis=1)
         h_obs = np.concatenate([h_obs[:, 1:], obs1[:, None]], axis=1)
         h_act = np.concatenate([h_act[:, 1:], wm.norm_act(executed).astype(np.float32)[:, None]], axis=1)
         h_mask = np.concatenate([h_mask[:, 1:], np.ones((b, 1), dtype=bool)], axis=1)
@@ -130,26 +145,39 @@ def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Pa
                               f"the {episodes} would clash); imagine into another --out or from another --seed")
     t0 = time.perf_counter()
     wm = WorldModel.load(model)
-    eps = read_recorded([*demos, *(play or ())], wm.spec)
+    encode = wm.encode_frames if wm.grid else None  # a camera world model reads the frames too
+    eps = read_recorded([*demos, *(play or ())], wm.spec, encode)
     play_from = [str(p) for p in play or ()]
     if play is None:  # the play the model saw: the play episodes of the dataset it was trained on
         seen = wm.training_data()
         if seen is not None:
-            eps += [e for e in read_recorded([seen], wm.spec) if e.play]
+            eps += [e for e in read_recorded([seen], wm.spec, encode) if e.play]
             play_from = [f"{seen} (the world model's training data, play episodes only)"]
-    goal = Goal.from_rewarded(eps)
     period = control_period_s(eps)
     rng = np.random.default_rng([int(seed), 0x57A7])
     starts = pick_starts(eps, episodes, rng)
+    scene = None
+    goal: Any  # what the planner's cost reads: its distance(obs)
+    if wm.grid:
+        rows, cols = wm.model.vqvae.cfg.grid_shape
+        frame_goal = FrameGoal.fit(eps, wm.model.cfg.n_codes, (int(rows), int(cols)), seed)
+        scene = CameraScene(frame_goal, eps, starts, wm.k, wm.grid_s)
+        goal_obj, goal = frame_goal.to_json_obj(), scene.goal
+    else:
+        vector = Goal.from_rewarded(eps)
+        goal_obj, goal = vector.to_json_obj(wm.spec.observation.dim_names()), vector
     settings = {"noise_std": noise, "steps": steps, "control_period_s": period, "model": wm.version(),
-                "model_checkpoint": str(wm.checkpoint), "goal": goal.to_json_obj(wm.spec.observation.dim_names()),
+                "model_checkpoint": str(wm.checkpoint), "goal": goal_obj,
                 "start_episodes": len(eps), "play_episodes": int(sum(e.play for e in eps)), "play_from": play_from,
-                **ModelCEM(
-                    wm, goal, plan, seed, 1).settings()}
+                **ModelCEM(wm, goal, plan, seed, 1).settings()}
     result = ModelImagineResult(out, seed, settings)
-    imagined = imagine_batch(wm, goal, eps, starts, steps=steps, period_s=period, noise=noise, plan=plan, seed=seed)
+    imagined = imagine_batch(wm, goal, eps, starts, steps=steps, period_s=period, noise=noise, plan=plan, seed=seed,
+                             scene=scene)
     for i, ep in enumerate(imagined):
-        rec = write_model_episode(out, ep, i, seed, wm.spec, eps[starts[i][0]].metadata, period, settings)
+        if scene is not None:
+            ep.target = [round(float(v), 4) for v in scene.targets[i]]
+        rec = write_model_episode(out, ep, i, seed, wm.spec, eps[starts[i][0]].metadata, period, settings,
+                                  wm.decode_codes if scene is not None else None)
         result.episodes.append(rec)
         if progress is not None:
             progress(rec)

@@ -77,10 +77,13 @@ class WorldModel:
         model: MidLoop = component.model
         if component.name != PREDICTOR:
             raise ValueError(f"{checkpoint}: a {component.name} checkpoint, not a {PREDICTOR}")
+        self.grid = bool(getattr(model, "grid", False))  # over a grid frame VQ-VAE: a camera world model
         if not model.has_world_model:
-            raise ValueError(f"{checkpoint}: this mid_loop has no world model (trained with wm_horizon 0, "
-                             "or on frames); retrain it with the default model_config")
-        self.component, self.model, self.checkpoint = component, model.eval(), checkpoint
+            raise ValueError(f"{checkpoint}: this mid_loop has no world model (no wm_* heads: trained with "
+                             f"wm_horizon 0{', or a grid mid_loop made before its world model' if self.grid else ''}); "
+                             "retrain it with the default model_config")
+        self.component, self.checkpoint = component, checkpoint
+        self.model: Any = model.eval()  # a MidLoop, or a GridMidLoop (self.grid): their context() differ
         self.spec, self.window = component.spec, component.window
         self.grid_s, self.k = self.window.grid_step_s, self.window.k
         self.act_mean = np.asarray(self.spec.action.mean, dtype=np.float32)
@@ -109,10 +112,28 @@ class WorldModel:
         return a * self.act_std + self.act_mean
 
     @torch.no_grad()
-    def context(self, obs: np.ndarray, act: np.ndarray, mask: np.ndarray) -> torch.Tensor:
-        """Windows obs [B, K, D], held actions [B, K, A] (normalised), mask [B, K] -> context at the last point [B, d]."""
+    def encode_frames(self, frames: np.ndarray) -> np.ndarray:
+        """A camera world model's frames [n, H, W, 3] uint8 -> its tokenizer's codes [n, G]."""
+        return self.model.vqvae.encode(torch.from_numpy(np.ascontiguousarray(frames))).numpy()
+
+    @torch.no_grad()
+    def decode_codes(self, codes: np.ndarray) -> np.ndarray:
+        """A grid tokenizer's cell codes [n, G] -> frames [n, H, W, 3] uint8 (its frozen decoder)."""
+        pixels = self.model.vqvae.decode(torch.from_numpy(np.ascontiguousarray(codes, dtype=np.int64)))
+        return (pixels.permute(0, 2, 3, 1).clamp(0.0, 1.0).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+    @torch.no_grad()
+    def context(self, obs: np.ndarray, act: np.ndarray, mask: np.ndarray, codes: np.ndarray | None = None
+                ) -> torch.Tensor:
+        """Windows obs [B, K, D], held actions [B, K, A] (normalised), mask [B, K] (and a camera world
+        model's codes [B, K, G]) -> context at the last point [B, d]."""
         o, a = torch.from_numpy(np.ascontiguousarray(obs)), torch.from_numpy(np.ascontiguousarray(act))
         m = torch.from_numpy(np.ascontiguousarray(mask))
+        if self.grid:
+            if codes is None:
+                raise ValueError("a camera world model's context needs the window's codes")
+            return self.model.context(torch.from_numpy(np.ascontiguousarray(codes, dtype=np.int64)),
+                                      previous_actions(a), o, m)[:, -1]
         return self.model.context(self.model.codes(o), previous_actions(a), m)[:, -1]
 
     @torch.no_grad()
@@ -125,26 +146,27 @@ class WorldModel:
 class ModelCEM:
     """CEM over held command sequences, scored by the world model against the goal (module doc)."""
 
-    def __init__(self, wm: WorldModel, goal: Goal, cfg: PlanConfig, seed: int, batch: int):
+    def __init__(self, wm: WorldModel, goal: Goal | Any, cfg: PlanConfig, seed: int, batch: int):
         cfg.validate(wm.model.cfg.wm_horizon)
         self.wm, self.cfg, self.batch = wm, cfg, batch
         a = len(wm.act_mean)
         rng = np.random.default_rng([int(seed), 0xC3E, 7])
         self._noise = torch.from_numpy(rng.standard_normal((cfg.iterations, cfg.population, cfg.horizon, a))
                                        .astype(np.float32))
-        self._goal_mean = torch.as_tensor(goal.mean, dtype=torch.float32)
-        self._goal_w = torch.as_tensor(goal.weight, dtype=torch.float32)
+        self._goal = goal  # its distance(obs [B, ..., D]) is the cost of a state
         self.mean = torch.zeros(batch, cfg.horizon, a)
         self._act_mean = torch.from_numpy(wm.act_mean)
         self._act_std = torch.from_numpy(wm.act_std)
 
     def settings(self) -> dict[str, Any]:
-        return {"plan": asdict(self.cfg), "cost": "sum over the plan of the goal's Mahalanobis distance "
-                "(normalised observation) + action_cost x |command|^2", "plan_step_s": self.wm.grid_s}
+        what = ("the distance (cells) from the tip the joints put in the frame to the target the frame shows"
+                if self.wm.grid else "the goal's Mahalanobis distance (normalised observation)")
+        return {"plan": asdict(self.cfg), "cost": f"sum over the plan of {what} + action_cost x |command|^2",
+                "plan_step_s": self.wm.grid_s}
 
     def goal_distance(self, obs: torch.Tensor) -> torch.Tensor:
-        """[..., D] normalised -> the goal's Mahalanobis distance [...]."""
-        return (((obs - self._goal_mean) ** 2) * self._goal_w).sum(-1).sqrt()
+        """[B, ..., D] normalised -> the goal's distance [B, ...]."""
+        return self._goal.distance(obs)
 
     @torch.no_grad()
     def plan(self, y: torch.Tensor, obs: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

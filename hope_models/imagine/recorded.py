@@ -19,12 +19,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from hope_models.data.cameras import read_camera
 from hope_models.data.dataset_cache import is_play_episode
-from hope_models.data.extract import group_matrix
+from hope_models.data.extract import EpisodeMismatch, group_matrix
 from hope_models.data.features import FeatureSpec
 from hope_models.rlds.discover import iter_reports
 
@@ -40,15 +41,18 @@ class Recorded:
     reward: np.ndarray  # [T] float64
     t: np.ndarray  # [T] float64, seconds since the first step
     play: bool
+    codes: np.ndarray | None = None  # [T, G] int64: a camera's frames as the world model's tokenizer reads them
 
 
 def _normalise(x: np.ndarray, mean, std) -> np.ndarray:
     return ((x - np.asarray(mean)) / np.asarray(std)).astype(np.float32)
 
 
-def read_recorded(paths: Sequence[str | Path], spec: FeatureSpec) -> list[Recorded]:
+def read_recorded(paths: Sequence[str | Path], spec: FeatureSpec,
+                  encode: Callable[[np.ndarray], np.ndarray] | None = None) -> list[Recorded]:
     """Every non-imagined episode under paths, in the checkpoint's feature spec (a missing field
-    raises: the world model cannot read an episode it has no observation for)."""
+    raises: the world model cannot read an episode it has no observation for). encode: frames
+    [n, H, W, 3] uint8 -> codes [n, G], for a world model that reads the spec's camera (spec.frame)."""
     out = []
     for path in paths:
         if not Path(path).exists():
@@ -65,10 +69,29 @@ def read_recorded(paths: Sequence[str | Path], spec: FeatureSpec) -> list[Record
                 ep.episode_id, ep.metadata,
                 _normalise(group_matrix(ep.steps, spec.observation), spec.observation.mean, spec.observation.std),
                 _normalise(group_matrix(ep.steps, spec.action), spec.action.mean, spec.action.std),
-                np.asarray([float(s.reward or 0.0) for s in ep.steps]), t, is_play_episode(ep.metadata, ep.steps)))
+                np.asarray([float(s.reward or 0.0) for s in ep.steps]), t, is_play_episode(ep.metadata, ep.steps),
+                None if encode is None else _codes(ep, spec, encode)))
     if not out:
         raise ValueError(f"no recorded episode under {', '.join(map(str, paths))}")
     return out
+
+
+def _codes(ep, spec: FeatureSpec, encode: Callable[[np.ndarray], np.ndarray], chunk: int = 256) -> np.ndarray:
+    """Every step's frame of the spec's camera, encoded chunk by chunk (an episode's frames are never all held)."""
+    if spec.frame is None:
+        raise ValueError("the world model reads a camera, but its feature spec names none")
+    out, buf = [], []
+    try:
+        for img in read_camera(ep.steps, spec.frame, ep.blob_root):
+            buf.append(img)
+            if len(buf) == chunk:
+                out.append(encode(np.stack(buf)))
+                buf = []
+    except EpisodeMismatch as exc:
+        raise ValueError(f"{ep.episode_id}: {exc}") from None
+    if buf:
+        out.append(encode(np.stack(buf)))
+    return np.concatenate(out).astype(np.int64)
 
 
 def control_period_s(eps: Sequence[Recorded]) -> float:
@@ -79,12 +102,18 @@ def control_period_s(eps: Sequence[Recorded]) -> float:
     return round(float(np.median(dts)), 9)  # the clock is in ns: no float dust in the metadata
 
 
+def grid_points(ep: Recorded, step: int, k: int, grid_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The steps [K] held at the K grid points ending at `step` (grid_history), and the mask [K] of
+    the points inside the episode."""
+    times = ep.t[step] - np.arange(k - 1, -1, -1) * grid_s
+    mask = times >= -1e-9
+    return np.clip(np.searchsorted(ep.t, times + 1e-9, side="right") - 1, 0, step), mask
+
+
 def grid_history(ep: Recorded, step: int, k: int, grid_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The K-point window ending at `step` on a grid of grid_s (each point holds the latest step at
     or before its time; points before the episode are masked and zero): obs [K, D], act [K, A], mask [K]."""
-    times = ep.t[step] - np.arange(k - 1, -1, -1) * grid_s
-    mask = times >= -1e-9
-    j = np.clip(np.searchsorted(ep.t, times + 1e-9, side="right") - 1, 0, step)
+    j, mask = grid_points(ep, step, k, grid_s)
     obs, act = ep.obs[j].copy(), ep.act[j].copy()
     obs[~mask] = 0.0
     act[~mask] = 0.0
@@ -106,6 +135,13 @@ class Goal:
         x = np.concatenate(rows).astype(np.float64)
         w = 1.0 / (x.var(0) + floor ** 2)
         return cls(x.mean(0), w / w.max(), int(x.shape[0]))
+
+    def distance(self, obs):
+        """[..., D] normalised (torch) -> the goal's Mahalanobis distance [...] (the planner's cost)."""
+        import torch  # lazy: this module stays importable without torch
+
+        mean, w = torch.as_tensor(self.mean, dtype=torch.float32), torch.as_tensor(self.weight, dtype=torch.float32)
+        return (((obs - mean) ** 2) * w).sum(-1).sqrt()
 
     def to_json_obj(self, names: Sequence[str] = ()) -> dict[str, Any]:
         return {"rewarded_steps": self.steps, "dims": list(names),

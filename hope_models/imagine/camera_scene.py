@@ -1,0 +1,58 @@
+"""The camera side of imagining from a camera world model (a grid mid_loop's wm_* heads predict the
+joints; nothing predicts a frame): each imagined step's cell codes are drawn from the joints, and the
+planner's goal is the start episode's target.
+
+    scene = CameraScene(goal, eps, starts, k=20, grid_s=0.1)
+    scene.history_codes          # [B, K, G] the start windows' recorded codes (the Mid Loop's context)
+    scene.goal                   # goal.bind(the start episodes' targets): the planner's cost
+    scene.draw(joints)           # [B, G] codes of the frames the joints [B, D] make
+
+A drawn frame is the start frame's scene with the arm where the joints put it (frame_goal.FrameGoal's
+arm model): each cell's most probable code at those joints, except cells the start frame showed
+something the arm model did not explain (the target), which keep the start frame's code wherever
+the arm is not drawn. The codes are decoded into pixels by the tokenizer's frozen decoder when an
+episode is written (write.py), so a Fast Loop reading frames re-encodes what it would have seen.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from hope_models.imagine.frame_arm import SURPRISE_NATS
+from hope_models.imagine.frame_goal import FrameGoal
+from hope_models.imagine.recorded import Recorded, grid_points
+
+
+class CameraScene:
+    def __init__(self, goal: FrameGoal, eps: Sequence[Recorded], starts: list[tuple[int, int]], k: int, grid_s: float):
+        missing = [eps[e].episode_id for e, _ in starts if goal.targets[e] is None]
+        if missing:
+            raise ValueError(f"{missing[0]}: no target located in its frames (nothing the arm model does not "
+                             f"explain); {len(missing)} start state(s) affected")
+        windows = [grid_points(eps[e], s, k, grid_s) for e, s in starts]
+        codes = []
+        for (e, _), (j, mask) in zip(starts, windows, strict=True):
+            c = _codes_of(eps[e])[j].copy()
+            c[~mask] = 0
+            codes.append(c)
+        self.history_codes = np.stack(codes)
+        self.start_codes = np.stack([_codes_of(eps[e])[s] for e, s in starts])
+        start_obs = np.stack([eps[e].obs[s] for e, s in starts])
+        self.unexplained = goal.arm.surprise(self.start_codes, start_obs) > SURPRISE_NATS
+        self.targets = np.stack([t for t in (goal.targets[e] for e, _ in starts) if t is not None])
+        self.goal = goal.bind(self.targets)
+        self._arm = goal.arm
+
+    def draw(self, joints: np.ndarray) -> np.ndarray:
+        """Joints [B, D] (normalised) -> the codes [B, G] of the frames they make in each start's scene."""
+        return self._arm.draw(joints.astype(np.float32), keep=self.start_codes, where=self.unexplained)
+
+
+def _codes_of(ep: Recorded) -> np.ndarray:
+    if ep.codes is None:
+        raise ValueError(f"{ep.episode_id}: read without its frames; a camera world model needs them")
+    return ep.codes
+
+
+__all__ = ["CameraScene"]

@@ -1,0 +1,133 @@
+"""What a camera shows of the robot, read off its recordings: each cell's background code and the
+arm's look as a function of the joints, for imagining from a camera world model (frame_goal.py).
+
+    arm = ArmModel.fit([(codes, joints), ...], n_codes)   # per episode: codes [T, G], joints [T, D] normalised
+    arm.surprise(codes, joints)                       # [N, G] nats: what the joints do not explain (a target)
+    arm.draw(joints, keep=start_codes, where=mask)    # [N, G] codes: the arm at those joints over a scene
+
+What it assumes, in plain words:
+- the camera does not move: a cell shows the same thing (its background code, the cell's most frequent
+  code over the recordings) unless something is in front of it;
+- the robot's own body is a function of its joints: P(code of cell g | joints) is learned from the
+  recorded frames (a small MLP to a rank-r code space shared by every cell, plus a bias per cell and
+  code). Whatever else is in view and does not follow the joints (a target) is what the model cannot
+  explain: cells whose code it gives less than SURPRISE_NATS of probability.
+- what stays put in an episode while the arm moves is not the arm: before the model is fitted, the
+  cells of each training episode that are not their background code in >= STATIC_SHARE of its
+  frames are set to their background code (a target would otherwise be a common sight there).
+It is trained on play when there is play: there the arm moves and the rest of the scene is
+uncorrelated with the joints, while demonstrations hold the arm on the target, which would teach it
+that the target is part of the arm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+SURPRISE_NATS = float(np.log(20.0))  # a code the arm model gives < 5 % is not the arm's nor the background's
+STATIC_SHARE = 0.9  # a cell off its background this often in an episode holds something that is not the arm
+
+
+def background_codes(codes: np.ndarray, n_codes: int) -> np.ndarray:
+    """Each cell's most frequent code over frames [N, G] -> [G]."""
+    counts = np.zeros((codes.shape[1], n_codes))
+    np.add.at(counts, (np.broadcast_to(np.arange(codes.shape[1]), codes.shape), codes), 1.0)
+    return counts.argmax(1)
+
+
+def without_static(codes: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """One episode's codes [T, G] with the cells that stay off their background (module doc) set to it."""
+    static = (codes != background).mean(0) >= STATIC_SHARE
+    return np.where(static, background, codes)
+
+
+class _ArmNet(nn.Module):
+    def __init__(self, obs_dim: int, groups: int, n_codes: int, hidden: int, rank: int):
+        super().__init__()
+        self.groups, self.rank = groups, rank
+        self.net = nn.Sequential(nn.Linear(obs_dim, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
+                                 nn.Linear(hidden, groups * rank))
+        self.code = nn.Linear(rank, n_codes, bias=False)  # shared by every cell: a piece of arm looks the same anywhere
+        self.bias = nn.Parameter(torch.zeros(groups, n_codes))
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """joints [N, D] -> logits [N, G, n_codes]."""
+        return self.code(self.net(q).view(-1, self.groups, self.rank)) + self.bias
+
+
+@dataclass
+class ArmFit:
+    steps: int = 600
+    batch: int = 64
+    lr: float = 3e-3
+    hidden: int = 128
+    rank: int = 16
+
+
+class ArmModel:
+    def __init__(self, net: _ArmNet, background: np.ndarray, n_codes: int, frames: int, loss: float):
+        self.net, self.background, self.n_codes = net.eval(), background, n_codes
+        self.frames, self.loss = frames, loss  # how many frames it was fitted on, its final cross-entropy
+
+    @classmethod
+    def fit(cls, episodes: list[tuple[np.ndarray, np.ndarray]], n_codes: int, seed: int = 0,
+            cfg: ArmFit | None = None) -> "ArmModel":
+        """episodes: (codes [T, G] of recorded frames, joints [T, D] (normalised) at them) each."""
+        cfg = cfg or ArmFit()
+        if sum(len(c) for c, _ in episodes) < 2:
+            raise ValueError("the arm model needs recorded frames: fewer than 2 were given")
+        background = background_codes(np.concatenate([c for c, _ in episodes]), n_codes)
+        codes = np.concatenate([without_static(c, background) for c, _ in episodes])
+        joints = np.concatenate([q for _, q in episodes])
+        n, g = codes.shape
+        counts = np.zeros((g, n_codes))
+        np.add.at(counts, (np.broadcast_to(np.arange(g), codes.shape), codes), 1.0)
+        torch.manual_seed(seed)
+        net = _ArmNet(joints.shape[1], g, n_codes, cfg.hidden, cfg.rank)
+        with torch.no_grad():  # start from each cell's code frequencies: the background is right from step 0
+            net.bias.copy_(torch.from_numpy(np.log((counts + 0.1) / (counts + 0.1).sum(1, keepdims=True))))
+        opt = torch.optim.Adam(net.parameters(), cfg.lr)
+        gen = torch.Generator().manual_seed(seed)
+        c, q = torch.from_numpy(codes.astype(np.int64)), torch.from_numpy(joints.astype(np.float32))
+        loss = torch.zeros(())
+        for _ in range(cfg.steps):
+            i = torch.randint(0, n, (min(cfg.batch, n),), generator=gen)
+            loss = nn.functional.cross_entropy(net(q[i]).flatten(0, 1), c[i].reshape(-1))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        return cls(net, background, n_codes, n, float(loss.detach()))
+
+    @torch.no_grad()
+    def log_probs(self, joints: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """[N, D] -> log P(code | joints) [N, G, n_codes]."""
+        return self.net(torch.as_tensor(joints, dtype=torch.float32)).log_softmax(-1)
+
+    @torch.no_grad()
+    def surprise(self, codes: np.ndarray, joints: np.ndarray, chunk: int = 256) -> np.ndarray:
+        """-log P(the recorded code | joints) of every cell [N, G] (nats)."""
+        out = []
+        for s in range(0, len(codes), chunk):
+            lp = self.log_probs(joints[s:s + chunk])
+            out.append(-lp.gather(-1, torch.from_numpy(codes[s:s + chunk].astype(np.int64))[..., None])[..., 0])
+        return torch.cat(out).numpy() if out else np.zeros((0, codes.shape[1]), np.float32)
+
+    @torch.no_grad()
+    def draw(self, joints: np.ndarray, keep: np.ndarray, where: np.ndarray, chunk: int = 256) -> np.ndarray:
+        """The codes of frames [N, G] showing the arm at joints [N, D] over a scene: each cell's most
+        probable code under the arm model, except where `where` [N, G] (or [G]) is set and the model
+        expects no arm there (its background code is the most probable one): there `keep` [N, G] (or
+        [G]) stays (e.g. a target the start frame showed)."""
+        out = []
+        for s in range(0, len(joints), chunk):
+            best = self.log_probs(joints[s:s + chunk]).argmax(-1).numpy()
+            out.append(best)
+        best = np.concatenate(out) if out else np.zeros((0, len(self.background)), np.int64)
+        free = best == self.background
+        return np.where(free & np.broadcast_to(where, best.shape), np.broadcast_to(keep, best.shape), best)
+
+
+__all__ = ["ArmFit", "ArmModel", "STATIC_SHARE", "SURPRISE_NATS", "background_codes", "without_static"]
