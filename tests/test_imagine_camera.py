@@ -99,9 +99,11 @@ def test_a_camera_world_model_imagines_episodes_with_frames_without_the_simulato
 
 
 def test_a_mid_loop_without_world_model_heads_is_refused_by_name(camera_world, tmp_path):
-    root, env = camera_world
-    _ok(_run(["train", "--component", "mid_loop", "--data", str(root / "ds"), "--run-dir", str(tmp_path / "nowm"),
-              "--vqvae", str(root / "vq"), "--steps", "2", "--threads", "1", "--json", "--model-config",
-              '{"d_model": 16, "keypoints": 2, "cell_rank": 4, "grid_world_model": 0}'], env, tmp_path))
+    from frame_fixtures import camera_checkpoints
+    from grid_mid_fixtures import grid_mid_checkpoint
+
+    root, _ = camera_world
+    nowm = grid_mid_checkpoint(tmp_path, camera_checkpoints(tmp_path, "grid")["vq"],
+                               model_config={"grid_world_model": 0})
     with pytest.raises(ValueError, match="no world model .*wm_"):
-        imagine_model_dataset(tmp_path / "out", 1, model=tmp_path / "nowm", demos=[root / "demos"], steps=5)
+        imagine_model_dataset(tmp_path / "out", 1, model=nowm, demos=[root / "demos"], steps=5)

@@ -7,10 +7,10 @@ planner's goal is the start episode's target.
     scene.goal                   # goal.bind(the start episodes' targets): the planner's cost
     scene.draw(joints)           # [B, G] codes of the frames the joints [B, D] make
 
-A drawn frame is the start frame's scene with the arm where the joints put it (frame_goal.FrameGoal's
-arm model): each cell's most probable code at those joints, except cells the start frame showed
-something the arm model did not explain (the target), which keep the start frame's code wherever
-the arm is not drawn. The codes are decoded into pixels by the tokenizer's frozen decoder when an
+A drawn frame is the start episode's scene with the arm where the joints put it (frame_goal.FrameGoal's
+arm model): each cell's most probable code at those joints, except the cells that showed something
+the arm model does not explain (the target, frame_goal.Scene), which keep the episode's most
+frequent code there wherever the arm is not drawn. The codes are decoded into pixels by the tokenizer's frozen decoder when an
 episode is written (write.py), so a Fast Loop reading frames re-encodes what it would have seen.
 """
 from __future__ import annotations
@@ -19,7 +19,6 @@ from typing import Sequence
 
 import numpy as np
 
-from hope_models.imagine.frame_arm import SURPRISE_NATS
 from hope_models.imagine.frame_goal import FrameGoal
 from hope_models.imagine.recorded import Recorded, grid_points
 
@@ -37,16 +36,15 @@ class CameraScene:
             c[~mask] = 0
             codes.append(c)
         self.history_codes = np.stack(codes)
-        self.start_codes = np.stack([_codes_of(eps[e])[s] for e, s in starts])
-        start_obs = np.stack([eps[e].obs[s] for e, s in starts])
-        self.unexplained = goal.arm.surprise(self.start_codes, start_obs) > SURPRISE_NATS
+        self.scene_codes = np.stack([goal.scenes[e].codes for e, _ in starts])
+        self.scene_cells = np.stack([goal.scenes[e].cells for e, _ in starts])
         self.targets = np.stack([t for t in (goal.targets[e] for e, _ in starts) if t is not None])
         self.goal = goal.bind(self.targets)
         self._arm = goal.arm
 
     def draw(self, joints: np.ndarray) -> np.ndarray:
         """Joints [B, D] (normalised) -> the codes [B, G] of the frames they make in each start's scene."""
-        return self._arm.draw(joints.astype(np.float32), keep=self.start_codes, where=self.unexplained)
+        return self._arm.draw(joints.astype(np.float32), keep=self.scene_codes, where=self.scene_cells)
 
 
 def _codes_of(ep: Recorded) -> np.ndarray:

@@ -155,15 +155,20 @@ def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Pa
             play_from = [f"{seen} (the world model's training data, play episodes only)"]
     period = control_period_s(eps)
     rng = np.random.default_rng([int(seed), 0x57A7])
-    starts = pick_starts(eps, episodes, rng)
     scene = None
     goal: Any  # what the planner's cost reads: its distance(obs)
     if wm.grid:
         rows, cols = wm.model.vqvae.cfg.grid_shape
         frame_goal = FrameGoal.fit(eps, wm.model.cfg.n_codes, (int(rows), int(cols)), seed)
+        located = [i for i, t in enumerate(frame_goal.targets) if t is not None]
+        if not located:
+            raise ValueError("no target located in any recorded episode's frames: no start state has a goal")
+        starts = [(located[e], s) for e, s in pick_starts([eps[i] for i in located], episodes, rng)]
         scene = CameraScene(frame_goal, eps, starts, wm.k, wm.grid_s)
-        goal_obj, goal = frame_goal.to_json_obj(), scene.goal
+        goal_obj = {**frame_goal.to_json_obj(), "episodes_without_target": len(eps) - len(located)}
+        goal = scene.goal
     else:
+        starts = pick_starts(eps, episodes, rng)
         vector = Goal.from_rewarded(eps)
         goal_obj, goal = vector.to_json_obj(wm.spec.observation.dim_names()), vector
     settings = {"noise_std": noise, "steps": steps, "control_period_s": period, "model": wm.version(),
