@@ -12,6 +12,7 @@ import argparse
 import importlib
 import sys
 
+from hope_models.omp_wait import passive_waits
 from hope_models.settings import use_private_umask
 from hope_trainer import __version__
 
@@ -71,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     # Before anything is written: $HOPE_HOME (registry, broker, token, runs, logs) is for this user
     # only, and the processes this one starts (worker, job children, gate) inherit the umask.
     use_private_umask()
+    passive_waits()  # before any torch: the jobs, gates and evaluations this command runs or starts
     argv = sys.argv[1:] if argv is None else argv
     command = argv[0] if argv and argv[0] in COMMANDS else None
     args = build_parser(command).parse_args(argv)

@@ -34,6 +34,7 @@ from celery.utils.log import get_multiprocessing_logger
 from celery.worker import state as worker_state
 
 from hope_models.log_format import configure_logging
+from hope_models.omp_wait import passive_waits
 from hope_models.settings import Settings, load_settings, use_private_umask
 from registry.broker import celery_app
 
@@ -78,8 +79,10 @@ def create_celery(settings: Settings):
 def _private_files(**_kw) -> None:
     """A worker started as `celery -A workers.celery:app worker` (serve, tests, by hand) rather than
     through run_trainer.py: its job children write checkpoints, logs and the registry under
-    $HOPE_HOME, which are its user's alone (they inherit the umask from this parent)."""
+    $HOPE_HOME, which are its user's alone (they inherit the umask from this parent). Likewise
+    OpenMP's passive waits (hope_models/omp_wait.py): the children load torch, this parent never."""
     use_private_umask()
+    passive_waits()
 
 
 @setup_logging.connect
