@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from hope_models.imagine.frame_arm import ArmFit, ArmModel
-from hope_models.imagine.frame_goal import FrameGoal, TipFit, cell_centres, evidence, locate
+from hope_models.imagine.frame_draw import ArmPool
+from hope_models.imagine.frame_goal import FrameGoal, TipFit, cell_centres, episode_scene, evidence, locate
 from hope_models.imagine.recorded import Recorded
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -36,10 +37,10 @@ def _frame(q: np.ndarray, target: tuple[int, int] | None) -> np.ndarray:
 
 
 def _episode(rng, target, n=200, play=True, reach=False) -> Recorded:
-    q = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    q = rng.uniform(-1, 1, (n, 3)).astype(np.float32)  # the third ("a velocity") does not move the arm
     if reach:  # the tip held on the target: the joints that put the tip at the target's top-left cell
         r, c = target
-        q[:] = [(r + 0.5) / SIDE * 2 - 1, (c + 0.5) / (SIDE - 1) * 2 - 1]
+        q[:, :2] = [(r + 0.5) / SIDE * 2 - 1, (c + 0.5) / (SIDE - 1) * 2 - 1]
         q += rng.normal(0, 0.01, q.shape).astype(np.float32)
     codes = np.stack([_frame(x, target) for x in q])
     reward = np.zeros(n) if target is None else \
@@ -73,11 +74,15 @@ def test_the_target_is_what_the_joints_do_not_explain_and_not_the_frame_centre()
     # the arm alone: nothing is left unexplained
     ep = _episode(rng, None, n=16)
     assert locate(evidence(arm, ep.codes, ep.obs), (SIDE, SIDE)) is None
-    # drawing: the arm where the joints put it, the kept scene (the target) where the arm is not
-    q = np.array([[0.9, 0.9]], np.float32)
-    keep = _frame(q[0], (0, 0))[None]
-    drawn = arm.draw(q, keep=keep, where=keep == TARGET)
-    assert (drawn == _frame(q[0], (0, 0))[None]).mean() > 0.95
+    # drawing: the nearest recorded arm (its own target left out) over the kept scene (a target)
+    pool = ArmPool(arm, np.concatenate([e.codes for e in play]), np.concatenate([e.obs for e in play]),
+                   np.concatenate([np.broadcast_to(episode_scene(arm, e, (SIDE, SIDE)).cells, e.codes.shape)
+                                   for e in play]))
+    assert pool.weights[2] < 0.2 * pool.weights[:2].min(), pool.weights  # what does not move the arm weighs little
+    q = rng.uniform(-0.9, 0.9, (20, 3)).astype(np.float32)
+    want = np.stack([_frame(x, (0, 0)) for x in q])
+    drawn = pool.draw(q, keep=want, where=want == TARGET)
+    assert (drawn == want).mean() > 0.97, (drawn != want).sum(1)
 
 
 def test_the_tip_is_fitted_on_rewarded_steps_and_the_goal_is_its_distance_to_the_target():
@@ -86,11 +91,11 @@ def test_the_tip_is_fitted_on_rewarded_steps_and_the_goal_is_its_distance_to_the
     eps += [_episode(rng, t, n=100, play=False, reach=True) for t in _targets(rng, 4)]
     goal = FrameGoal.fit(eps, N_CODES, (SIDE, SIDE), seed=0, tip_cfg=TipFit(steps=800), arm_cfg=ArmFit(steps=400))
     assert all(t is not None for t in goal.targets) and goal.rewarded > 100
-    q = rng.uniform(-0.8, 0.8, (200, 2)).astype(np.float32)
+    q = rng.uniform(-0.8, 0.8, (200, 3)).astype(np.float32)
     err = np.abs(goal.tip(q).numpy() - np.stack([_tip_xy(x) for x in q])).mean()
     assert err < 0.8, err  # cells; the reward's own tolerance is 1 cell
     bound = goal.bind(np.array([[2.5, 3.5], [6.5, 0.5]]))
-    d = bound.distance(torch.from_numpy(q[:2])[:, None, None].expand(2, 3, 4, 2))
+    d = bound.distance(torch.from_numpy(q[:2])[:, None, None].expand(2, 3, 4, 3))
     assert d.shape == (2, 3, 4) and torch.allclose(d[0, 0, 0], (goal.tip(q[:1])[0] - torch.tensor([2.5, 3.5])).norm())
 
 

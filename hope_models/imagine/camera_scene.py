@@ -6,11 +6,11 @@ planner's goal is the start episode's target.
     scene.history_codes          # [B, K, G] the start windows' recorded codes (the Mid Loop's context)
     scene.goal                   # goal.bind(the start episodes' targets): the planner's cost
     scene.draw(joints)           # [B, G] codes of the frames the joints [B, D] make
+    scene.bounds                 # (low, high) [D]: the recorded joints' range, which a predicted step is kept in
 
-A drawn frame is the start episode's scene with the arm where the joints put it (frame_goal.FrameGoal's
-arm model): each cell's most probable code at those joints, except the cells that showed something
-the arm model does not explain (the target, frame_goal.Scene), which keep the episode's most
-frequent code there wherever the arm is not drawn. The codes are decoded into pixels by the tokenizer's frozen decoder when an
+A drawn frame is the start episode's scene (its target's cells and their codes, frame_goal.Scene) over
+the background, with the arm where the joints put it drawn over both: the arm of the recorded frame
+at the nearest joints (frame_draw.ArmPool). The codes are decoded into pixels by the tokenizer's frozen decoder when an
 episode is written (write.py), so a Fast Loop reading frames re-encodes what it would have seen.
 """
 from __future__ import annotations
@@ -40,11 +40,16 @@ class CameraScene:
         self.scene_cells = np.stack([goal.scenes[e].cells for e, _ in starts])
         self.targets = np.stack([t for t in (goal.targets[e] for e, _ in starts) if t is not None])
         self.goal = goal.bind(self.targets)
-        self._arm = goal.arm
+        self._pool = goal.pool
+        # The joints an imagined step may reach: the range recorded (normalised). Left free, a predicted
+        # wrap of a joint that turns without end (+-pi) can go the wrong way, and the world model then
+        # reads joints it never saw: 2 of 50 reacher rollouts ran off to |shoulder| > 10^4 rad
+        every = np.concatenate([e.obs for e in eps])
+        self.bounds = (every.min(0), every.max(0))
 
     def draw(self, joints: np.ndarray) -> np.ndarray:
         """Joints [B, D] (normalised) -> the codes [B, G] of the frames they make in each start's scene."""
-        return self._arm.draw(joints.astype(np.float32), keep=self.scene_codes, where=self.scene_cells)
+        return self._pool.draw(joints, keep=self.scene_codes, where=self.scene_cells)
 
 
 def _codes_of(ep: Recorded) -> np.ndarray:

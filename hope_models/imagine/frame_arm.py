@@ -3,7 +3,6 @@ arm's look as a function of the joints, for imagining from a camera world model 
 
     arm = ArmModel.fit([(codes, joints), ...], n_codes)   # per episode: codes [T, G], joints [T, D] normalised
     arm.off_background(joints)                        # [N, G] P(a cell is off its background | joints)
-    arm.draw(joints, keep=start_codes, where=mask)    # [N, G] codes: the arm at those joints over a scene
 
 What it assumes, in plain words:
 - the camera does not move: a cell shows the same thing (its background code, the cell's most frequent
@@ -119,20 +118,6 @@ class ArmModel:
         out = [1.0 - self.log_probs(joints[s:s + chunk]).gather(-1, bg.expand(len(joints[s:s + chunk]), -1)[..., None])
                [..., 0].exp() for s in range(0, len(joints), chunk)]
         return torch.cat(out).numpy() if out else np.zeros((0, len(self.background)), np.float32)
-
-    @torch.no_grad()
-    def draw(self, joints: np.ndarray, keep: np.ndarray, where: np.ndarray, chunk: int = 256) -> np.ndarray:
-        """The codes of frames [N, G] showing the arm at joints [N, D] over a scene: each cell's most
-        probable code under the arm model, except where `where` [N, G] (or [G]) is set and the model
-        expects no arm there (its background code is the most probable one): there `keep` [N, G] (or
-        [G]) stays (e.g. a target the start frame showed)."""
-        out = []
-        for s in range(0, len(joints), chunk):
-            best = self.log_probs(joints[s:s + chunk]).argmax(-1).numpy()
-            out.append(best)
-        best = np.concatenate(out) if out else np.zeros((0, len(self.background)), np.int64)
-        free = best == self.background
-        return np.where(free & np.broadcast_to(where, best.shape), np.broadcast_to(keep, best.shape), best)
 
 
 __all__ = ["ArmFit", "ArmModel", "STATIC_SHARE", "background_codes", "without_static"]

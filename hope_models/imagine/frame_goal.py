@@ -4,6 +4,7 @@ frame, and where the robot's tip is given its joints (imagination from a camera 
     goal = FrameGoal.fit(eps, n_codes=256, grid_shape=(16, 16), seed=0)   # eps: recorded.Recorded with codes
     goal.targets[i]                       # (x, y) of episode i's target in cell units, or None
     goal.scenes[i]                        # its target's cells and their codes (camera_scene.py draws them)
+    goal.pool                             # recorded arms to draw imagined frames with (frame_draw.py)
     goal.tip(joints)                      # [..., 2]: where the tip is at those joints (normalised joints)
     goal.bind(targets).distance(obs)      # |tip(obs) - target| per episode row (cells): the planner's cost
 
@@ -31,6 +32,7 @@ import torch
 from torch import nn
 
 from hope_models.imagine.frame_arm import ArmFit, ArmModel
+from hope_models.imagine.frame_draw import ArmPool
 
 # the target: the WINDOW x WINDOW block holding the most evidence. Reacher camera episodes (25, 16x16
 # cells): 7 locates every target within 0.74 cells of its true centre, 3 and 5 within 2-3 (the block
@@ -95,9 +97,9 @@ class _BoundGoal:
 
 
 class FrameGoal:
-    def __init__(self, arm: ArmModel, tip: nn.Module, grid_shape: tuple[int, int], scenes: list[Scene],
-                 rewarded: int, tip_error: float):
-        self.arm, self._tip, self.grid_shape = arm, tip.eval(), grid_shape
+    def __init__(self, arm: ArmModel, pool: ArmPool, tip: nn.Module, grid_shape: tuple[int, int],
+                 scenes: list[Scene], rewarded: int, tip_error: float):
+        self.arm, self.pool, self._tip, self.grid_shape = arm, pool, tip.eval(), grid_shape
         self.scenes, self.rewarded, self.tip_error = scenes, rewarded, tip_error
         self.targets = [sc.target for sc in scenes]
 
@@ -108,10 +110,15 @@ class FrameGoal:
         if not any((e.reward > 0).any() for e in eps if not e.play):
             raise ValueError("no rewarded step in the demos: the goal (where the tip is on the target) is read off "
                              "the steps they were rewarded on; record demos with rewards")
-        arm_eps = [e for e in eps if e.play] or list(eps)
-        arm = ArmModel.fit([(e.codes[::ARM_STRIDE], e.obs[::ARM_STRIDE]) for e in arm_eps], n_codes, seed, arm_cfg)
+        arm_eps = [i for i, e in enumerate(eps) if e.play] or list(range(len(eps)))
+        arm = ArmModel.fit([(eps[i].codes[::ARM_STRIDE], eps[i].obs[::ARM_STRIDE]) for i in arm_eps], n_codes, seed,
+                           arm_cfg)
         scenes = [episode_scene(arm, e, grid_shape) for e in eps]
         targets = [sc.target for sc in scenes]
+        pool = ArmPool(arm, np.concatenate([eps[i].codes[::ARM_STRIDE] for i in arm_eps]),
+                       np.concatenate([eps[i].obs[::ARM_STRIDE] for i in arm_eps]),
+                       np.concatenate([np.broadcast_to(scenes[i].cells, eps[i].codes[::ARM_STRIDE].shape)
+                                       for i in arm_eps]))
         q = [e.obs[e.reward > 0] for e, t in zip(eps, targets, strict=True) if t is not None]
         xy = [np.repeat(t[None], int((e.reward > 0).sum()), 0) for e, t in zip(eps, targets, strict=True)
               if t is not None]
@@ -120,7 +127,7 @@ class FrameGoal:
             raise ValueError("no target located in any rewarded episode: nothing in their frames is left "
                              "unexplained by the arm model")
         tip, err = _fit_tip(rows, np.concatenate(xy), seed, tip_cfg or TipFit())
-        return cls(arm, tip, grid_shape, scenes, int(len(rows)), err)
+        return cls(arm, pool, tip, grid_shape, scenes, int(len(rows)), err)
 
     @torch.no_grad()
     def tip(self, joints: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -132,7 +139,8 @@ class FrameGoal:
 
     def to_json_obj(self) -> dict[str, Any]:
         return {"kind": "frame", "rewarded_steps": self.rewarded, "tip_fit_rms_cells": round(self.tip_error, 4),
-                "arm_model": {"frames": self.arm.frames, "cross_entropy": round(self.arm.loss, 4)},
+                "arm_model": {"frames": self.arm.frames, "cross_entropy": round(self.arm.loss, 4),
+                              "joint_weights": [round(float(w), 4) for w in self.pool.weights]},
                 "grid": list(self.grid_shape), "excess_floor": EXCESS_FLOOR, "window": WINDOW,
                 "assumes": "a static camera and target; the target is what the joints do not explain; a rewarded "
                            "step has the tip on the target"}

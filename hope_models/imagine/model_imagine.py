@@ -103,6 +103,8 @@ def imagine_batch(wm: WorldModel, goal: Goal | Any, eps: Sequence[Recorded], sta
         label, cost = cem.plan(y, obs0)
         executed = np.clip(label + noise * rng.standard_normal(label.shape), lo, hi) if noise else label
         obs1 = wm.predict(y, obs0, wm.norm_act(executed)[:, None].astype(np.float32))[:, 0].numpy()
+        if scene is not None:  # kept within the joints it was trained on (camera_scene.CameraScene.bounds)
+            obs1 = np.clip(obs1, *scene.bounds)
         for j in range(sub):
             state = _lerp(obs0, obs1, j / sub)
             if j:
