@@ -1,7 +1,10 @@
 """Fast Loop training speed on camera frames (through the frozen tokenizer's code table) against the
 same Fast Loop on the joints alone ("joints": the observation vector, no frame): steps/s of the
 real `train` command, alternating rounds in one run so the shared machine's noise falls on both.
-Target: frames >= 80 % of joints. "frames" is the default policy (its keypoints also learn by
+Target: frames >= 80 % of joints. "state" is the Fast Loop on the vector observation as `make demo`
+trains it (joints + target_offset, the codes of a vector VQ-VAE; 50 state demos of the same seeds
+recorded by the bench, their VQ-VAE trained 200 steps: its speed does not depend on how well).
+"frames" is the default policy (its keypoints also learn by
 drawing the cells' code vectors back); "frames_reading" the same with keypoint_reader "policy"
 (reading the codes alone, no drawing), which says what the drawing costs; "frames_drawing_codes"
 the earlier drawing (each cell's code as one of n_codes classes).
@@ -50,6 +53,18 @@ def train(data: Path, cache: Path, run_dir: Path, steps: int, threads: int, vqva
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
 
 
+def state_recipe(root: Path, episodes: int, threads: int) -> tuple[Path, Path]:
+    """The vector recipe's data and tokenizer: state demos (no frames) and a vector VQ-VAE on them."""
+    data, vq = root / "state", root / "state_vq"
+    for cmd in (["sim-demos", "--episodes", str(episodes), "--out", str(data)],
+                ["train", "--component", "vqvae", "--data", str(data), "--cache-dir", str(root / "state_cache"),
+                 "--run-dir", str(vq), "--steps", "200", "--threads", str(threads)]):
+        proc = subprocess.run([sys.executable, "run_trainer.py", *cmd], cwd=REPO, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
+    return data, vq
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, required=True)
@@ -58,22 +73,29 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=50)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--state-episodes", type=int, default=50, help="state demos the vector recipe trains on")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="flcodes-") as tmp:
         root = Path(tmp)
         cache = root / "cache"
         train(args.data, cache, root / "prime", 20, args.threads, args.vqvae)  # cache + code table, untimed
-        variants = (("joints", None, None), ("frames", args.vqvae, None),
+        state_data, state_vq = state_recipe(root, args.state_episodes, args.threads)
+        train(state_data, root / "state_cache", root / "state_prime", 20, args.threads, state_vq)
+        variants = (("joints", None, None), ("state", state_vq, None), ("frames", args.vqvae, None),
                     ("frames_reading", args.vqvae, {"keypoint_reader": "policy"}),
                     ("frames_drawing_codes", args.vqvae, {"keypoint_draw": "codes"}))
         rates: dict[str, list[float]] = {name: [] for name, _, _ in variants}
         for r in range(args.rounds):
             for name, vq, mc in variants:
                 run = root / f"{name}-{r}"
-                train(args.data, cache, run, args.steps, args.threads, vq, mc)
+                if name == "state":
+                    train(state_data, root / "state_cache", run, args.steps, args.threads, vq, mc)
+                else:
+                    train(args.data, cache, run, args.steps, args.threads, vq, mc)
                 rates[name].append(steps_per_s(run, args.warm))
     med = {k: statistics.median(v) for k, v in rates.items()}
     print(json.dumps({"steps_per_s": rates, "median": med, "frames_over_joints": med["frames"] / med["joints"],
+                      "frames_over_state": med["frames"] / med["state"],
                       "frames_reading_over_joints": med["frames_reading"] / med["joints"],
                       "frames_drawing_codes_over_joints": med["frames_drawing_codes"] / med["joints"],
                       "target": 0.8, "steps": args.steps, "threads": args.threads}, indent=1))
