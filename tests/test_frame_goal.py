@@ -75,9 +75,10 @@ def test_the_target_is_what_the_joints_do_not_explain_and_not_the_frame_centre()
     ep = _episode(rng, None, n=16)
     assert locate(evidence(arm, ep.codes, ep.obs), (SIDE, SIDE)) is None
     # drawing: the nearest recorded arm (its own target left out) over the kept scene (a target)
+    scenes = [episode_scene(arm, e, (SIDE, SIDE)) for e in play]
     pool = ArmPool(arm, np.concatenate([e.codes for e in play]), np.concatenate([e.obs for e in play]),
-                   np.concatenate([np.broadcast_to(episode_scene(arm, e, (SIDE, SIDE)).cells, e.codes.shape)
-                                   for e in play]))
+                   np.concatenate([np.broadcast_to(sc.cells, e.codes.shape) for sc, e in zip(scenes, play, strict=True)]),
+                   np.concatenate([np.broadcast_to(sc.codes, e.codes.shape) for sc, e in zip(scenes, play, strict=True)]))
     assert pool.weights[2] < 0.2 * pool.weights[:2].min(), pool.weights  # what does not move the arm weighs little
     q = rng.uniform(-0.9, 0.9, (20, 3)).astype(np.float32)
     want = np.stack([_frame(x, (0, 0)) for x in q])

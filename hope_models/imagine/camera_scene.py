@@ -9,8 +9,12 @@ planner's goal is the start episode's target.
     scene.bounds                 # (low, high) [D]: the recorded joints' range, which a predicted step is kept in
 
 A drawn frame is the start episode's scene (its target's cells and their codes, frame_goal.Scene) over
-the background, with the arm where the joints put it drawn over both: the arm of the recorded frame
-at the nearest joints (frame_draw.ArmPool). The codes are decoded into pixels by the tokenizer's frozen decoder when an
+the background, with the arm where the joints put it: the arm of the recorded frame at the nearest
+joints (frame_draw.ArmPool). In codes (the Mid Loop's context) the arm is drawn over the scene. A
+written frame is composed in pixels (write.py): the arm layer decoded, and over it the pixels where
+the decoded scene differs from the decoded background (the target in front of the arm, as the
+recordings show it; composing in codes let the cells around the arm, which a grid tokenizer also
+changes, blot the target out). The codes are decoded into pixels by the tokenizer's frozen decoder when an
 episode is written (write.py), so a Fast Loop reading frames re-encodes what it would have seen.
 """
 from __future__ import annotations
@@ -48,8 +52,19 @@ class CameraScene:
         self.bounds = (every.min(0), every.max(0))
 
     def draw(self, joints: np.ndarray) -> np.ndarray:
-        """Joints [B, D] (normalised) -> the codes [B, G] of the frames they make in each start's scene."""
+        """Joints [B, D] (normalised) -> the codes [B, G] of the frames they make in each start's scene
+        (the arm over the scene: what the Mid Loop's context reads)."""
         return self._pool.draw(joints, keep=self.scene_codes, where=self.scene_cells)
+
+    def arm(self, joints: np.ndarray) -> np.ndarray:
+        """Joints [B, D] -> the arm alone over the background [B, G]: the layer a written frame's arm comes
+        from (write.py lays the scene's target over it in pixels)."""
+        return self._pool.draw(joints, keep=self._pool.background, where=np.zeros(self.scene_cells.shape, bool))
+
+    def layers(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Start i's scene layer (its target's cells and codes over the background) and the background [G]."""
+        bg = self._pool.background
+        return np.where(self.scene_cells[i], self.scene_codes[i], bg), bg
 
 
 def _codes_of(ep: Recorded) -> np.ndarray:

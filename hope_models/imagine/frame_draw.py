@@ -1,7 +1,7 @@
 """Frames drawn from joints for imagined steps: the arm as a recorded frame showed it at the nearest
 joints, over a scene (frame_goal.Scene: a target and the cells it changes).
 
-    pool = ArmPool(arm, codes, joints, scene_cells)   # recorded frames [N, G], their joints [N, D], their scenes
+    pool = ArmPool(arm, codes, joints, scene_cells, scene_codes)   # recorded frames, joints, their episodes' scenes
     pool.draw(joints, keep=scene_codes, where=scene_cells)   # [B, G] codes
 
 Why not the arm model's own most probable codes: a grid tokenizer gives a thin arm crossing a cell a
@@ -13,9 +13,9 @@ the background). A recorded frame at nearly the same joints has them all.
 What it assumes, in plain words: the arm's look is a function of the joints, and the recordings
 (play) visited joints near every one an imagined step reaches. Each joint dimension is weighted by
 how much the arm model's picture changes with it (a velocity, which does not move the arm in the
-frame, weighs little); of the NEIGHBOURS nearest frames, the one whose arm overlaps its own
-episode's target cells least is drawn (those cells are the target's, not the arm's, and are left
-out of the arm it lends).
+frame, weighs little); of the NEIGHBOURS nearest frames, the one whose arm changes the fewest of
+its own episode's scene cells is drawn, and of it the cells off the background except those that
+show its scene's own code (its target, not its arm).
 """
 from __future__ import annotations
 
@@ -42,13 +42,14 @@ def joint_weights(arm: ArmModel, joints: np.ndarray) -> np.ndarray:
 
 
 class ArmPool:
-    def __init__(self, arm: ArmModel, codes: np.ndarray, joints: np.ndarray, scene_cells: np.ndarray):
+    def __init__(self, arm: ArmModel, codes: np.ndarray, joints: np.ndarray, scene_cells: np.ndarray,
+                 scene_codes: np.ndarray):
+        """Recorded frames' codes [N, G], joints [N, D], and their episodes' scenes: cells [N, G], codes [N, G]."""
         self.background = arm.background
         self.weights = joint_weights(arm, joints)
-        off = codes != self.background
         self.codes, self.joints = codes, joints.astype(np.float32) * self.weights.astype(np.float32)
-        self.arm_cells = off & ~scene_cells
-        self.overlap = (off & scene_cells).sum(1)
+        self.arm_cells = (codes != self.background) & ~(scene_cells & (codes == scene_codes))
+        self.overlap = (scene_cells & (codes != scene_codes)).sum(1)  # the arm inside its own scene's cells
 
     def nearest(self, joints: np.ndarray, chunk: int = 64) -> np.ndarray:
         """Joints [B, D] -> the index of the recorded frame each is drawn from [B] (module doc)."""

@@ -115,10 +115,11 @@ class FrameGoal:
                            arm_cfg)
         scenes = [episode_scene(arm, e, grid_shape) for e in eps]
         targets = [sc.target for sc in scenes]
+        shapes = [eps[i].codes[::ARM_STRIDE].shape for i in arm_eps]
         pool = ArmPool(arm, np.concatenate([eps[i].codes[::ARM_STRIDE] for i in arm_eps]),
                        np.concatenate([eps[i].obs[::ARM_STRIDE] for i in arm_eps]),
-                       np.concatenate([np.broadcast_to(scenes[i].cells, eps[i].codes[::ARM_STRIDE].shape)
-                                       for i in arm_eps]))
+                       np.concatenate([np.broadcast_to(scenes[i].cells, sh) for i, sh in zip(arm_eps, shapes, strict=True)]),
+                       np.concatenate([np.broadcast_to(scenes[i].codes, sh) for i, sh in zip(arm_eps, shapes, strict=True)]))
         q = [e.obs[e.reward > 0] for e, t in zip(eps, targets, strict=True) if t is not None]
         xy = [np.repeat(t[None], int((e.reward > 0).sum()), 0) for e, t in zip(eps, targets, strict=True)
               if t is not None]

@@ -110,7 +110,7 @@ def imagine_batch(wm: WorldModel, goal: Goal | Any, eps: Sequence[Recorded], sta
             if j:
                 label, cost = cem.plan(y, state)
             dist = cem.goal_distance(torch.from_numpy(state)).numpy()
-            codes = None if scene is None else scene.draw(state)
+            codes = None if scene is None else scene.arm(state)  # the written frame's arm layer
             for i, ep in enumerate(out):
                 if len(ep.obs) < steps:
                     ep.add(state[i], label[i], executed[i], float(dist[i]), None if codes is None else codes[i])
@@ -183,6 +183,7 @@ def imagine_model_dataset(out_dir: str | Path, episodes: int, *, model: str | Pa
     for i, ep in enumerate(imagined):
         if scene is not None:
             ep.target = [round(float(v), 4) for v in scene.targets[i]]
+            ep.layers = scene.layers(i)
         rec = write_model_episode(out, ep, i, seed, wm.spec, eps[starts[i][0]].metadata, period, settings,
                                   wm.decode_codes if scene is not None else None)
         result.episodes.append(rec)

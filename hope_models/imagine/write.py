@@ -21,8 +21,9 @@ ORIGIN = "imagined:model"
 SOURCE = "model_planner"  # action.source, control_role and action_source of every step
 # metadata keys copied from the start episode: what robot and setting the imagination is about
 COPIED = ("schema_version", "robot_model", "robot_type", "xr_mode", "environment_id")
-DROPPED_TAGS = (PLAY_TAG, "dart_noise")
-FRAME_URI = "blobs/step_%06d_rgb.npy"  # a camera world model's frames, named as the recordings name theirs  # marks of how the start episode was recorded, not of this one
+DROPPED_TAGS = (PLAY_TAG, "dart_noise")  # marks of how the start episode was recorded, not of this one
+FRAME_URI = "blobs/step_%06d_rgb.npy"  # a camera world model's frames, named as the recordings name theirs
+FRONT_LEVEL = 40  # of 255: a decoded scene pixel this far from the background's is the target's (camera_scene.py)
 
 
 @dataclass
@@ -35,6 +36,7 @@ class ModelEpisode:
     goal_distance: list[float] = field(default_factory=list)
     codes: list[np.ndarray] = field(default_factory=list)  # a camera world model's: each step's cell codes
     target: list[float] | None = None  # a camera world model's: where the start episode's target is (cells)
+    layers: tuple[np.ndarray, np.ndarray] | None = None  # and its scene layer and background codes [G] (camera_scene)
 
     def add(self, obs, label, executed, dist: float, codes: np.ndarray | None = None) -> None:
         self.obs.append(np.array(obs, dtype=np.float64))
@@ -84,9 +86,15 @@ def _frames(spec: FeatureSpec, ep: ModelEpisode, decode: Callable[[np.ndarray], 
     if decode is None or spec.frame is None:
         raise ValueError("imagined codes need the tokenizer's decoder and a camera in the feature spec")
     (blobs / "blobs").mkdir()
+    front = None
+    if ep.layers is not None:  # the scene's pixels that differ from the background are laid over the arm
+        scene_px, bg_px = decode(np.stack(ep.layers))
+        front = np.abs(scene_px.astype(np.int16) - bg_px.astype(np.int16)).max(-1) > FRONT_LEVEL
     refs = []
     for s in range(0, len(ep.codes), 256):
         frames = decode(np.stack(ep.codes[s:s + 256]))
+        if front is not None:
+            frames = np.where(front[None, ..., None], scene_px[None], frames)
         for t, img in enumerate(frames, start=s):
             np.save(blobs / (FRAME_URI % t), img, allow_pickle=False)
             refs.append({"uri": FRAME_URI % t, "width": int(img.shape[1]), "height": int(img.shape[0]),
