@@ -2,7 +2,7 @@
 joints and a 64x64 top-down frame, nothing about the target), through the same services as `demo`.
 
 1. records the expert's DART demonstrations with `sim-demos --observation camera`, the episodes
-   split over CAMERA.record_processes children (rendering dominates: ~20 s an episode on a core);
+   split over CAMERA.record_processes children (~5-10 s an episode on a core with flat frames);
 2. starts the services (session.py);
 3. queues one chain whose members train with their own recipe (CAMERA.members): the grid frame
    VQ-VAE, the Fast Loop reading its codes through the code table, the grid Mid Loop;
@@ -51,8 +51,8 @@ class CameraRecipe:
     frame_size: int = 64
     record_processes: int = 2  # sim-demos children (one per core)
     # eval-reflex children, each a range of the held-out seeds. One: it runs beside the Mid Loop's
-    # one-thread training, and two processes on two cores finish together (~20 s of CPU an episode
-    # against ~7.5 grid Mid Loop steps/s); two more would leave a core idle at the end.
+    # one-thread training and ends first (20 held-out episodes took 235 s with flat frames, against
+    # 3000 grid Mid Loop steps at ~7.5 steps/s); a second would only take the Mid Loop's core.
     eval_processes: int = 1
 
 
