@@ -219,6 +219,33 @@ def _fail(args, message: str) -> int:
     return 2
 
 
+def _result(policy, args: argparse.Namespace, seeds: list[int], res, expert, rand, started: float) -> dict:
+    """The result object (module doc) of the policy's, the expert's and random's evaluations."""
+    from hope_models.sim.evaluate import json_number  # lazy: loads numpy
+
+    return {
+        "ok": True,
+        "mean_return": json_number(res.mean_return),
+        "success_rate": json_number(res.success_rate),
+        "time_to_reach_s": json_number(res.time_to_reach_s),
+        "expert_mean_return": json_number(expert.mean_return),
+        "random_mean_return": json_number(rand.mean_return),
+        "episodes": len(res.episodes),
+        "task": args.task,
+        "seeds": [seeds[0], seeds[-1]],
+        "checkpoint": str(policy.checkpoint_dir),
+        "version": policy.version,
+        "reached": res.reached,
+        "expert_success_rate": json_number(expert.success_rate),
+        "random_success_rate": json_number(rand.success_rate),
+        "per_episode": [
+            {"seed": p.seed, "return": p.ret, "success": p.success, "time_to_reach_s": p.time_to_reach_s,
+             "expert_return": e.ret, "random_return": r.ret}
+            for p, e, r in zip(res.episodes, expert.episodes, rand.episodes, strict=True)],
+        "elapsed_s": round(time.perf_counter() - started, 2),
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     ckpt_arg = args.checkpoint
@@ -242,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     from hope_models.promote.reflex_policy import ReflexPolicy, ReflexPolicyError  # lazy: loads numpy
 
     # lazy: loads numpy
-    from hope_models.sim.evaluate import evaluate_policy, expert_factory, json_number, random_factory
+    from hope_models.sim.evaluate import evaluate_policy, expert_factory, random_factory
 
     torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)  # as training does (job_setup.torch_settings): subnormals only cost time
@@ -268,27 +295,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: no frames were streamed: {stream.error}", file=sys.stderr)
     expert = evaluate_policy(expert_factory, seeds, args.task, target_jump_s=jump)
     rand = evaluate_policy(random_factory, seeds, args.task, target_jump_s=jump)
-    out = {
-        "ok": True,
-        "mean_return": json_number(res.mean_return),
-        "success_rate": json_number(res.success_rate),
-        "time_to_reach_s": json_number(res.time_to_reach_s),
-        "expert_mean_return": json_number(expert.mean_return),
-        "random_mean_return": json_number(rand.mean_return),
-        "episodes": len(res.episodes),
-        "task": args.task,
-        "seeds": [seeds[0], seeds[-1]],
-        "checkpoint": str(policy.checkpoint_dir),
-        "version": policy.version,
-        "reached": res.reached,
-        "expert_success_rate": json_number(expert.success_rate),
-        "random_success_rate": json_number(rand.success_rate),
-        "per_episode": [
-            {"seed": p.seed, "return": p.ret, "success": p.success, "time_to_reach_s": p.time_to_reach_s,
-             "expert_return": e.ret, "random_return": r.ret}
-            for p, e, r in zip(res.episodes, expert.episodes, rand.episodes, strict=True)],
-        "elapsed_s": round(time.perf_counter() - started, 2),
-    }
+    out = _result(policy, args, seeds, res, expert, rand, started)
     camera = {"style": policy.render_style, "from": policy.render_from} if policy.frame is not None else None
     extras = {"render": camera, "target_jump_s": jump, "frames": None if stream is None else stream.summary(),
               "surprise": surprise}
