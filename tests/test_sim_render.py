@@ -67,11 +67,9 @@ def _dataset(root: Path, sim: dict) -> Path:
     return root / "data"
 
 
-def _checkpoint(root: Path, data: Path | str) -> Path:
-    ckpt = root / "run" / "checkpoints" / "000010"
-    ckpt.mkdir(parents=True)
-    (ckpt / "config.json").write_text(json.dumps({"component": "fast_loop", "train": {"data": str(data)}}))
-    return ckpt
+def _checkpoint(data: Path | str) -> dict:
+    """A checkpoint's config.json as ReflexPolicy reads it."""
+    return {"component": "fast_loop", "train": {"data": str(data)}}
 
 
 @pytest.mark.parametrize("sim, expected", [
@@ -81,16 +79,17 @@ def _checkpoint(root: Path, data: Path | str) -> Path:
 ])
 def test_the_style_a_reflex_learned_from_is_read_off_its_training_data(tmp_path, sim, expected):
     data = _dataset(tmp_path, sim)
-    style, where = trained_render_style(_checkpoint(tmp_path, data))
+    style, where = trained_render_style(_checkpoint(data))
     assert style == expected and where == str(data / "ep-0" / "metadata.json")
 
 
 def test_without_its_training_data_the_style_is_the_default_and_says_why(tmp_path):
-    style, where = trained_render_style(_checkpoint(tmp_path, tmp_path / "gone"))
+    style, where = trained_render_style(_checkpoint(tmp_path / "gone"))
     assert style == "flat" and "is not here" in where and "gone" in where
     state_only = _dataset(tmp_path / "state", {"observation": "state"})  # no frames: says nothing
-    style, where = trained_render_style(_checkpoint(tmp_path / "state", state_only))
+    style, where = trained_render_style(_checkpoint(state_only))
     assert style == "flat" and "no simulated episode with frames" in where
+    assert trained_render_style({"component": "fast_loop"})[1].endswith("names no training data)")
 
 
 def test_sim_demos_writes_the_style_into_every_episode(tmp_path):

@@ -8,32 +8,21 @@ from pathlib import Path as _Path
 
 _sys.path.insert(0, str(_Path(__file__).resolve().parents[2]))  # the checkout, as the other benches
 
-import glob
-import json
 import sys
 
 import numpy as np
 
+from bench.camera_imagination import replay
 from hope_models.sim.expert import ExpertController
-from hope_models.sim.reacher import TOLERANCE_M, ReacherEnv
+from hope_models.sim.reacher import TOLERANCE_M
 
 root = sys.argv[1]
 expert = ExpertController()
 mse, cos, dist, reached, dist_first = [], [], [], [], []
-for d in sorted(glob.glob(f"{root}/imagined-model-*")):
-    meta = json.load(open(f"{d}/metadata.json"))
-    start = meta["provenance"]["imagined"]["start"]["episode_id"]
-    seed = int(start.rsplit("-s", 1)[1])
-    env = ReacherEnv("reach", seed)
-    env.reset()
-    steps = [json.loads(l) for l in open(f"{d}/steps/000000.jsonl")]
+for _, env, steps in replay.episodes(root):
     ep_dist = []
     for t in range(0, len(steps), 5):
-        rs = steps[t]["observation"]["robot_state"]
-        p = env.physics
-        p.data.qpos[:] = rs["joint_positions"]
-        p.data.qvel[:] = rs["joint_velocities"]
-        p.forward()
+        replay.put_arm(env, steps[t])
         obs = env.observation_dict()
         u = np.asarray(expert.act(obs))
         lab = np.asarray(steps[t]["action"]["command"])

@@ -149,7 +149,7 @@ class ReflexPolicy:
         check_spec(comp.spec, where, expect_observation, expect_action)
         policy = cls(comp.model, comp.spec, version, action_bounds, ckpt)
         if policy.frame is not None:  # evaluated on frames drawn like the ones it learned from
-            policy.render_style, policy.render_from = trained_render_style(ckpt)
+            policy.render_style, policy.render_from = trained_render_style(verified.json(CONFIG_FILE))
         return policy
 
     # -- the tick -------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """How the frames a camera reflex learned from were drawn, so that its evaluation draws the same.
 
-    style, where = trained_render_style(checkpoint_dir)   # ("flat", "<episode>/metadata.json"), ...
+    style, where = trained_render_style(config)   # a checkpoint's config.json -> ("flat", "<episode>/metadata.json")
 
 A policy cloned from one picture and scored on another is scored on a shift it never saw: the
 reacher's "shaded" frames (shadow map, reflecting floor) and its "flat" ones differ in every pixel of
@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 from itertools import islice
 from pathlib import Path
+from typing import Any
 
 from hope_models.checkpoint_format import CONFIG_FILE
 from hope_models.sim.reacher import RENDER_STYLE, RENDER_STYLES
@@ -22,13 +23,12 @@ BEFORE_STYLES = "shaded"  # what recordings with frames and no provenance.sim.re
 LOOK_AT = 8  # episode metadata files read at most: one dataset is recorded with one style
 
 
-def trained_render_style(checkpoint_dir: str | Path) -> tuple[str, str]:
-    """(the style of the frames the checkpoint's training data holds, the file it was read from or why
-    the default)."""
-    try:
-        config = json.loads((Path(checkpoint_dir) / CONFIG_FILE).read_text(encoding="utf-8"))
-        data = config["train"]["data"]
-    except (OSError, ValueError, KeyError, TypeError):
+def trained_render_style(config: Any) -> tuple[str, str]:
+    """(the style of the frames the training data of a checkpoint's parsed config.json holds, the file
+    it was read from or why the default)."""
+    train = config.get("train") if isinstance(config, dict) else None
+    data = train.get("data") if isinstance(train, dict) else None
+    if data is None:
         return RENDER_STYLE, f"the default ({CONFIG_FILE} names no training data)"
     root = Path(data) if isinstance(data, str) else None
     if root is None or not root.is_dir():
