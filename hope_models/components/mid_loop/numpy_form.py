@@ -31,7 +31,14 @@ import numpy as np
 
 from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError, grid_frame, read_mid_loop
 from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
-from hope_models.components.mid_loop.numpy_ssm import SSMBlockNumpy, run_window
+from hope_models.components.mid_loop.numpy_ssm import (
+    SSMBlockNumpy,
+    WindowAhead,
+    advance,
+    run_window,
+    step_last,
+    window_ahead,
+)
 from hope_models.components.numpy_layers import Linear, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
@@ -161,12 +168,41 @@ class MidLoopNumpy:
         """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is read)."""
         return self.codes_of(values)
 
-    def predict(self, points: list[np.ndarray], acts_n: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    def predict(self, points: list[np.ndarray], acts_n: np.ndarray,
+                ahead: WindowAhead | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
         """The window's last point -> (expected observation per horizon [H, obs_dim] raw units, its
-        log-probabilities [H, G, n] for a later surprise, finite)."""
-        logp = self.log_probs(self.forward(self.rows(np.stack(points)), acts_n, last_only=True)[-1])
+        log-probabilities [H, G, n] for a later surprise, finite). ahead: window_ahead() of
+        points[:-1], acts_n[:-1] (completed here if it is not yet; then only the last point is run)."""
+        if ahead is None:
+            logits = self.forward(self.rows(np.stack(points)), acts_n, last_only=True)[-1]
+        else:
+            while not self.ahead_step(ahead):
+                pass
+            x = self._inputs(self.rows(points[-1]), np.asarray(acts_n[-1], dtype=np.float32))
+            logits = self._logits(step_last(self._blocks, x, ahead.states, self._mean))
+        logp = self.log_probs(logits)
         pred = self.prediction(logp)
         return pred, logp, bool(np.isfinite(pred).all() and np.isfinite(logp).all())
+
+    def window_ahead(self, points: list[np.ndarray], acts_n: np.ndarray) -> WindowAhead:
+        """The next window but its last point (points, their normalised previous actions, zeros at
+        the first) -> the blocks' SSM states after them, the first block done (ahead_step() does
+        the others, one a call): computed on the ticks between grid points (serving.py), so the
+        grid point runs its own point alone (predict(ahead=))."""
+        x = (self._inputs(self.rows(np.stack(points)), np.asarray(acts_n, dtype=np.float32)) if points
+             else np.zeros((0, self.d_model), np.float32))
+        ahead = window_ahead(self._blocks, x)
+        advance(self._blocks, ahead, self._mean)
+        return ahead
+
+    def ahead_step(self, ahead: WindowAhead) -> bool:
+        """One more block of a window_ahead() -> whether all are done."""
+        return advance(self._blocks, ahead, self._mean)
+
+    def prepare(self, newest: np.ndarray, due_next: dict[int, np.ndarray]) -> bool:
+        """Nothing of a surprise to compute ahead (it is G look-ups in a kept prediction): False, so
+        serving.py goes straight to window_ahead() (the grid form's prepare() has work here)."""
+        return False
 
     def surprises(self, due: dict[int, np.ndarray], codes: np.ndarray) -> dict[int, float]:
         """{horizon index: logp predicted s_h points ago} -> {h: -sum over the groups of log P(the
@@ -180,6 +216,8 @@ class MidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         self.prediction(self.log_probs(self.forward(zeros + self._offsets, acts, last_only=True)[-1]))
         self.forward(zeros[:1] + self._offsets, acts[:1], last_only=True)
+        points = list(zeros)
+        self.predict(points, acts, self.window_ahead(points[:-1], acts[:-1]))
         self.codes_of(np.zeros(self.obs_dim))
 
     def describe_observation(self, limit: int = 12) -> str:

@@ -3,12 +3,17 @@
 
     blocks = [SSMBlockNumpy(tensors, f"ssm.blocks.{i}", k) for i in range(n_layers)]
     x = run_window(blocks, x [L, d], mean, last_only)      # the blocks' residual stream, before ln_f
+    ahead = window_ahead(blocks, x [L - 1, d])             # a window but its last point, then
+    advance(blocks, ahead, mean)                           # one block a call (True: complete)
+    x = step_last(blocks, x_last [d], ahead.states, mean)  # its last point: one step a block
 
 The arithmetic is SSMBlock/DiagonalSSM in hope_models/components/ssm.py, float32: per block
 u = LN1(x), h_t = sum_{s<=t} a^(t-s) g (B u_s) (the parallel form over the window, from a zero
 state), x += C h + D u, x += GatedMLP(LN2(x)). Torch-free.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,4 +63,60 @@ def run_window(blocks: list[SSMBlockNumpy], x: np.ndarray, mean: np.ndarray, las
     return x
 
 
-__all__ = ["SSMBlockNumpy", "run_window"]
+@dataclass(eq=False)
+class WindowAhead:
+    """The blocks' SSM states after a window's points from a zero state, computed a block at a time
+    (advance()): what step_last() continues from, so a window's last point costs one recurrent step
+    a block (the same sums as the parallel form's, up to float32 rounding)."""
+    x: np.ndarray  # [L, d]: the next block's input over the points
+    states: np.ndarray  # [n_layers, N]: each done block's state after the last of the points
+    done: int = 0  # blocks done
+
+    def complete(self) -> bool:
+        return self.done == self.states.shape[0] or not self.x.shape[0]
+
+
+def window_ahead(blocks: list[SSMBlockNumpy], x: np.ndarray) -> WindowAhead:
+    """A WindowAhead of a window's points x [L, d] (L may be 0: zero states), no block done yet."""
+    return WindowAhead(x, np.zeros((len(blocks), blocks[0].a.shape[0]), np.float32))
+
+
+def advance(blocks: list[SSMBlockNumpy], ahead: WindowAhead, mean: np.ndarray) -> bool:
+    """One more block of `ahead` (nothing when it is complete) -> whether it is complete now."""
+    if ahead.complete():
+        return True
+    i, x, length = ahead.done, ahead.x, ahead.x.shape[0]
+    blk = blocks[i]
+    u = blk.ln1(x, mean)
+    h = np.einsum("tsn,sn->tn", blk.kernel[:length, :length], u.dot(blk.bg_t))
+    ahead.states[i] = h[-1]
+    if i < len(blocks) - 1:  # the last block's outputs are not read: only its state
+        x = x + h.dot(blk.c_t)
+        x += u * blk.d
+        ahead.x = x + blk.mlp(layer_norm(x, mean))
+    ahead.done = i + 1
+    return ahead.complete()
+
+
+def states_ahead(blocks: list[SSMBlockNumpy], x: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Every block of window_ahead(blocks, x) at once -> the states [n_layers, N]."""
+    ahead = window_ahead(blocks, x)
+    while not advance(blocks, ahead, mean):
+        pass
+    return ahead.states
+
+
+def step_last(blocks: list[SSMBlockNumpy], x: np.ndarray, states: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """A window's last point x [d] from states_ahead() of the points before it -> the blocks'
+    residual stream [d] at that point (before ln_f), as run_window(..., last_only=True) computes it."""
+    for i, blk in enumerate(blocks):
+        u = blk.ln1(x, mean)
+        h = u.dot(blk.bg_t)
+        h += blk.a * states[i]
+        x = x + h.dot(blk.c_t)
+        x += u * blk.d
+        x = x + blk.mlp(layer_norm(x, mean))
+    return x
+
+
+__all__ = ["SSMBlockNumpy", "WindowAhead", "advance", "run_window", "states_ahead", "step_last", "window_ahead"]
