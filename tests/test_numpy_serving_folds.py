@@ -5,7 +5,7 @@ out here, or the window form that tests/test_brain_whole.py checks against torch
 - the VQ-VAE's SiLU layers halved at load (numpy_layers.silu_of_half): encode bit-equal;
 - its nearest code with the cross term as one batched product: the same codes; decode_expected's
   probability-weighted rows as one batched product: the same decoding within float32 rounding;
-- the Mid Loop's window but its last point computed ahead, a block a tick (numpy_ssm.window_ahead,
+- the Mid Loop's window but its last point computed ahead, a stage a tick (numpy_ssm.window_ahead,
   serving.py), then the last point alone: the window form's prediction, in a served session too;
 - the fast_loop's finite check reading h, not the ring: a NaN or Inf entering the ring makes h
   non-finite on that very tick;
@@ -83,7 +83,7 @@ def test_vqvae_encode_codes_and_decode_equal_the_plain_arithmetic():
                                                        book[np.arange(4), want[:20]].reshape(20, -1)), atol=1e-6)
 
 
-def test_mid_loop_window_ahead_a_block_a_call_equals_the_window_form(runs):
+def test_mid_loop_window_ahead_a_stage_a_call_equals_the_window_form(runs):
     mid = MidLoopNumpy.from_checkpoint(runs["mid_a"])
     rng = np.random.default_rng(3)
     k = mid.window_k
@@ -94,9 +94,11 @@ def test_mid_loop_window_ahead_a_block_a_call_equals_the_window_form(runs):
         pts, a = points[:length], acts[:length]
         want, want_logp, _ = mid.predict(pts, a)  # the window form (forward over the points)
         ahead = mid.window_ahead(pts[:-1], a[:-1])
-        assert ahead.done == (1 if length > 1 else 0)  # the first block only: the other ticks do the rest
+        assert ahead.done == (1 if length > 1 else 0)  # the first stage only: the other ticks do the rest
         if length > 1:
-            assert mid.ahead_step(ahead) and ahead.done == mid.n_layers and mid.ahead_step(ahead)
+            stages = 2 * mid.n_layers - 1  # each block's SSM and MLP, the last block's SSM alone
+            assert [mid.ahead_step(ahead) for _ in range(stages - 1)] == [False] * (stages - 2) + [True]
+            assert ahead.done == stages and mid.ahead_step(ahead) and ahead.done == stages
         got, got_logp, finite_ = mid.predict(pts, a, ahead)
         assert finite_ and np.allclose(got, want, atol=1e-5) and np.allclose(got_logp, want_logp, atol=1e-4)
         # an ahead the ticks did not finish is finished by predict itself

@@ -24,6 +24,7 @@ docs/benchmarks.md). step() is kept for that comparison and the tests. Torch-fre
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from hope_models.components.mid_loop.numpy_ssm import (
     step_last,
     window_ahead,
 )
-from hope_models.components.numpy_layers import Linear, layer_norm
+from hope_models.components.numpy_layers import LN_EPS, Linear, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
 
@@ -79,6 +80,7 @@ class MidLoopNumpy:
         self._blocks = [SSMBlockNumpy(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
         self._lnf_w, self._lnf_b = t["ssm.ln_f.weight"], t["ssm.ln_f.bias"]
         self._head = Linear(np.ascontiguousarray(t["head.weight"].T), t["head.bias"])
+        self._head_ln_w, self._head_ln_b = fold_ln(self._lnf_w, self._lnf_b, t["head.weight"], t["head.bias"])
         d = self._code_in.shape[1]
         self.d_model = d
         self._mean = np.full(d, 1.0 / d, np.float32)
@@ -113,6 +115,12 @@ class MidLoopNumpy:
         return x
 
     def _logits(self, x: np.ndarray) -> np.ndarray:
+        if x.ndim == 1:  # one point (predict's): LayerNorm's statistics as Python floats, ln_f folded into the head
+            n = x - float(x.dot(self._mean))
+            n *= 1.0 / math.sqrt(float(n.dot(n)) / self.d_model + LN_EPS)
+            y = n.dot(self._head_ln_w)
+            y += self._head_ln_b
+            return y.reshape(len(self.horizon_steps), self.groups, self.n_codes)
         y = layer_norm(x, self._mean)
         y *= self._lnf_w
         y += self._lnf_b
@@ -186,8 +194,8 @@ class MidLoopNumpy:
 
     def window_ahead(self, points: list[np.ndarray], acts_n: np.ndarray) -> WindowAhead:
         """The next window but its last point (points, their normalised previous actions, zeros at
-        the first) -> the blocks' SSM states after them, the first block done (ahead_step() does
-        the others, one a call): computed on the ticks between grid points (serving.py), so the
+        the first) -> the blocks' SSM states after them, the first stage done (ahead_step() does
+        the others, one a call: a block's SSM, its MLP): computed on the ticks between grid points (serving.py), so the
         grid point runs its own point alone (predict(ahead=))."""
         x = (self._inputs(self.rows(np.stack(points)), np.asarray(acts_n, dtype=np.float32)) if points
              else np.zeros((0, self.d_model), np.float32))
@@ -196,7 +204,7 @@ class MidLoopNumpy:
         return ahead
 
     def ahead_step(self, ahead: WindowAhead) -> bool:
-        """One more block of a window_ahead() -> whether all are done."""
+        """One more stage of a window_ahead() -> whether all are done."""
         return advance(self._blocks, ahead, self._mean)
 
     def prepare(self, newest: np.ndarray, due_next: dict[int, np.ndarray]) -> bool:

@@ -269,8 +269,8 @@ class GridMidLoopNumpy:
 
     def window_ahead(self, points: list[GridPoint], acts_n: np.ndarray) -> WindowAhead:
         """The next window but its last point (points, their normalised previous actions, zeros at
-        the first) -> the blocks' SSM states after them, the first block done (ahead_step() does
-        the others, one a call): predict() then runs the new point alone, one recurrent step a
+        the first) -> the blocks' SSM states after them, the first stage done (ahead_step() does
+        the others, one a call: a block's SSM, its MLP): predict() then runs the new point alone, one recurrent step a
         block (the same sums as the window's parallel form)."""
         if points:
             x = np.stack([p.x for p in points])
@@ -282,7 +282,7 @@ class GridMidLoopNumpy:
         return ahead
 
     def ahead_step(self, ahead: WindowAhead) -> bool:
-        """One more block of a window_ahead() -> whether all are done."""
+        """One more stage of a window_ahead() -> whether all are done."""
         return advance(self._blocks, ahead, self._mean)
 
     def _step_last(self, x: np.ndarray, ahead: np.ndarray) -> np.ndarray:

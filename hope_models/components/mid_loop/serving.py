@@ -33,7 +33,8 @@ window's last point: the prediction, and what a later surprise reads) and surpri
 prepare() and window_ahead() are called on the ticks between grid points (a grid Mid Loop's
 prepare(), numpy_grid.py: the newest prediction's per-cell normalisers and the decoder of the
 predictions the next grid point scores; a vector one has nothing to prepare), then
-window_ahead() and ahead_step(): the next window's states but its last point, one block a tick.
+window_ahead() and ahead_step(): the next window's states but its last point, a block's SSM or
+its MLP a tick.
 So a grid point's work is spread over the ticks between grid points and the grid point runs its
 own point alone (what a tick did not finish, the grid point does: the same figures).
 
@@ -127,7 +128,7 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
         finite = _grid_point(mid, sess, mid.point(values, codes),
                              prev_action if prev_action is not None else sess.last_action)
     elif sess.ahead is not None:
-        mid.ahead_step(sess.ahead[1])  # the next block of the next window's states (nothing once complete)
+        mid.ahead_step(sess.ahead[1])  # the next stage of the next window's states (nothing once complete)
     elif sess.logp and sess.logp[-1] is not None:
         # part of the next grid point's work, one step a tick (nothing is left of prepare() once ahead
         # is made: what it reads changes only at a grid point, which clears ahead)
