@@ -7,6 +7,8 @@ out here, or the window form that tests/test_brain_whole.py checks against torch
   probability-weighted rows as one batched product: the same decoding within float32 rounding;
 - the Mid Loop's window but its last point computed ahead, a stage a tick (numpy_ssm.window_ahead,
   serving.py), then the last point alone: the window form's prediction, in a served session too;
+- the Mid Loop reading the served tokenizer's codes when its own VQ-VAE and normalisation are the
+  same (same_codes): the same answers as a Mid Loop encoding for itself, and never for another one;
 - the fast_loop's finite check reading h, not the ring: a NaN or Inf entering the ring makes h
   non-finite on that very tick;
 - the action bounds by np.maximum/np.minimum: np.clip's values, NaN kept.
@@ -173,3 +175,31 @@ def test_the_action_bounds_clip_as_np_clip():
     a = np.asarray([[0.2, -0.4], [5.0, -9.0], [np.nan, 0.3], [-0.6, np.inf], [0.45, -1.4]])
     want = np.clip(a * m._act_std + m._act_mean, -1.0, 1.0)
     assert np.array_equal(m.denormalise(a), want, equal_nan=True)
+
+
+def test_the_mid_loop_reads_the_tokenizers_codes_only_when_they_are_its_own(runs, tmp_path, monkeypatch):
+    import copy
+
+    from hope_models.components.vqvae.numpy_form import VQVAERuntime
+
+    mid = MidLoopNumpy.from_checkpoint(runs["mid_a"])
+    own, other = VQVAERuntime.from_checkpoint(runs["vq_a"]), VQVAERuntime.from_checkpoint(runs["vq_b"])
+    shifted = copy.copy(own)
+    shifted.norm = copy.copy(own.norm)
+    shifted.norm.obs_shift = own.norm.obs_shift + np.float32(0.5)  # the same weights, another normalisation
+    assert mid.same_codes(own) and not mid.same_codes(other) and not mid.same_codes(shifted) and mid.same_codes(own)
+    obs = np.random.default_rng(5).normal(0, 0.5, (61, 6)).tolist()
+    answers, encodes = {}, []
+    real = MidLoopNumpy.codes_of
+    monkeypatch.setattr(MidLoopNumpy, "codes_of", lambda self, v: encodes.append(1) or real(self, v))
+    for name, promoted in (("tokenizer", ("vq_a", "alpha30", "mid_a")), ("alone", (None, "alpha30", "mid_a"))):
+        home = tmp_path / name
+        for component, run in zip(("vqvae", "fast_loop", "mid_loop"), promoted, strict=True):
+            if run is not None:
+                promote_pointer(home, runs[run], component)
+        with BrainService(home) as brain:
+            encodes.clear()  # the load's warm-up
+            answers[name] = [brain.infer("fast_loop", o, session="s") for o in obs]
+        assert len(encodes) == (0 if name == "tokenizer" else 13)  # 13 grid points in 61 ticks
+    keys = ("prediction", "surprise", "surprise_by_horizon", "mid_tick", "mid_grid_point")
+    assert [{k: a[k] for k in keys} for a in answers["tokenizer"]] == [{k: a[k] for k in keys} for a in answers["alone"]]

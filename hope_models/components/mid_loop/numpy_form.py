@@ -85,6 +85,7 @@ class MidLoopNumpy:
         self.d_model = d
         self._mean = np.full(d, 1.0 / d, np.float32)
         self._offsets = np.arange(self.groups) * self.n_codes
+        self._same_codes: tuple[Any, bool] | None = None  # (the tokenizer last asked about, same_codes' answer)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, *, expected_sha256: str | None = None,
@@ -173,8 +174,22 @@ class MidLoopNumpy:
 
     # -- what serving.py calls (GridMidLoopNumpy answers the same) ----------------------------------
     def point(self, values: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
-        """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is read)."""
-        return self.codes_of(values)
+        """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is
+        read); codes: those codes computed already (by a tokenizer for which same_codes() holds)."""
+        return self.codes_of(values) if codes is None else np.asarray(codes)
+
+    def same_codes(self, tokenizer: Any) -> bool:
+        """Whether the served vqvae `tokenizer` (VQVAERuntime) computes this Mid Loop's codes of an
+        observation: the same encoder, codebook and normalisation (array by array, once per
+        tokenizer object), so BrainService encodes the observation once for both."""
+        last = self._same_codes
+        if last is not None and last[0] is tokenizer:
+            return last[1]
+        same = (tokenizer.frame_shape is None and self.vq.same_encoder(tokenizer.vq)
+                and np.array_equal(tokenizer.norm.obs_inv_std, self.norm.obs_inv_std)
+                and np.array_equal(tokenizer.norm.obs_shift, self.norm.obs_shift))
+        self._same_codes = (tokenizer, bool(same))
+        return bool(same)
 
     def predict(self, points: list[np.ndarray], acts_n: np.ndarray,
                 ahead: WindowAhead | None = None) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -147,12 +147,14 @@ def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None)
     sess.window.append((point, act_n))
     scored = mid.surprises(_due(mid, sess), point)
     by_h = {name: scored.get(h) for h, name in enumerate(mid.horizon_names)}
-    acts = np.stack([a for _, a in sess.window])
-    acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
     ahead = sess.ahead[1] if sess.ahead is not None and sess.ahead[0] == sess.points else None
     sess.ahead = None
-    points = [p for p, _ in sess.window]
-    pred, memo, finite = mid.predict(points, acts) if ahead is None else mid.predict(points, acts, ahead)
+    if ahead is None:
+        acts = np.stack([a for _, a in sess.window])
+        acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
+        pred, memo, finite = mid.predict([p for p, _ in sess.window], acts)
+    else:  # the points before hold their states in ahead: only the last point (never a window's first) is read
+        pred, memo, finite = mid.predict([point], act_n[None], ahead)
     sess.logp.append(memo if finite else None)
     sess.answer = _fields(mid, pred if finite else None, by_h, sess.ticks, sess.points)
     sess.points += 1

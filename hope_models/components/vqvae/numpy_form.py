@@ -87,6 +87,14 @@ class VQVAENumpy:
         self._mean_code = np.full(self.code_dim, 1.0 / self.code_dim, np.float32)
         self.obs_dim = self._enc[0].w_t.shape[0]
 
+    def same_encoder(self, other: "VQVAENumpy") -> bool:
+        """Whether `other` gives the same codes of every vector: the same encoder and codebook, array by array."""
+        if self.frame is not None or other.frame is not None or (self.groups, self.n_codes) != (other.groups, other.n_codes):
+            return False
+        return (len(self._enc) == len(other._enc) and np.array_equal(self.codebook, other.codebook)
+                and all(np.array_equal(a.w_t, b.w_t) and np.array_equal(a.b, b.b)
+                        for a, b in zip(self._enc, other._enc, strict=True)))
+
     def encode(self, obs_n: np.ndarray) -> np.ndarray:
         """Normalised obs [..., obs_dim] -> z_e [..., code_dim] (after the parameter-free LayerNorm)."""
         return layer_norm(_mlp(self._enc, obs_n), self._mean_code)
