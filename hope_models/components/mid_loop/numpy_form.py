@@ -5,6 +5,9 @@
     logits = model.forward(rows_window [L, G], prev_act_n [L, A])    # [L, H, G, n_codes], L <= K
     logits = model.forward(..., last_only=True)           # [1, H, G, n]: what serving needs
     model.prediction(logits[-1])                          # [H, obs_dim] expected observation, raw units
+    ahead = model.window_ahead(points[:-1], acts[:-1])    # serving: the window but its last point,
+    model.ahead_step(ahead)                               #   a stage a call on the ticks between grid points,
+    model.predict(points, acts, ahead)                    #   then the last point alone (the same sums)
 
 The arithmetic is hope_models/components/mid_loop/model.py and SSMStack/SSMBlock/DiagonalSSM in
 hope_models/components/ssm.py, float32 (tests/test_brain_whole.py checks forward against MidLoop.forward in eval

@@ -25,9 +25,9 @@ its target arrives (surprises(): the horizons due at a point in one pass), so no
 tensor is made. Neither the [G, n] logits' normaliser of each cell nor the decoder's hidden
 depends on the target, and the next window's points but its last are known a grid step ahead, so
 the control ticks between grid points (4 of 5 at 20 ms / 100 ms) do that work, one step a tick
-(prepare(), then window_ahead()): the newest prediction's normalisers, the hidden of the
-predictions the next grid point scores, the blocks' states over the next window's first K-1
-points. The grid point then runs its new point through one recurrent step a block and reads one
+(prepare(), then window_ahead() and ahead_step()): the newest prediction's normalisers, the
+hidden of the predictions the next grid point scores, the blocks' states over the next window's
+first K-1 points (numpy_ssm.advance: a block's SSM, then its MLP, a stage a tick). The grid point then runs its new point through one recurrent step a block and reads one
 row of cell_out per cell (a [G, r] product instead of the decoder, [G, r] x [r, n] and G x n
 exponentials). A session with no tick between grid points, or a step not yet done, takes the
 whole of it at the grid point (the same figures). Memory per session: G floats a horizon a
