@@ -30,8 +30,10 @@
    horizons 0.5 s / 1 s), one session ticked back to back as a 50 Hz robot's ticks (a Mid Loop grid
    point every 5th tick), interleaved in blocks with a fast_loop-only service on the same
    observations: p50/p99 of every tick, of the grid-point ticks alone and of the others. Also the
-   Mid Loop's two ways to a prediction from the last K points: the window form
-   (MidLoopNumpy.forward, what BrainService runs) and re-stepping K points from a fresh state.
+   Mid Loop's ways to a prediction from the last K points: the window form (MidLoopNumpy.forward),
+   re-stepping K points from a fresh state, and what BrainService runs: the window but its last
+   point ahead (window_ahead + ahead_step, spread over the ticks between grid points), then the
+   last point alone (predict with ahead).
    Target: p99 of the full answer < 2 ms. The thread CPU time of each tick is recorded too: on a
    shared machine the wall-clock p99 of a 0.2-0.7 ms call is set by preemption (a call hit by the
    scheduler waits a time slice, ~4 ms), which the CPU time does not count.
@@ -446,8 +448,10 @@ def mid_forms(model, n: int) -> dict[str, dict[str, float]]:
     k, g = model.window_k, model.groups
     rows = model.rows(rng.integers(0, model.n_codes, (k, g)))
     acts = rng.normal(0, 1, (k, model.act_dim)).astype(np.float32)
+    points = list(rows - model.rows(np.zeros(model.groups, np.int64)))  # group-local codes, what predict() reads
+    ahead_name, last_name = "mid_loop window ahead, K-1 points (all stages)", "mid_loop last point from them (predict)"
     lat: dict[str, list[float]] = {"mid_loop window form (forward, K points)": [],
-                                   "mid_loop re-stepping K points (step x K)": []}
+                                   "mid_loop re-stepping K points (step x K)": [], ahead_name: [], last_name: []}
     for _ in range(n):
         t0 = time.perf_counter()
         model.prediction(model.log_probs(model.forward(rows, acts, last_only=True)[-1]))
@@ -457,8 +461,18 @@ def mid_forms(model, n: int) -> dict[str, dict[str, float]]:
             logits, state = model.step(rows[i], acts[i], state)
         model.prediction(model.log_probs(logits))
         t2 = time.perf_counter()
+        # what BrainService runs: the window but its last point on the ticks between grid points
+        # (window_ahead, then ahead_step a stage a tick), the grid point its own point alone
+        ahead = model.window_ahead(points[:-1], acts[:-1])
+        while not model.ahead_step(ahead):
+            pass
+        t3 = time.perf_counter()
+        model.predict(points, acts, ahead)
+        t4 = time.perf_counter()
         lat["mid_loop window form (forward, K points)"].append(t1 - t0)
         lat["mid_loop re-stepping K points (step x K)"].append(t2 - t1)
+        lat[ahead_name].append(t3 - t2)
+        lat[last_name].append(t4 - t3)
     return {name: summary_ms(v) for name, v in lat.items()}
 
 

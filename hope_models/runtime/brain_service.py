@@ -344,12 +344,16 @@ class BrainService:
         code = None if vq is None else frame_codes.get(TOKENIZER)
         if vq is not None and code is None:
             code = vq.model.codes_of(np.asarray(values))
-        out = {"action": None if answered is None else [float(v) for v in answered],
+        out = {"action": None if answered is None else answered.tolist(),  # float64 -> the same Python floats
                "model_version": served.version, "latency_ms": 0.0, "session": session,
-               "code": None if code is None else [int(c) for c in code]}
+               "code": None if code is None else np.asarray(code).tolist()}
+        mid_codes = frame_codes.get(PREDICTOR)
+        if mid is not None and mid_codes is None and code is not None and hasattr(mid.model, "same_codes") \
+                and mid.model.same_codes(vq.model):  # the tokenizer's codes are the Mid Loop's: encoded once
+            mid_codes = code
         out.update(mid_serving.EMPTY if mid is None else
                    mid_serving.answer(self._slots[mid.model.name], mid, np.asarray(values), session, reset, given, answered,
-                                      fast.model if fast else None, self.max_sessions, frame_codes.get(PREDICTOR)))
+                                      fast.model if fast else None, self.max_sessions, mid_codes))
         # a component with none of the roles above answers with its NumPy form's own output
         others = {name: p.model.answer(np.asarray(values)) for name, p in peers.items()
                   if p is not None and name not in (ACTOR, TOKENIZER, PREDICTOR)}

@@ -56,7 +56,8 @@ class FastLoopNumpyAct(FastLoopNumpy):
         a *= r
         a += self._a_b_raw
         if self.action_bounds is not None:
-            np.clip(a, self.action_bounds[0], self.action_bounds[1], out=a)
+            np.maximum(a, self.action_bounds[0], out=a)  # np.clip's values (NaN stays NaN) in half its time
+            np.minimum(a, self.action_bounds[1], out=a)
         return a, state
 
 

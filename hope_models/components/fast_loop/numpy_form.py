@@ -232,7 +232,8 @@ class FastLoopNumpy:
     def denormalise(self, a: np.ndarray) -> np.ndarray:
         action = a * self._act_std + self._act_mean  # float64: the statistics are float64
         if self.action_bounds is not None:
-            action = np.clip(action, self.action_bounds[0], self.action_bounds[1])
+            np.maximum(action, self.action_bounds[0], out=action)  # np.clip's values in half its time
+            np.minimum(action, self.action_bounds[1], out=action)
         return action
 
     # -- pointwise parts of the batched path (one grid point each) --------------------------------

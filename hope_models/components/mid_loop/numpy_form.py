@@ -5,6 +5,9 @@
     logits = model.forward(rows_window [L, G], prev_act_n [L, A])    # [L, H, G, n_codes], L <= K
     logits = model.forward(..., last_only=True)           # [1, H, G, n]: what serving needs
     model.prediction(logits[-1])                          # [H, obs_dim] expected observation, raw units
+    ahead = model.window_ahead(points[:-1], acts[:-1])    # serving: the window but its last point,
+    model.ahead_step(ahead)                               #   a stage a call on the ticks between grid points,
+    model.predict(points, acts, ahead)                    #   then the last point alone (the same sums)
 
 The arithmetic is hope_models/components/mid_loop/model.py and SSMStack/SSMBlock/DiagonalSSM in
 hope_models/components/ssm.py, float32 (tests/test_brain_whole.py checks forward against MidLoop.forward in eval
@@ -24,6 +27,7 @@ docs/benchmarks.md). step() is kept for that comparison and the tests. Torch-fre
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +35,15 @@ import numpy as np
 
 from hope_models.components.mid_loop.checkpoint import MidLoopNumpyError, grid_frame, read_mid_loop
 from hope_models.components.mid_loop.numpy_grid import GridMidLoopNumpy
-from hope_models.components.mid_loop.numpy_ssm import SSMBlockNumpy, run_window
-from hope_models.components.numpy_layers import Linear, layer_norm
+from hope_models.components.mid_loop.numpy_ssm import (
+    SSMBlockNumpy,
+    WindowAhead,
+    advance,
+    run_window,
+    step_last,
+    window_ahead,
+)
+from hope_models.components.numpy_layers import LN_EPS, Linear, fold_ln, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
 from hope_models.data.features import FeatureSpec
 
@@ -72,10 +83,12 @@ class MidLoopNumpy:
         self._blocks = [SSMBlockNumpy(t, f"ssm.blocks.{i}", self.window_k) for i in range(self.n_layers)]
         self._lnf_w, self._lnf_b = t["ssm.ln_f.weight"], t["ssm.ln_f.bias"]
         self._head = Linear(np.ascontiguousarray(t["head.weight"].T), t["head.bias"])
+        self._head_ln_w, self._head_ln_b = fold_ln(self._lnf_w, self._lnf_b, t["head.weight"], t["head.bias"])
         d = self._code_in.shape[1]
         self.d_model = d
         self._mean = np.full(d, 1.0 / d, np.float32)
         self._offsets = np.arange(self.groups) * self.n_codes
+        self._same_codes: tuple[Any, bool] | None = None  # (the tokenizer last asked about, same_codes' answer)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, *, expected_sha256: str | None = None,
@@ -106,6 +119,12 @@ class MidLoopNumpy:
         return x
 
     def _logits(self, x: np.ndarray) -> np.ndarray:
+        if x.ndim == 1:  # one point (predict's): LayerNorm's statistics as Python floats, ln_f folded into the head
+            n = x - float(x.dot(self._mean))
+            n *= 1.0 / math.sqrt(float(n.dot(n)) / self.d_model + LN_EPS)
+            y = n.dot(self._head_ln_w)
+            y += self._head_ln_b
+            return y.reshape(len(self.horizon_steps), self.groups, self.n_codes)
         y = layer_norm(x, self._mean)
         y *= self._lnf_w
         y += self._lnf_b
@@ -158,15 +177,58 @@ class MidLoopNumpy:
 
     # -- what serving.py calls (GridMidLoopNumpy answers the same) ----------------------------------
     def point(self, values: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
-        """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is read)."""
-        return self.codes_of(values)
+        """A grid point from the raw observation: its own VQ-VAE's group-local codes [G] (no frame is
+        read); codes: those codes computed already (by a tokenizer for which same_codes() holds)."""
+        return self.codes_of(values) if codes is None else np.asarray(codes)
 
-    def predict(self, points: list[np.ndarray], acts_n: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    def same_codes(self, tokenizer: Any) -> bool:
+        """Whether the served vqvae `tokenizer` (VQVAERuntime) computes this Mid Loop's codes of an
+        observation: the same encoder, codebook and normalisation (array by array, once per
+        tokenizer object), so BrainService encodes the observation once for both."""
+        last = self._same_codes
+        if last is not None and last[0] is tokenizer:
+            return last[1]
+        same = (tokenizer.frame_shape is None and self.vq.same_encoder(tokenizer.vq)
+                and np.array_equal(tokenizer.norm.obs_inv_std, self.norm.obs_inv_std)
+                and np.array_equal(tokenizer.norm.obs_shift, self.norm.obs_shift))
+        self._same_codes = (tokenizer, bool(same))
+        return bool(same)
+
+    def predict(self, points: list[np.ndarray], acts_n: np.ndarray,
+                ahead: WindowAhead | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
         """The window's last point -> (expected observation per horizon [H, obs_dim] raw units, its
-        log-probabilities [H, G, n] for a later surprise, finite)."""
-        logp = self.log_probs(self.forward(self.rows(np.stack(points)), acts_n, last_only=True)[-1])
+        log-probabilities [H, G, n] for a later surprise, finite). ahead: window_ahead() of
+        points[:-1], acts_n[:-1] (completed here if it is not yet; then only the last point is run)."""
+        if ahead is None:
+            logits = self.forward(self.rows(np.stack(points)), acts_n, last_only=True)[-1]
+        else:
+            while not self.ahead_step(ahead):
+                pass
+            x = self._inputs(self.rows(points[-1]), np.asarray(acts_n[-1], dtype=np.float32))
+            logits = self._logits(step_last(self._blocks, x, ahead.states, self._mean))
+        logp = self.log_probs(logits)
         pred = self.prediction(logp)
         return pred, logp, bool(np.isfinite(pred).all() and np.isfinite(logp).all())
+
+    def window_ahead(self, points: list[np.ndarray], acts_n: np.ndarray) -> WindowAhead:
+        """The next window but its last point (points, their normalised previous actions, zeros at
+        the first) -> the blocks' SSM states after them, the first stage done (ahead_step() does
+        the others, one a call: a block's SSM, its MLP): computed on the ticks between grid points (serving.py), so the
+        grid point runs its own point alone (predict(ahead=))."""
+        x = (self._inputs(self.rows(np.stack(points)), np.asarray(acts_n, dtype=np.float32)) if points
+             else np.zeros((0, self.d_model), np.float32))
+        ahead = window_ahead(self._blocks, x)
+        advance(self._blocks, ahead, self._mean)
+        return ahead
+
+    def ahead_step(self, ahead: WindowAhead) -> bool:
+        """One more stage of a window_ahead() -> whether all are done."""
+        return advance(self._blocks, ahead, self._mean)
+
+    def prepare(self, newest: np.ndarray, due_next: dict[int, np.ndarray]) -> bool:
+        """Nothing of a surprise to compute ahead (it is G look-ups in a kept prediction): False, so
+        serving.py goes straight to window_ahead() (the grid form's prepare() has work here)."""
+        return False
 
     def surprises(self, due: dict[int, np.ndarray], codes: np.ndarray) -> dict[int, float]:
         """{horizon index: logp predicted s_h points ago} -> {h: -sum over the groups of log P(the
@@ -180,6 +242,8 @@ class MidLoopNumpy:
         acts = np.zeros((self.window_k, self.act_dim), np.float32)
         self.prediction(self.log_probs(self.forward(zeros + self._offsets, acts, last_only=True)[-1]))
         self.forward(zeros[:1] + self._offsets, acts[:1], last_only=True)
+        points = list(zeros)
+        self.predict(points, acts, self.window_ahead(points[:-1], acts[:-1]))
         self.codes_of(np.zeros(self.obs_dim))
 
     def describe_observation(self, limit: int = 12) -> str:

@@ -25,9 +25,9 @@ its target arrives (surprises(): the horizons due at a point in one pass), so no
 tensor is made. Neither the [G, n] logits' normaliser of each cell nor the decoder's hidden
 depends on the target, and the next window's points but its last are known a grid step ahead, so
 the control ticks between grid points (4 of 5 at 20 ms / 100 ms) do that work, one step a tick
-(prepare(), then window_ahead()): the newest prediction's normalisers, the hidden of the
-predictions the next grid point scores, the blocks' states over the next window's first K-1
-points. The grid point then runs its new point through one recurrent step a block and reads one
+(prepare(), then window_ahead() and ahead_step()): the newest prediction's normalisers, the
+hidden of the predictions the next grid point scores, the blocks' states over the next window's
+first K-1 points (numpy_ssm.advance: a block's SSM, then its MLP, a stage a tick). The grid point then runs its new point through one recurrent step a block and reads one
 row of cell_out per cell (a [G, r] product instead of the decoder, [G, r] x [r, n] and G x n
 exponentials). A session with no tick between grid points, or a step not yet done, takes the
 whole of it at the grid point (the same figures). Memory per session: G floats a horizon a
@@ -46,7 +46,14 @@ import numpy as np
 
 from hope_models.components.mid_loop.checkpoint import grid_frame
 from hope_models.components.mid_loop.config import MidLoopConfig
-from hope_models.components.mid_loop.numpy_ssm import SSMBlockNumpy, run_window
+from hope_models.components.mid_loop.numpy_ssm import (
+    SSMBlockNumpy,
+    WindowAhead,
+    advance,
+    run_window,
+    step_last,
+    window_ahead,
+)
 from hope_models.components.numpy_keypoints import KeypointsNumpy
 from hope_models.components.numpy_layers import Linear, NormMLP, layer_norm
 from hope_models.components.vqvae.numpy_form import Normaliser, VQVAENumpy
@@ -260,33 +267,27 @@ class GridMidLoopNumpy:
             return True
         return False
 
-    def window_ahead(self, points: list[GridPoint], acts_n: np.ndarray) -> np.ndarray:
+    def window_ahead(self, points: list[GridPoint], acts_n: np.ndarray) -> WindowAhead:
         """The next window but its last point (points, their normalised previous actions, zeros at
-        the first) -> each block's SSM state after them [n_layers, N]: predict() then runs the new
-        point alone, one recurrent step a block (the same sums as the window's parallel form)."""
-        states = np.zeros((len(self._blocks), self._blocks[0].a.shape[0]), np.float32)
-        if not points:
-            return states
-        x = np.stack([p.x for p in points])
-        x += self._act_in(np.asarray(acts_n, np.float32))
-        length = x.shape[0]
-        for i, blk in enumerate(self._blocks):
-            u = blk.ln1(x, self._mean)
-            h = np.einsum("tsn,sn->tn", blk.kernel[:length, :length], u.dot(blk.bg_t))
-            states[i] = h[-1]
-            if i < len(self._blocks) - 1:  # the last block's outputs are not read: only its state
-                x = x + h.dot(blk.c_t) + u * blk.d
-                x = x + blk.mlp(layer_norm(x, self._mean))
-        return states
+        the first) -> the blocks' SSM states after them, the first stage done (ahead_step() does
+        the others, one a call: a block's SSM, its MLP): predict() then runs the new point alone, one recurrent step a
+        block (the same sums as the window's parallel form)."""
+        if points:
+            x = np.stack([p.x for p in points])
+            x += self._act_in(np.asarray(acts_n, np.float32))
+        else:
+            x = np.zeros((0, self.d_model), np.float32)
+        ahead = window_ahead(self._blocks, x)
+        advance(self._blocks, ahead, self._mean)
+        return ahead
+
+    def ahead_step(self, ahead: WindowAhead) -> bool:
+        """One more stage of a window_ahead() -> whether all are done."""
+        return advance(self._blocks, ahead, self._mean)
 
     def _step_last(self, x: np.ndarray, ahead: np.ndarray) -> np.ndarray:
         """The window's last point [d] from the states of the points before it -> y [d] (after ln_f)."""
-        for i, blk in enumerate(self._blocks):
-            u = blk.ln1(x, self._mean)
-            h = blk.a * ahead[i] + u.dot(blk.bg_t)
-            x = x + h.dot(blk.c_t) + u * blk.d
-            x = x + blk.mlp(layer_norm(x, self._mean))
-        y = layer_norm(x, self._mean)
+        y = layer_norm(step_last(self._blocks, x, ahead, self._mean), self._mean)
         y *= self._lnf_w
         y += self._lnf_b
         return y
@@ -300,7 +301,7 @@ class GridMidLoopNumpy:
         return GridPoint(np.asarray(codes), self.point_inputs(codes, obs_n), obs_n)
 
     def predict(self, points: list[GridPoint], acts_n: np.ndarray,
-                ahead: np.ndarray | None = None) -> tuple[np.ndarray, Any, bool]:
+                ahead: WindowAhead | None = None) -> tuple[np.ndarray, Any, bool]:
         """The window's last point -> (joints per horizon [H, D] raw units float64, what surprises()
         reads later, finite). ahead: window_ahead() of points[:-1], acts_n[:-1] (then only the
         last point is run)."""
@@ -309,7 +310,9 @@ class GridMidLoopNumpy:
             x += self._act_in(np.asarray(acts_n, np.float32))
             y = self._context(x, last_only=True)[-1]
         else:
-            y = self._step_last(points[-1].x + self._act_in(np.asarray(acts_n[-1], np.float32)), ahead)
+            while not self.ahead_step(ahead):  # a grid point before the ticks between finished it
+                pass
+            y = self._step_last(points[-1].x + self._act_in(np.asarray(acts_n[-1], np.float32)), ahead.states)
         pred = self.norm.raw_obs(self.joints(y, points[-1].obs_n))
         return pred, GridMemo(y, points[-1].codes), bool(np.isfinite(pred).all() and np.isfinite(y).all())
 

@@ -29,11 +29,14 @@ Besides the fast_loop's action it answers:
   window: its prediction, never a surprise.
 
 The model's part is its form's point() (what the window keeps of a grid point), predict() (the
-window's last point: the prediction, and what a later surprise reads) and surprises(); a grid
-Mid Loop's prepare() and window_ahead() are called on the ticks between grid points
-(numpy_grid.py: the newest prediction's per-cell normalisers, the decoder of the predictions the
-next grid point scores and the next window's states but its last point, so a grid point's work
-is spread over the ticks between grid points).
+window's last point: the prediction, and what a later surprise reads) and surprises(); its
+prepare() and window_ahead() are called on the ticks between grid points (a grid Mid Loop's
+prepare(), numpy_grid.py: the newest prediction's per-cell normalisers and the decoder of the
+predictions the next grid point scores; a vector one has nothing to prepare), then
+window_ahead() and ahead_step(): the next window's states but its last point, a block's SSM or
+its MLP a tick.
+So a grid point's work is spread over the ticks between grid points and the grid point runs its
+own point alone (what a tick did not finish, the grid point does: the same figures).
 
 Sessions are the mid_loop slot's own LRU (BrainService._session's rule); a mid_loop version change
 clears them, a reset starts them again. A non-finite prediction (the model's fault) is logged and
@@ -70,7 +73,7 @@ class MidSession:
     logp: deque = field(default=None)  # what each recent point predicted, for surprise (None: not finite)
     last_action: np.ndarray | None = None  # the action answered on the previous tick (raw)
     answer: dict[str, Any] | None = None
-    ahead: tuple[int, Any] | None = None  # (grid point, a grid form's window_ahead for it)
+    ahead: tuple[int, Any] | None = None  # (grid point, the form's window_ahead for it)
 
     def __post_init__(self) -> None:
         self.reset(self.version)
@@ -124,9 +127,12 @@ def tick(mid: Any, sess: MidSession, values: np.ndarray, prev_action: np.ndarray
     if sess.ticks % every == 0:
         finite = _grid_point(mid, sess, mid.point(values, codes),
                              prev_action if prev_action is not None else sess.last_action)
-    elif sess.logp and sess.logp[-1] is not None and hasattr(mid, "prepare"):
-        # a grid Mid Loop: part of the next grid point's work, one step a tick (numpy_grid.py)
-        if not mid.prepare(sess.logp[-1], _due(mid, sess)) and sess.ahead is None:
+    elif sess.ahead is not None:
+        mid.ahead_step(sess.ahead[1])  # the next stage of the next window's states (nothing once complete)
+    elif sess.logp and sess.logp[-1] is not None:
+        # part of the next grid point's work, one step a tick (nothing is left of prepare() once ahead
+        # is made: what it reads changes only at a grid point, which clears ahead)
+        if not mid.prepare(sess.logp[-1], _due(mid, sess)):
             earlier = list(sess.window)[max(0, len(sess.window) + 1 - sess.k):]  # the next window but its last
             acts = np.stack([a for _, a in earlier]) if earlier else np.zeros((0, mid.act_dim), np.float32)
             acts[:1] = 0.0  # the next window's first point (previous_actions)
@@ -141,12 +147,14 @@ def _grid_point(mid: Any, sess: MidSession, point: Any, prev: np.ndarray | None)
     sess.window.append((point, act_n))
     scored = mid.surprises(_due(mid, sess), point)
     by_h = {name: scored.get(h) for h, name in enumerate(mid.horizon_names)}
-    acts = np.stack([a for _, a in sess.window])
-    acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
     ahead = sess.ahead[1] if sess.ahead is not None and sess.ahead[0] == sess.points else None
     sess.ahead = None
-    points = [p for p, _ in sess.window]
-    pred, memo, finite = mid.predict(points, acts) if ahead is None else mid.predict(points, acts, ahead)
+    if ahead is None:
+        acts = np.stack([a for _, a in sess.window])
+        acts[0] = 0.0  # a window's first point has no earlier action (previous_actions, as in training)
+        pred, memo, finite = mid.predict([p for p, _ in sess.window], acts)
+    else:  # the points before hold their states in ahead: only the last point (never a window's first) is read
+        pred, memo, finite = mid.predict([point], act_n[None], ahead)
     sess.logp.append(memo if finite else None)
     sess.answer = _fields(mid, pred if finite else None, by_h, sess.ticks, sess.points)
     sess.points += 1
@@ -191,7 +199,7 @@ def answer(slot: Any, served: Any, x: np.ndarray, session: str | None, reset: bo
 def _fields(mid: Any, pred: np.ndarray | None, by_h: dict[str, float | None], tick_no: int,
             point: int) -> dict[str, Any]:
     shortest = mid.horizon_names[int(np.argmin(mid.horizon_steps))]
-    return {"prediction": None if pred is None else {n: [float(v) for v in p]
+    return {"prediction": None if pred is None else {n: np.asarray(p, np.float64).tolist()
                                                      for n, p in zip(mid.horizon_names, pred, strict=False)},
             "surprise": by_h[shortest], "surprise_by_horizon": by_h, "mid_tick": tick_no, "mid_grid_point": point}
 

@@ -38,7 +38,7 @@ from hope_models.components.checkpoint_checks import (
     read_component,
 )
 from hope_models.components.layers import tensors
-from hope_models.components.numpy_layers import Linear, layer_norm, silu
+from hope_models.components.numpy_layers import Linear, halved, layer_norm, silu_of_half
 from hope_models.components.vqvae.config import VQVAEConfig
 from hope_models.components.vqvae.layers import vqvae_layers
 from hope_models.components.vqvae.numpy_frame import FrameEncoder, encoder_layers, frame_config
@@ -78,20 +78,26 @@ class VQVAENumpy:
             self.fingerprint = self.frame.fingerprint_with(self.codebook[:1] if self.shared else self.codebook)
             self._book0_t = np.ascontiguousarray(self.codebook[0].T)  # [d, n]
             return
-        self._enc = [lin(f"encoder.0.{i}") for i in (0, 2, 4)]
+        # the layers before a SiLU halved at load (silu_of_half: the same numbers in fewer ops)
+        self._enc = [halved(lin("encoder.0.0")), halved(lin("encoder.0.2")), lin("encoder.0.4")]
         # the decoder is optional: a fast_loop reads codes only (its checkpoint need not carry one)
-        self._dec = [lin(f"decoder.{i}") for i in (0, 2, 4)] if decoder else None
+        self._dec = [halved(lin("decoder.0")), halved(lin("decoder.2")), lin("decoder.4")] if decoder else None
+        # -2 c^T per group, [G, d, n]: the cross term of the distances as one batched product (x -2 is exact)
+        self._book_m2t = np.ascontiguousarray(np.float32(-2.0) * self.codebook.transpose(0, 2, 1))
         self._mean_code = np.full(self.code_dim, 1.0 / self.code_dim, np.float32)
         self.obs_dim = self._enc[0].w_t.shape[0]
 
+    def same_encoder(self, other: "VQVAENumpy") -> bool:
+        """Whether `other` gives the same codes of every vector: the same encoder and codebook, array by array."""
+        if self.frame is not None or other.frame is not None or (self.groups, self.n_codes) != (other.groups, other.n_codes):
+            return False
+        return (len(self._enc) == len(other._enc) and np.array_equal(self.codebook, other.codebook)
+                and all(np.array_equal(a.w_t, b.w_t) and np.array_equal(a.b, b.b)
+                        for a, b in zip(self._enc, other._enc, strict=True)))
+
     def encode(self, obs_n: np.ndarray) -> np.ndarray:
         """Normalised obs [..., obs_dim] -> z_e [..., code_dim] (after the parameter-free LayerNorm)."""
-        z = obs_n
-        for i, layer in enumerate(self._enc):
-            z = layer(z)
-            if i < 2:
-                z = silu(z)
-        return layer_norm(z, self._mean_code)
+        return layer_norm(_mlp(self._enc, obs_n), self._mean_code)
 
     def codes(self, x: np.ndarray) -> np.ndarray:
         """Normalised obs [..., obs_dim] (a frame VQ-VAE: uint8 frames [..., H, W, 3]) -> the nearest
@@ -102,20 +108,20 @@ class VQVAENumpy:
                 d = (zg * zg).sum(-1, keepdims=True) - np.float32(2.0) * zg.dot(self._book0_t) + self._book_sq[0]
                 return d.argmin(-1)
             zg = zg[..., None, :]  # [..., G, 1, d]
-        else:
-            z = self.encode(x)
-            zg = z.reshape(*z.shape[:-1], self.groups, 1, -1)  # [..., G, 1, d]
-        d = (zg * zg).sum(-1) - np.float32(2.0) * (zg * self.codebook).sum(-1) + self._book_sq  # [..., G, n]
+            d = (zg * zg).sum(-1) - np.float32(2.0) * (zg * self.codebook).sum(-1) + self._book_sq  # [..., G, n]
+            return d.argmin(-1)
+        z = self.encode(x)
+        zg = z.reshape(*z.shape[:-1], self.groups, 1, -1)  # [..., G, 1, d]
+        # |z|^2 - 2 z.c + |c|^2 as VQVAE.nearest, the cross term one batched product [G, 1, d] @ [G, d, n]
+        d = np.matmul(zg, self._book_m2t)[..., 0, :]  # [..., G, n]
+        d += (zg * zg).sum(-1)
+        d += self._book_sq
         return d.argmin(-1)
 
     def _decode_z(self, z: np.ndarray) -> np.ndarray:
         if self._dec is None:
             raise ValueError("this VQ-VAE was loaded without its decoder (a frame VQ-VAE's is not in the NumPy form)")
-        for i, layer in enumerate(self._dec):
-            z = layer(z)
-            if i < 2:
-                z = silu(z)
-        return z
+        return _mlp(self._dec, z)
 
     def decode(self, codes: np.ndarray) -> np.ndarray:
         """Group-local codes [..., G] -> the reconstruction [..., obs_dim] (normalised units)."""
@@ -125,8 +131,15 @@ class VQVAENumpy:
     def decode_expected(self, probs: np.ndarray) -> np.ndarray:
         """Per-group code probabilities [..., G, n_codes] -> the decoder at the expected z_q [..., obs_dim]."""
         p = np.asarray(probs, dtype=np.float32)
-        zq = (p[..., None] * self.codebook).sum(-2)  # [..., G, d]: each group's probability-weighted row
+        zq = np.matmul(p[..., None, :], self.codebook)[..., 0, :]  # [..., G, d]: each group's probability-weighted row
         return self._decode_z(zq.reshape(*zq.shape[:-2], self.code_dim))
+
+
+def _mlp(layers: list[Linear], z: np.ndarray) -> np.ndarray:
+    """Linear-SiLU-Linear-SiLU-Linear, the first two halved at load (numpy_layers.silu_of_half)."""
+    for layer in layers[:-1]:
+        z = silu_of_half(layer(z))
+    return layers[-1](z)
 
 
 class Normaliser:
