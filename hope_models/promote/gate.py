@@ -62,6 +62,9 @@ from hope_models.train.dataset_dir import dataset_dir_for
 from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
+# a check that runs after the candidate is served (the reflex in simulation), which rolls it back
+# when it fails: registry/gating.py
+DEFERRED = "deferred"
 # The first episodes' metadata read to decide the sim task (metadata.environment_id).
 _TASK_PROBE_EPISODES = 3
 
@@ -93,7 +96,7 @@ class _Gate:
 
     def result(self, metrics: dict[str, Any]) -> GateResult:
         failed = [c["detail"] for c in self.checks if c["status"] == FAILED]
-        skipped = [c["detail"] for c in self.checks if c["status"] == SKIPPED]
+        skipped = [c["detail"] for c in self.checks if c["status"] in (SKIPPED, DEFERRED)]
         reasons = (failed if failed else skipped) + self.notes
         return GateResult(not failed, reasons, metrics, self.checks)
 
@@ -264,10 +267,17 @@ def sim_task(cache) -> str | None:
 # -- the gate -------------------------------------------------------------------------------------
 
 def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, data: str | Path | None = None,
-                   settings: Any) -> GateResult:
+                   settings: Any, reflex_after_serving: bool = False, threads: int | None = None) -> GateResult:
     """Run the checks of the module doc. `data` is the promotion's own dataset, which replaces
     what the candidate's config.json names (train_source). Raises GateError only when the
-    candidate itself cannot be read; every other problem is a failed or skipped check in the result."""
+    candidate itself cannot be read; every other problem is a failed or skipped check in the result.
+    reflex_after_serving: the reflex check is not run here but recorded as deferred, its task in
+    metrics["reflex"]; the caller serves the candidate, then runs reflex_verdict(). threads: torch's
+    thread count for the gate (None: as it is)."""
+    if threads is not None:
+        import torch  # lazy: loads torch
+
+        torch.set_num_threads(threads)
     gate = _Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
     cand_cfg = _read_config(cand_dir)
@@ -300,7 +310,38 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
 
     # 2. validation loss on the candidate's split, 3. the sim reflex (fast_loop on reacher data)
     cache = _val_check(gate, metrics, cand, cand_dir, prom, prom_problem, cand_cfg, data)
-    _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, cache)
+    if not _has_reflex(gate, cand, cand_dir):
+        return gate.result(metrics)
+    task = (sim_task(cache) if cache is not None else None) or "reach"
+    if reflex_after_serving:
+        n = int(settings.gate_reflex_episodes)
+        metrics["reflex"] = {"task": task, "after_serving": True, "episodes": n}
+        gate.record("reflex", DEFERRED, f"reflex: checked after serving ({task}, seeds 0-{n - 1}); rolled back "
+                                        f"when worse than the promoted model's by more than "
+                                        f"{float(settings.gate_reflex_tolerance):g}")
+        return gate.result(metrics)
+    _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, task)
+    return gate.result(metrics)
+
+
+def reflex_verdict(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, settings: Any,
+                   task: str) -> GateResult:
+    """The deferred reflex check of a served candidate against the model it replaced (None: none
+    to compare with, the candidate's return is only measured); GateError when the candidate cannot be read."""
+    gate = _Gate(settings)
+    cand_dir = resolve_candidate(candidate_ckpt)
+    cand = _load_component(cand_dir)
+    metrics: dict[str, Any] = {"reflex": None}
+    prom = prom_dir = None
+    prom_problem = "nothing was promoted before it"
+    if promoted_ckpt is not None:
+        try:
+            prom_dir = resolve_candidate(promoted_ckpt)
+            prom = _load_component(prom_dir)
+        except GateError as exc:
+            prom_problem = f"the model it replaced cannot be loaded: {exc}"
+    if _has_reflex(gate, cand, cand_dir):
+        _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, task if task in TASKS else "reach")
     return gate.result(metrics)
 
 
@@ -376,20 +417,25 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
     return cache
 
 
-def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
+def _has_reflex(gate: _Gate, cand, cand_dir: Path) -> bool:
+    """Whether the reflex check applies: a fast_loop trained on the sim reacher's observation that
+    reads no camera (a camera one is recorded as not measured)."""
     if cand.name != ACTOR:
-        return
+        return False
     try:
         check_spec(cand.spec, str(cand_dir), SIM_OBSERVATION, SIM_ACTION)
     except ReflexPolicyError:
-        return  # not trained on the sim reacher: no reflex to check
+        return False  # not trained on the sim reacher: no reflex to check
     if cand.wants_frames:
         gate.record("reflex", SKIPPED, "reflex: not measured: this fast_loop reads camera frames")
-        return
+        return False
+    return True
+
+
+def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, task: str):
     settings = gate.settings
     n = int(settings.gate_reflex_episodes)
     tol = float(settings.gate_reflex_tolerance)
-    task = (sim_task(cache) if cache is not None else None) or "reach"
     seeds = list(range(n))
     reflex: dict[str, Any] = {"task": task, "seeds": [seeds[0], seeds[-1]], "episodes": n, "tolerance": tol,
                               "candidate_mean_return": None, "promoted_mean_return": None}
@@ -421,5 +467,5 @@ def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, pr
         gate.record("reflex", PASSED, text)
 
 
-__all__ = ["GateResult", "GateError", "TrainSource", "gate_candidate", "resolve_candidate", "non_finite_tensors",
+__all__ = ["GateResult", "GateError", "TrainSource", "gate_candidate", "reflex_verdict", "resolve_candidate", "non_finite_tensors",
            "fit_problem", "normalised_view", "sim_task", "train_source"]
