@@ -18,7 +18,10 @@ Checks, in order (the later ones only when the earlier ones could run):
 4. reflex: a fast_loop trained on the sim reacher (its feature spec reads the reacher's observation
    and writes its action) is run in closed loop on gate_reflex_episodes held-out seeds (0..N-1;
    demos are recorded from seed 100000 up), and so is the promoted one; refused when the
-   candidate's mean return is below the promoted one's minus gate_reflex_tolerance.
+   candidate's mean return is below the promoted one's minus gate_reflex_tolerance. With
+   reflex_after_serving (settings.gate_reflex_after_serving, the default for promotions) the
+   check is recorded as deferred and run by reflex_verdict() once the candidate is served;
+   registry/gating.py rolls it back when it fails.
 
 The dataset (train_source): the promotion's own when it has one (`promote RUN` passes the run's
 from the registry), else the one the candidate's config.json names, with its cache dir and spec

@@ -13,7 +13,13 @@ Gates a candidate and promotes it when it passes (hope_models/promote/gate.py):
    too: the history says why), and promoted when it passed, or with --force (recorded as forced,
    with who asked: `--by` cli or http; a WARNING line and a log event on its run; non-finite
    weights are never promoted, forced or not: a robot must not get NaN actions);
-4. promotion rewrites $HOPE_HOME/promoted/<component>.json, which BrainService follows.
+4. promotion rewrites $HOPE_HOME/promoted/<component>.json, which BrainService follows;
+5. a sim reacher fast_loop's reflex check runs after it is served (gate_reflex_after_serving, on
+   by default) and serves the previous model again when it fails: exit 1, "rolled_back": true,
+   "after_serving": {passed, detail, checks, reflex, seconds}.
+
+The procedure is registry/gating.py's; the worker child that trained a run runs it in-process
+(workers/warm_gate.py), so auto-promotion spawns this command only for runs no worker gated.
 
 Output (--json, one line): {"promoted": bool, "model_id", "version", "component", "checkpoint",
 "run_id", "forced", "reasons": [...], "metrics": {...}, "checks": [...]}; a usage error prints
