@@ -268,9 +268,10 @@ def describe_outcome(code: int | None, outcome: dict[str, Any] | None, problem: 
     if outcome.get("error"):
         return "error", f"auto-promote: could not gate: {outcome['error']}"
     reasons = "; ".join(str(r) for r in outcome.get("reasons") or [])
+    after = outcome.get("after_serving") or {}
     if code == 0 and outcome.get("promoted"):
         return "info", f"auto-promote: promoted {what} (model {outcome.get('model_id')})" + (
-            f"; {reasons}" if reasons else "")
+            f"; {reasons}" if reasons else "") + (f"; after serving: {after['detail']}" if after.get("detail") else "")
     if code == 1 and outcome.get("rolled_back"):
         return "warning", (f"auto-promote: served {what} (model {outcome.get('model_id')}), then rolled it back: "
                            f"{reasons}")

@@ -416,3 +416,10 @@ def test_describe_outcomes():
     level, msg = describe(1, {"component": "fast_loop", "version": "v", "model_id": 3, "reasons": ["worse"]})
     assert level == "warning" and "refused fast_loop v (model 3): worse" in msg
     assert describe(2, {"promoted": False, "error": "no run x"})[1] == "auto-promote: could not gate: no run x"
+    after = {"passed": False, "detail": "reflex mean return 12.0 vs the promoted model's 900.0"}
+    level, msg = describe(1, {"component": "fast_loop", "version": "v", "model_id": 4, "promoted": False,
+                              "rolled_back": True, "reasons": [after["detail"]], "after_serving": after})
+    assert level == "warning" and "served fast_loop v (model 4), then rolled it back: reflex mean return 12.0" in msg
+    level, msg = describe(0, {"component": "fast_loop", "version": "w", "model_id": 5, "promoted": True, "reasons": [],
+                              "after_serving": {"passed": True, "detail": "reflex mean return 950.0"}})
+    assert level == "info" and msg.endswith("promoted fast_loop w (model 5); after serving: reflex mean return 950.0")
