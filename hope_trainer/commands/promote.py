@@ -41,6 +41,7 @@ from daemon.cli.registry import CommandError, open_registry
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
 from registry.gating import USAGE_EXIT, UsageError, promote_candidate, promote_lock
+from registry.promotion import PromotionError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -89,8 +90,6 @@ def _usage(args: argparse.Namespace, message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from registry.promotion import PromotionError  # lazy: loads sqlalchemy
-
     if bool(args.run) == bool(args.checkpoint):
         return _usage(args, "give either RUN or --checkpoint DIR (exactly one)")
     if args.threads < 1:
