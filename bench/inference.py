@@ -16,14 +16,16 @@
 3. The loop-closure time, in-process: a fresh $HOPE_HOME with the registry; a queued run is
    created as `enqueue` does (registry.run_request.submit), marked running, trained in this process
    through hope_models.train.loop.train (the worker's code path, minus the broker), and finished
-   with registry.runs.finish (finished_at). Then `run_trainer.py promote RUN --auto --json` runs as
-   a child process, exactly what the daemon's auto-promotion spawns (the gate: torch import,
-   validation loss of the candidate, and of the promoted model on the same split for the second
-   run); BrainService (poll 0.2 s) follows the pointer, and a "robot" thread asks for an action
+   with registry.runs.finish (finished_at). Then the gate, two ways, alternating (--closures runs
+   each): "warm", in this process right after training, what the worker child that trained the run
+   does before it exits (workers/warm_gate.py); "child", `run_trainer.py promote RUN --auto --json`
+   as a child process, what the daemon's auto-promotion spawns when no worker gated the run (torch
+   imported first). Either gate measures the validation loss of the candidate, and of the promoted
+   model on the same split from the second run on. BrainService (poll 0.2 s) follows the pointer, and a "robot" thread asks for an action
    every 20 ms (a 50 Hz control loop); on_first_inference records first_inference_at and
    loop_closure_s through registry.promotion.record_first_inference, as the webapp does. The figure
-   is the registry's loop_closure_s. With the daemon, add up to one daemon tick (0.5 s) before the
-   auto-promotion starts.
+   is the registry's loop_closure_s. With the daemon, a child gate starts up to one daemon tick
+   (0.5 s) later.
 4. The RSS of a fresh process holding BrainService with the model loaded (no torch imported).
 5. The full answer: BrainService with all three components promoted (default sizes: the fast_loop
    above, a VQ-VAE of 3 groups x 128 codes, a Mid Loop d_model 128 x 2 blocks reading it, K=20,
@@ -282,7 +284,27 @@ def swap_pause(ckpt_a: Path, ckpt_b: Path, home: Path, swaps: int) -> dict[str, 
 
 # -- 3. the loop-closure time ---------------------------------------------------------------------------
 
-def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str, Any]:
+def _gate_in_child(run_id: str, env: dict[str, str]) -> dict[str, Any]:
+    """What the daemon's auto-promotion spawns when no worker gated the run: a fresh `promote` child."""
+    proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "promote", run_id, "--auto", "--json"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    try:
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError) as exc:
+        raise SystemExit(f"promote {run_id}: no JSON answer (exit {proc.returncode}): {proc.stderr[-2000:]}") from exc
+
+
+def _gate_warm(run_id: str, settings: Any, registry: Any) -> dict[str, Any]:
+    """What the worker child that trained the run does before it exits (workers/warm_gate.py): the
+    same procedure in the process that has torch loaded and the data's pages in memory."""
+    from registry.gating import PromoteRequest, promote_candidate, promote_lock
+
+    with promote_lock(Path(settings.home)):
+        return promote_candidate(settings, registry, PromoteRequest(run=run_id, auto=True))[1]
+
+
+def loop_closure(root: Path, data: Path, closures: int, steps: int,
+                 gates: tuple[str, ...] = ("warm", "child")) -> dict[str, Any]:
     from hope_models.runtime.brain_service import BrainError, BrainService
     from hope_models.settings import load_settings
     from hope_models.train.loop import TrainConfig, train
@@ -319,7 +341,7 @@ def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str,
     thread.start()
     out = []
     try:
-        for n in range(closures):
+        for n, gate in enumerate(g for _ in range(closures) for g in gates):
             # each run trains longer than the last, so the gate (no worse than the promoted model's
             # validation loss + 5%) has a real reason to pass it
             run_steps = steps * (n + 1)
@@ -337,17 +359,11 @@ def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str,
                 runs.finish(s, run_id, os.getpid(), res.outcome, res.message or "", step=res.steps,
                             last_checkpoint=res.checkpoint)
             t_finished = time.time()
-            proc = subprocess.run([sys.executable, str(REPO / "run_trainer.py"), "promote", run_id, "--auto", "--json"],
-                                  cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+            verdict = _gate_warm(run_id, settings, registry) if gate == "warm" else _gate_in_child(run_id, env)
             t_promoted = time.time()
-            try:
-                verdict = json.loads(proc.stdout.strip().splitlines()[-1])
-            except (ValueError, IndexError) as exc:
-                raise SystemExit(f"promote {run_id}: no JSON answer (exit {proc.returncode}): "
-                                 f"{proc.stderr[-2000:]}") from exc
             if not verdict.get("promoted"):
-                out.append({"run": run_id, "version": verdict.get("version"), "refused": verdict.get("reasons"),
-                            "loop_closure_s": None})
+                out.append({"run": run_id, "gate": gate, "version": verdict.get("version"),
+                            "refused": verdict.get("reasons"), "loop_closure_s": None})
                 continue
             version = verdict["version"]
             deadline = time.monotonic() + 10
@@ -361,7 +377,7 @@ def loop_closure(root: Path, data: Path, closures: int, steps: int) -> dict[str,
                     closure = s.get(Run, run_id).loop_closure_s
                 time.sleep(0.02)
             t_loaded = datetime.fromisoformat(swapped).timestamp() if swapped else float("nan")
-            out.append({"run": run_id, "version": version, "train_s": round(res.elapsed_s, 1),
+            out.append({"run": run_id, "gate": gate, "version": version, "train_s": round(res.elapsed_s, 1),
                         "compared_with_promoted": n > 0,
                         "loop_closure_s": closure,
                         "promote_process_s": round(t_promoted - t_finished, 2),
@@ -609,6 +625,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="work dir (default a temp dir)")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     ap.add_argument("--whole-only", action="store_true", help="skip the loop-closure runs (section 3)")
+    ap.add_argument("--closure-only", action="store_true", help="only the loop-closure runs (section 3)")
     ap.add_argument("--frame-only", action="store_true", help="only the camera frame's answer (section 6)")
     ap.add_argument("--frame-side", type=int, default=64, help="the camera frame's side (default 64; 96 allowed)")
     args = ap.parse_args()
@@ -629,6 +646,12 @@ def main() -> int:
             report_targets(result)
         return 0
     data = make_dataset(root)
+    if args.closure_only:
+        result = {"loop_closure": loop_closure(root, data, args.closures, args.train_steps)}
+        print(json.dumps(result, indent=1) if args.json else "")
+        if not args.json:
+            report_closure(result)
+        return 0
     cache = root / "cache"
     ckpt_b = train_run(data, root / "runs" / "main", cache, args.train_steps, args.train_steps // 2)
     ckpt_a = ckpt_b.parent / f"{args.train_steps // 2:08d}"
@@ -727,17 +750,22 @@ def report(r: dict[str, Any]) -> None:
     print(f"  {'form':46s} {'p50 ms':>8s} {'p99 ms':>8s} {'mean ms':>8s} {'max ms':>8s}")
     for name, f in w["forms"].items():
         print(f"  {name:46s} {f['p50_ms']:8.3f} {f['p99_ms']:8.3f} {f['mean_ms']:8.3f} {f['max_ms']:8.2f}")
-    print("\nLoop closure (run completed -> first inference on its weights), in-process, 50 Hz robot loop:")
+    report_closure(r)
+    report_frame(r)
+    report_targets(r)
+
+
+def report_closure(r: dict[str, Any]) -> None:
+    print("\nLoop closure (run completed -> first inference on its weights), 50 Hz robot loop; the gate in the "
+          "process that trained (warm: the worker child) or in a fresh `promote` child (child: auto-promotion's):")
     for c in r.get("loop_closure", {}).get("closures", []):
         if c.get("refused"):
             print(f"  {c['version']:28s} refused by the gate: {'; '.join(c['refused'])}")
             continue
-        print(f"  {c['version']:28s} loop_closure_s {c['loop_closure_s']}  (completed -> promote process exited "
+        print(f"  {c['gate']:5s} {c['version']:28s} loop_closure_s {c['loop_closure_s']}  (completed -> gate done "
               f"{c['promote_process_s']} s, completed -> new weights loaded {c['finished_to_loaded_s']} s, loaded -> "
               f"first inference {c['loaded_to_first_inference_s']} s; gate compared with a promoted model: "
               f"{c['compared_with_promoted']})")
-    report_frame(r)
-    report_targets(r)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ hand. The daemon never imports torch: the gate runs in the child.
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import subprocess
@@ -38,11 +37,13 @@ from hope_models.child_result import ChildResultError, read_result, result_argv
 from hope_models.log_limits import rotate_if_over
 from hope_models.settings import GATE_ENV
 from registry import runs
+from registry.gating import PROMOTE_LOG as LOG_FILE
+from registry.gating import describe_outcome as describe
+from registry.gating import promote_lock_busy
 from registry.models import Model, Run, utcnow
 
 log = logging.getLogger(__name__)
 
-LOG_FILE = "promote.log"
 STOP_TIMEOUT_S = 10.0
 
 
@@ -93,7 +94,9 @@ class AutoPromoter:
         if not self.settings.auto_promote:
             return
         run_id = self.next_run()
-        if run_id is not None:
+        # The lock held: a gate runs elsewhere, often in the worker child that trained this very
+        # run (workers/warm_gate.py); a child spawned now would only wait for it, then skip.
+        if run_id is not None and not promote_lock_busy(Path(self.settings.home)):
             self._spawn(run_id)
 
     def next_run(self) -> str | None:
@@ -176,26 +179,6 @@ class AutoPromoter:
             self._out_path.unlink(missing_ok=True)
         self._log_line(f"run {self._run_id}: gate stopped (the service is stopping)")
         self._proc = self._run_id = self._out_path = None
-
-
-def describe(code: int | None, outcome: dict[str, Any] | None, problem: str | None = None) -> tuple[str, str]:
-    """(level, message) of a finished promote child for the run's log; `problem` says why there is no
-    outcome (child_result.ChildResultError's message: the command and its exit code)."""
-    if outcome is None:
-        what = problem or f"the promote process exited with code {code} without a result"
-        return "error", f"auto-promote: {what}; see $HOPE_HOME/logs/{LOG_FILE}"
-    what = f"{outcome.get('component')} {outcome.get('version')}"
-    if outcome.get("skipped"):
-        return "info", f"auto-promote: skipped: {outcome['skipped']}"
-    if outcome.get("error"):
-        return "error", f"auto-promote: could not gate: {outcome['error']}"
-    reasons = "; ".join(str(r) for r in outcome.get("reasons") or [])
-    if code == 0 and outcome.get("promoted"):
-        return "info", f"auto-promote: promoted {what} (model {outcome.get('model_id')})" + (
-            f"; {reasons}" if reasons else "")
-    if code == 1:
-        return "warning", f"auto-promote: the gate refused {what} (model {outcome.get('model_id')}): {reasons}"
-    return "error", f"auto-promote: unexpected exit code {code}: {json.dumps(outcome)[:500]}"
 
 
 __all__ = ["AutoPromoter", "describe", "LOG_FILE"]

@@ -74,6 +74,9 @@ class Settings:
     gate_val_tolerance: float = 0.05  # candidate val loss may be at most this fraction above the promoted one's
     gate_reflex_tolerance: float = 50.0  # sim reflex: mean return may be at most this many points below
     gate_reflex_episodes: int = 5  # held-out reacher seeds the reflex check runs
+    # the reflex check runs after the candidate is served and rolls it back when it fails
+    # (registry/gating.py): a new model answers seconds after its run, not after the episodes
+    gate_reflex_after_serving: bool = True
     # baselines (gate.py, check 3): a vqvae keeps at least 1 - this share of the held-out variance;
     # a mid_loop's predicted observation has at least this much lower error than copy-last
     gate_vqvae_max_nmse: float = 0.05
@@ -163,6 +166,7 @@ _ENV = {
     "HOPE_GATE_VAL_TOLERANCE": "gate_val_tolerance",
     "HOPE_GATE_REFLEX_TOLERANCE": "gate_reflex_tolerance",
     "HOPE_GATE_REFLEX_EPISODES": "gate_reflex_episodes",
+    "HOPE_GATE_REFLEX_AFTER_SERVING": "gate_reflex_after_serving",
     "HOPE_GATE_VQVAE_MAX_NMSE": "gate_vqvae_max_nmse",
     "HOPE_GATE_MID_LOOP_MIN_GAIN": "gate_mid_loop_min_gain",
     "HOPE_DISK_FLOOR_MB": "disk_floor_mb",

@@ -31,6 +31,7 @@ from hope_models.checkpoint_format import (
     read_verified,
     version_name,
 )
+from hope_models.components import TOKENIZER
 from hope_models.json_finite import finite
 from hope_models.promoted import PointerError, read_pointer, write_pointer
 from registry import runs
@@ -196,6 +197,33 @@ def _aware(when: datetime | float | int) -> datetime:
     return when.astimezone(timezone.utc)
 
 
+def _model_for(s: Session, checkpoint_path_or_version: str | Path) -> Model | None:
+    key = str(checkpoint_path_or_version)
+    paths = {key}
+    if "/" in key:
+        paths.add(str(Path(key).resolve()))
+    return s.scalars(select(Model).where(or_(Model.version == key, Model.checkpoint_path.in_(paths)))
+                     .order_by(Model.promoted_at.is_(None), Model.id.desc())).first()
+
+
+def record_loaded(s: Session, checkpoint_path_or_version: str | Path, when: datetime | float | int) -> Run | None:
+    """A tokenizer loaded by BrainService: its codes are in every answer from then on, whoever asks,
+    so its run's loop_closure_s is the time to being loaded (once per run; other components' is
+    their first answer, record_first_inference). Returns the run when this call recorded it, else None."""
+    at = _aware(when)
+    model = _model_for(s, checkpoint_path_or_version)
+    if model is None or model.run_id is None or model.component != TOKENIZER:
+        return None
+    run = s.get(Run, model.run_id)
+    if run is None or run.loop_closure_s is not None or run.finished_at is None:
+        return None
+    run.loop_closure_s = round((at - run.finished_at).total_seconds(), 3)
+    runs.add_event(s, run.id, "log", {"level": "info", "message": (
+        f"{model.version} loaded by BrainService: loop closure {run.loop_closure_s:.1f} s after the run finished "
+        "(its codes are in every answer from now on)")})
+    return run
+
+
 def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
                            when: datetime | float | int) -> Run | None:
     """The first inference answered by a model: set its run's first_inference_at and
@@ -204,12 +232,7 @@ def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
     Returns the run of the matching model (newest matching row), or None when no model matches
     or the model has no run (a checkpoint promoted by path from outside any run)."""
     at = _aware(when)
-    key = str(checkpoint_path_or_version)
-    paths = {key}
-    if "/" in key:
-        paths.add(str(Path(key).resolve()))
-    model = s.scalars(select(Model).where(or_(Model.version == key, Model.checkpoint_path.in_(paths)))
-                      .order_by(Model.promoted_at.is_(None), Model.id.desc())).first()
+    model = _model_for(s, checkpoint_path_or_version)
     if model is None or model.run_id is None:
         return None
     run = s.get(Run, model.run_id)
@@ -218,7 +241,7 @@ def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
     if run.first_inference_at is not None:
         return run
     run.first_inference_at = at
-    if run.finished_at is not None:
+    if run.finished_at is not None and run.loop_closure_s is None:  # a tokenizer's was set when it was loaded
         run.loop_closure_s = round((at - run.finished_at).total_seconds(), 3)
     runs.add_event(s, run.id, "log", {
         "level": "info",
@@ -229,4 +252,5 @@ def record_first_inference(s: Session, checkpoint_path_or_version: str | Path,
 
 
 __all__ = ["PromotionError", "record_candidate", "promote", "rollback", "promoted", "history", "sync_pointer",
+           "record_loaded",
            "record_first_inference", "pointer_obj", "HISTORY_LIMIT"]

@@ -119,7 +119,14 @@ def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, rec
         # it completes, the gate promotes the fast_loop and BrainService serves it
         version = wait_until(lambda: _served(app, fast), 600, "the chain's fast_loop to be served", home)
         assert version.startswith(f"{fast}@{TRAIN_STEPS}:")
-        for r in _chain(app):
+        # the fast_loop is served within a second of its run (the worker gates it), maybe before the
+        # mid_loop behind it has finished: wait for the whole chain
+        def finished():
+            runs_ = _chain(app)
+            return runs_ if all(r["state"] in ("completed", "failed", "cancelled") for r in runs_) else None
+
+        chain = wait_until(finished, 600, "the chain to finish", home)
+        for r in chain:
             assert r["state"] == "completed", r
         status, answer = app.send("POST", "/api/brain/infer", json.dumps(
             {"component": "fast_loop", "observation": [0.1, -0.2, 0.0, 0.3, 0.05, -0.05]}).encode(),

@@ -342,3 +342,60 @@ def test_eval_reflex_reads_the_pointer_promote_writes(models, home, capsys):
 
     cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")
     assert resolve_promoted(Path(home)) == models["good"].resolve()
+
+
+# -- the reflex check after serving (registry/gating.py) -------------------------------------------
+
+def test_a_candidate_worse_in_simulation_is_served_then_rolled_back(models, home, capsys, monkeypatch):
+    """What moving the reflex check after serving costs, shown: the weak fast_loop (its val_loss let
+    through) is served, then rolled back once its episodes score below the promoted one's; a
+    BrainService following the pointer serves it only for the check's duration."""
+    import time
+
+    from hope_models.runtime.brain_service import BrainService
+
+    monkeypatch.setenv("HOPE_GATE_VAL_TOLERANCE", "100")
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")
+    assert code == 0 and out["promoted"] is True and out["after_serving"]["passed"] is True, out
+    good_v, weak_v = out["version"], checkpoint_version(models["weak"])[0]
+    swaps: list[tuple[str, float]] = []
+    brain = BrainService(home, components=("fast_loop",), poll_s=0.02,
+                         on_swap=lambda comp, version, ckpt: swaps.append((version, time.monotonic())))
+    brain.start()
+    try:
+        code, out = cli(capsys, "promote", "--checkpoint", str(models["weak"]), "--json")
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and (not swaps or swaps[-1][0] != good_v):
+            time.sleep(0.02)
+    finally:
+        brain.stop()
+    assert code == 1 and out["promoted"] is False and out["rolled_back"] is True, out
+    after = out["after_serving"]
+    assert after["passed"] is False and "worse by more than the tolerance" in after["detail"]
+    assert after["reflex"]["candidate_mean_return"] < after["reflex"]["promoted_mean_return"] - 50
+    assert out["reasons"][0] == after["detail"]
+    assert read_pointer(home, "fast_loop")["version"] == good_v
+    versions = [v for v, _ in swaps]
+    assert versions[0] == good_v and weak_v in versions and versions[-1] == good_v, versions
+    served = next(t for v, t in swaps if v == weak_v)
+    back = next(t for v, t in swaps if v == good_v and t > served)
+    assert back - served <= after["seconds"] + 1.0  # served for the check, then one poll and a load
+    with Registry.open(load_settings(home, env={})) as reg, reg.session(readonly=True) as s:
+        weak = s.get(Model, out["model_id"])
+        assert weak.promoted_at is None and weak.demoted_at is not None
+        assert weak.gate_result["passed"] is True and weak.gate_result["after_serving"]["passed"] is False
+        assert promotion.promoted(s, "fast_loop").version == good_v
+
+
+def test_the_reflex_check_before_serving_when_configured(models, home, capsys, monkeypatch):
+    monkeypatch.setenv("HOPE_GATE_VAL_TOLERANCE", "100")
+    monkeypatch.setenv("HOPE_GATE_REFLEX_AFTER_SERVING", "0")
+    assert cli(capsys, "promote", "--checkpoint", str(models["good"]), "--json")[0] == 0
+    writes: list[str] = []
+    real = promotion.write_pointer
+    monkeypatch.setattr(promotion, "write_pointer", lambda home_, comp, obj: (writes.append(obj["version"]),
+                                                                             real(home_, comp, obj)))
+    code, out = cli(capsys, "promote", "--checkpoint", str(models["weak"]), "--json")
+    assert code == 1 and out["promoted"] is False and "after_serving" not in out
+    assert any("reflex mean return" in r for r in out["reasons"])
+    assert writes == []  # never served

@@ -246,6 +246,32 @@ def test_loop_closure_is_recorded_once_per_run(reg):
         promotion.record_first_inference(s, version, when.replace(tzinfo=None))
 
 
+def test_a_tokenizers_loop_closes_when_it_is_loaded(reg):
+    """A vqvae's codes are in every answer once BrainService loads it, whoever asks: its loop closure
+    is the time to being loaded, not the wait for a fast_loop that reads it; a fast_loop's is not."""
+    st, registry = reg
+    ckpts = {c: make_ckpt(st.home, f"r{c}", 2) for c in ("vqvae", "fast_loop")}
+    ids = {comp: completed_run(registry, ckpt.parent.parent, component=comp) for comp, ckpt in ckpts.items()}
+    versions = {}
+    with registry.session() as s:
+        for comp, ckpt in ckpts.items():
+            m = promotion.record_candidate(s, component=comp, checkpoint_path=ckpt, version=f"{comp}@2:0123456789ab",
+                                           run_id=ids[comp], metrics={}, gate_result={"passed": True})
+            versions[comp] = m.version
+        finished = s.get(Run, ids["vqvae"]).finished_at
+    with registry.session() as s:
+        assert promotion.record_loaded(s, str(ckpts["fast_loop"]), finished + timedelta(seconds=1)) is None
+        run = promotion.record_loaded(s, str(ckpts["vqvae"]), finished + timedelta(seconds=0.75))
+        assert run.id == ids["vqvae"] and run.loop_closure_s == 0.75
+        assert promotion.record_loaded(s, versions["vqvae"], finished + timedelta(seconds=9)) is None  # once
+    with registry.session() as s:  # its first answer later records when, and keeps the closure
+        run = promotion.record_first_inference(s, versions["vqvae"], finished + timedelta(seconds=300))
+        assert run.loop_closure_s == 0.75 and run.first_inference_at == finished + timedelta(seconds=300)
+        assert s.get(Run, ids["fast_loop"]).loop_closure_s is None
+        events = [e.payload["message"] for e in runs.run_events(s, ids["vqvae"], kinds=["log"])]
+        assert sum("loaded by BrainService: loop closure 0.8 s" in m for m in events) == 1, events
+
+
 # -- run_trainer.py rollback -----------------------------------------------------------------------------
 
 def test_rollback_cli(reg, monkeypatch, capsys):
@@ -390,3 +416,10 @@ def test_describe_outcomes():
     level, msg = describe(1, {"component": "fast_loop", "version": "v", "model_id": 3, "reasons": ["worse"]})
     assert level == "warning" and "refused fast_loop v (model 3): worse" in msg
     assert describe(2, {"promoted": False, "error": "no run x"})[1] == "auto-promote: could not gate: no run x"
+    after = {"passed": False, "detail": "reflex mean return 12.0 vs the promoted model's 900.0"}
+    level, msg = describe(1, {"component": "fast_loop", "version": "v", "model_id": 4, "promoted": False,
+                              "rolled_back": True, "reasons": [after["detail"]], "after_serving": after})
+    assert level == "warning" and "served fast_loop v (model 4), then rolled it back: reflex mean return 12.0" in msg
+    level, msg = describe(0, {"component": "fast_loop", "version": "w", "model_id": 5, "promoted": True, "reasons": [],
+                              "after_serving": {"passed": True, "detail": "reflex mean return 950.0"}})
+    assert level == "info" and msg.endswith("promoted fast_loop w (model 5); after serving: reflex mean return 950.0")

@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
 from webapp import cors
@@ -148,6 +149,21 @@ def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
         except Exception:  # noqa: BLE001 - a browser push must not disturb the swap
             log.exception("could not push %s", RELOADED_EVENT)
         log.info("brain: %s now serves %s", component, version)
+        if checkpoint is not None:  # a tokenizer's loop closes when it is loaded (record_loaded)
+            threading.Thread(target=loaded, args=(str(checkpoint), datetime.now(timezone.utc)), name="loop-closure",
+                             daemon=True).start()
+
+    def loaded(checkpoint, when):
+        from registry.promotion import record_loaded  # lazy: loads sqlalchemy
+
+        try:
+            with registry.session() as s:
+                run = record_loaded(s, checkpoint, when)
+                if run is not None:
+                    log.info("loop closed: run %s (%s) loaded %.1f s after it finished", run.id, run.component,
+                             run.loop_closure_s)
+        except Exception:  # noqa: BLE001 - the model is served; only the record failed
+            log.exception("could not record the loading of %s", checkpoint)
 
     def record(component, version, checkpoint, when):
         from registry.promotion import record_first_inference  # lazy: loads sqlalchemy

@@ -13,7 +13,8 @@ logic below is the same for both. In order:
    - RunControl: the run's desired_state / throttle_level, read between steps;
    - Emitter: progress and metric events at most 5 a second each, checkpoint events
      (+ runs.last_checkpoint), logs (capped), throttle events;
-4. report the outcome with finish() (guarded: a superseded child changes nothing).
+4. report the outcome with finish() (guarded: a superseded child changes nothing);
+5. gate a completed run here, torch still loaded, when auto-promotion is on (workers/warm_gate.py).
 SIGTERM (service stop) asks the loop to checkpoint and stop; finish() then requeues the run.
 
 Torch is imported only by the trainer, inside train(): importing this module stays torch-free.
@@ -45,6 +46,7 @@ from hope_models.train.loop import TrainSetupError, train
 from hope_models.train.run_dir_lock import wait_until_free
 from registry.report_protocol import ChannelError, RunSnapshot, StaleDelivery
 from workers.report import open_channel
+from workers.warm_gate import WarmGate
 
 if TYPE_CHECKING:
     from hope_models.settings import Settings
@@ -356,12 +358,14 @@ class _Job:
         self.shutdown = shutdown
         self.emitter = Emitter(channel, lost=self.lost)
         self.control = RunControl(channel, shutdown=self.shutdown, lost=self.lost, emit=self.emitter)
+        self.threads = 1  # the training's torch threads, also the gate's
 
     def train(self) -> tuple[str, str, int | None, str | None]:
         """(outcome, message, step, last checkpoint) of the trainer, or failed with why."""
         run = self.run
         try:
             cfg = build_train_config(self.settings, run, vqvae_dir_of(run))
+            self.threads = cfg.threads
             # A child the daemon gave up on stops at its next control poll (RunControl sees the run
             # is no longer its own) and leaves a checkpoint this job resumes from: wait for it to
             # leave the run dir. The trainer takes the lock itself right after (and reports it busy).
@@ -392,7 +396,11 @@ class _Job:
             self.emitter.flush()
         finally:
             heartbeat.stop()
-        final = self.channel.finish(outcome, message, step=step, last_checkpoint=checkpoint)
+        gate = WarmGate(self.settings, self.channel, self.threads)
+        with gate.held():  # before the run is completed: auto-promotion then leaves it to this child
+            final = self.channel.finish(outcome, message, step=step, last_checkpoint=checkpoint)
+            if not self.shutdown.is_set():  # a service stopping gates at its next start instead
+                gate.run(run.id, final)
         out = {"run_id": run.id, "attempt": run.attempt, "outcome": outcome, "step": step, "message": message,
                "report": self.channel.mode}
         if final is None:

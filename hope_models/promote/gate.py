@@ -18,7 +18,10 @@ Checks, in order (the later ones only when the earlier ones could run):
 4. reflex: a fast_loop trained on the sim reacher (its feature spec reads the reacher's observation
    and writes its action) is run in closed loop on gate_reflex_episodes held-out seeds (0..N-1;
    demos are recorded from seed 100000 up), and so is the promoted one; refused when the
-   candidate's mean return is below the promoted one's minus gate_reflex_tolerance.
+   candidate's mean return is below the promoted one's minus gate_reflex_tolerance. With
+   reflex_after_serving (settings.gate_reflex_after_serving, the default for promotions) the
+   check is recorded as deferred and run by reflex_verdict() once the candidate is served;
+   registry/gating.py rolls it back when it fails.
 
 The dataset (train_source): the promotion's own when it has one (`promote RUN` passes the run's
 from the registry), else the one the candidate's config.json names, with its cache dir and spec
@@ -39,108 +42,34 @@ runs in its own process (`run_trainer.py promote`), never in the daemon or the w
 from __future__ import annotations
 
 import copy
-import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hope_models.checkpoint_format import CONFIG_FILE, MODEL_FILE, CheckpointError, read_json_object
-from hope_models.checkpoints import load_tensors, resolve_checkpoint_dir
-from hope_models.components import ACTOR
+from hope_models.checkpoint_format import CONFIG_FILE
 from hope_models.data.features import FeatureSpecError
-from hope_models.json_finite import finite
 from hope_models.paths import PathError, confine_path, data_roots
 from hope_models.promote.baselines import baselines_check
-from hope_models.promote.reflex_policy import SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec
-from hope_models.sim.evaluate import evaluate_policy
-from hope_models.sim.reacher import ROBOT_MODEL, TASKS
+from hope_models.promote.checks import (
+    DEFERRED,
+    FAILED,
+    PASSED,
+    SKIPPED,
+    Gate,
+    GateError,
+    GateResult,
+    load_component,
+    non_finite_tensors,
+    read_config,
+    resolve_candidate,
+)
+from hope_models.promote.reflex_check import has_reflex, reflex_check, reflex_verdict, sim_task
 from hope_models.train.contract import TrainSetupError
 from hope_models.train.dataset_dir import dataset_dir_for
 from hope_models.train.validation import NoValidationSplit, ValidationSetup, validation_metrics
-
-PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
-# The first episodes' metadata read to decide the sim task (metadata.environment_id).
-_TASK_PROBE_EPISODES = 3
-
-
-class GateError(ValueError):
-    """The candidate cannot be gated at all (not a complete checkpoint, an unreadable config);
-    the message names the path. A gate that ran and said no is a GateResult, not this."""
-
-
-@dataclass
-class GateResult:
-    passed: bool
-    reasons: list[str]
-    metrics: dict[str, Any]
-    checks: list[dict[str, str]] = field(default_factory=list)
-
-    def to_json_obj(self) -> dict[str, Any]:
-        return finite(asdict(self))
-
-
-class _Gate:
-    def __init__(self, settings: Any):
-        self.settings = settings
-        self.checks: list[dict[str, str]] = []
-        self.notes: list[str] = []
-
-    def record(self, check: str, status: str, detail: str) -> None:
-        self.checks.append({"check": check, "status": status, "detail": detail})
-
-    def result(self, metrics: dict[str, Any]) -> GateResult:
-        failed = [c["detail"] for c in self.checks if c["status"] == FAILED]
-        skipped = [c["detail"] for c in self.checks if c["status"] == SKIPPED]
-        reasons = (failed if failed else skipped) + self.notes
-        return GateResult(not failed, reasons, metrics, self.checks)
-
-
-# -- loading -------------------------------------------------------------------------------------
-
-def _read_config(ckpt: Path) -> dict[str, Any]:
-    try:
-        return read_json_object(ckpt / CONFIG_FILE)
-    except FileNotFoundError:
-        raise GateError(f"{ckpt / CONFIG_FILE}: not found") from None
-    except CheckpointError as exc:
-        raise GateError(str(exc)) from None
-
-
-def resolve_candidate(path: str | Path) -> Path:
-    """A complete checkpoint dir from a checkpoint dir or a run dir; GateError otherwise."""
-    p = Path(path)
-    if not p.exists():
-        raise GateError(f"{p}: no such checkpoint or run dir")
-    try:
-        return resolve_checkpoint_dir(p).resolve()
-    except CheckpointError as exc:
-        raise GateError(str(exc)) from None
-
-
-def non_finite_tensors(ckpt: Path) -> list[str]:
-    """Names of the floating tensors of model.safetensors holding NaN or Inf (safetensors only)."""
-    import torch  # lazy: loads torch
-
-
-    try:
-        tensors = load_tensors(ckpt / MODEL_FILE)
-    except CheckpointError as exc:
-        raise GateError(str(exc)) from None
-    return sorted(name for name, t in tensors.items()
-                  if t.is_floating_point() and not bool(torch.isfinite(t).all()))
-
-
-def _load_component(ckpt: Path):
-    from hope_models.components.build import component_from_checkpoint  # lazy: loads safetensors, torch
-
-    try:
-        return component_from_checkpoint(ckpt)
-    except CheckpointError as exc:
-        raise GateError(str(exc)) from None
-
 
 # -- data ------------------------------------------------------------------------------------------
 
@@ -242,35 +171,23 @@ def _vqvae_weights(component) -> str | None:
     return ref.get("weights_sha256") if isinstance(ref, dict) else None
 
 
-def sim_task(cache) -> str | None:
-    """The reacher task ("reach", "track") the dataset was recorded on, from its episodes'
-    metadata (robot_model dmc-reacher, environment_id dm_control/reacher-<task>); None if not sim."""
-    for ep in cache.episodes[:_TASK_PROBE_EPISODES]:
-        src = Path(str(ep.get("source", "")))
-        meta_file = src / "metadata.json" if src.is_dir() else src.parent / "metadata.json"
-        try:
-            meta = json.loads(meta_file.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            continue
-        if not isinstance(meta, dict) or meta.get("robot_model") != ROBOT_MODEL:
-            continue
-        env_id = str(meta.get("environment_id", ""))
-        task = env_id.rsplit("-", 1)[-1] if env_id.startswith("dm_control/reacher-") else None
-        if task in TASKS:
-            return task
-    return None
-
-
 # -- the gate -------------------------------------------------------------------------------------
 
 def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, data: str | Path | None = None,
-                   settings: Any) -> GateResult:
+                   settings: Any, reflex_after_serving: bool = False, threads: int | None = None) -> GateResult:
     """Run the checks of the module doc. `data` is the promotion's own dataset, which replaces
     what the candidate's config.json names (train_source). Raises GateError only when the
-    candidate itself cannot be read; every other problem is a failed or skipped check in the result."""
-    gate = _Gate(settings)
+    candidate itself cannot be read; every other problem is a failed or skipped check in the result.
+    reflex_after_serving: the reflex check is not run here but recorded as deferred, its task in
+    metrics["reflex"]; the caller serves the candidate, then runs reflex_verdict(). threads: torch's
+    thread count for the gate (None: as it is)."""
+    if threads is not None:
+        import torch  # lazy: loads torch
+
+        torch.set_num_threads(threads)
+    gate = Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
-    cand_cfg = _read_config(cand_dir)
+    cand_cfg = read_config(cand_dir)
     metrics: dict[str, Any] = {"candidate": str(cand_dir), "promoted": None, "candidate_val_loss": None,
                                "promoted_val_loss": None, "ratio": None,
                                "val_tolerance": float(settings.gate_val_tolerance), "finite": None, "reflex": None}
@@ -285,14 +202,14 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
             gate.record(check, SKIPPED, f"{check}: not measured (the weights are not finite)")
         return gate.result(metrics)
     gate.record("finite", PASSED, "every weight is finite")
-    cand = _load_component(cand_dir)
+    cand = load_component(cand_dir)
 
     prom = prom_dir = prom_problem = None
     if promoted_ckpt is not None:
         metrics["promoted"] = str(promoted_ckpt)
         try:
             prom_dir = resolve_candidate(promoted_ckpt)
-            prom = _load_component(prom_dir)
+            prom = load_component(prom_dir)
         except GateError as exc:
             prom_problem = f"the promoted model cannot be loaded: {exc}"
     else:
@@ -300,11 +217,21 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
 
     # 2. validation loss on the candidate's split, 3. the sim reflex (fast_loop on reacher data)
     cache = _val_check(gate, metrics, cand, cand_dir, prom, prom_problem, cand_cfg, data)
-    _reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, cache)
+    if not has_reflex(gate, cand, cand_dir):
+        return gate.result(metrics)
+    task = (sim_task(cache) if cache is not None else None) or "reach"
+    if reflex_after_serving:
+        n = int(settings.gate_reflex_episodes)
+        metrics["reflex"] = {"task": task, "after_serving": True, "episodes": n}
+        gate.record("reflex", DEFERRED, f"reflex: checked after serving ({task}, seeds 0-{n - 1}); rolled back "
+                                        f"when worse than the promoted model's by more than "
+                                        f"{float(settings.gate_reflex_tolerance):g}")
+        return gate.result(metrics)
+    reflex_check(gate, metrics, cand, cand_dir, prom, prom_dir, prom_problem, task)
     return gate.result(metrics)
 
 
-def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_problem: str | None,
+def _val_check(gate: Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_problem: str | None,
                cand_cfg: dict[str, Any], data: str | Path | None):
     """The val_loss check; returns the candidate's dataset cache (None when it cannot be opened)."""
     tol = float(gate.settings.gate_val_tolerance)
@@ -376,50 +303,5 @@ def _val_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom,
     return cache
 
 
-def _reflex_check(gate: _Gate, metrics: dict[str, Any], cand, cand_dir: Path, prom, prom_dir, prom_problem, cache):
-    if cand.name != ACTOR:
-        return
-    try:
-        check_spec(cand.spec, str(cand_dir), SIM_OBSERVATION, SIM_ACTION)
-    except ReflexPolicyError:
-        return  # not trained on the sim reacher: no reflex to check
-    if cand.wants_frames:
-        gate.record("reflex", SKIPPED, "reflex: not measured: this fast_loop reads camera frames")
-        return
-    settings = gate.settings
-    n = int(settings.gate_reflex_episodes)
-    tol = float(settings.gate_reflex_tolerance)
-    task = (sim_task(cache) if cache is not None else None) or "reach"
-    seeds = list(range(n))
-    reflex: dict[str, Any] = {"task": task, "seeds": [seeds[0], seeds[-1]], "episodes": n, "tolerance": tol,
-                              "candidate_mean_return": None, "promoted_mean_return": None}
-    metrics["reflex"] = reflex
-    try:
-        res = evaluate_policy(ReflexPolicy.from_checkpoint(cand_dir), seeds, task)
-    except (ReflexPolicyError, ValueError) as exc:
-        gate.record("reflex", FAILED, f"reflex: the candidate cannot run the {task} task: {exc}")
-        return
-    reflex["candidate_mean_return"] = res.mean_return
-    reflex["candidate_success_rate"] = res.success_rate
-    where = f"{task}, seeds {seeds[0]}-{seeds[-1]}"
-    if prom is None:
-        gate.record("reflex", SKIPPED, f"reflex: mean return {res.mean_return:.1f} ({where}); not compared: "
-                                       f"{prom_problem}")
-        return
-    try:
-        p_res = evaluate_policy(ReflexPolicy.from_checkpoint(prom_dir), seeds, task)
-    except (ReflexPolicyError, ValueError) as exc:
-        gate.record("reflex", SKIPPED, f"reflex: not compared: the promoted model cannot run the {task} task: {exc}")
-        return
-    reflex["promoted_mean_return"] = p_res.mean_return
-    reflex["promoted_success_rate"] = p_res.success_rate
-    text = (f"reflex mean return {res.mean_return:.1f} vs the promoted model's {p_res.mean_return:.1f} ({where}, "
-            f"tolerance {tol:g})")
-    if res.mean_return < p_res.mean_return - tol:
-        gate.record("reflex", FAILED, f"{text}: worse by more than the tolerance")
-    else:
-        gate.record("reflex", PASSED, text)
-
-
-__all__ = ["GateResult", "GateError", "TrainSource", "gate_candidate", "resolve_candidate", "non_finite_tensors",
+__all__ = ["GateResult", "GateError", "TrainSource", "gate_candidate", "reflex_verdict", "resolve_candidate", "non_finite_tensors",
            "fit_problem", "normalised_view", "sim_task", "train_source"]

@@ -206,6 +206,8 @@ class Demo(ChainSteps, ClosureSteps):
         if fast_obj["state"] == "completed" and self.inference is None:
             self.close_loop(fast_id)
         gates = self.wait_gates(ids)
+        # the whole brain as soon as the chain is served: its first answer closes the Mid Loop's loop
+        brain = self.brain_inference(gates, ids, data)
         served = (self.serve.brain.status().get(ACTOR) or {}).get("version")
         fast_gate = gates.get(fast_id)
         reflex = None
@@ -218,7 +220,6 @@ class Demo(ChainSteps, ClosureSteps):
             reflex = {"error": "no fast_loop is promoted, so there is nothing to evaluate"}
         self.check_reflex(fast_gate, reflex)
         closure = self.loop_closure(fast_id) if self.inference and not self.inference.get("error") else None
-        brain = self.brain_inference(gates, ids, data)
         objs = self._runs(ids)
         self.timings["total"] = time.monotonic() - self.started
         return {
