@@ -109,9 +109,11 @@ class DatasetCache:
         self.mode = "mmap" if step_bytes <= budget else "read"
         self.frames_mode = "mmap" if self.frames is not None and step_bytes + self.frames.nbytes <= budget else "read"
         # Past the budget, t is mapped first (every window searches a block of it, for 8 bytes a
-        # row), then as many leading rows of steps as the rest of the budget holds.
-        t_rows = min(self.n_steps, int(budget // 8))
-        x_rows = min(self.n_steps, int((budget - 8 * t_rows) // max(self.x.strides[0], 1)))
+        # row), then as many leading rows of steps as the rest of the budget holds; a page is kept
+        # for each mapping's last, partly used page.
+        room = max(0, int(budget) - 2 * mmap.PAGESIZE)
+        t_rows = min(self.n_steps, room // 8)
+        x_rows = min(self.n_steps, (room - 8 * t_rows) // max(self.x.strides[0], 1))
         self.t_reader = HeadMapped(self._files["t"], self.t, self.n_steps if self.mode == "mmap" else t_rows)
         self.x_reader = HeadMapped(self._files["steps"], self.x, self.n_steps if self.mode == "mmap" else x_rows)
         self._block_rows: dict[tuple[float, bool], int] = {}
@@ -145,8 +147,8 @@ class DatasetCache:
     # -- random access ----------------------------------------------------------------------
     @property
     def resident_bytes(self) -> int:
-        """The most that reading windows (and, when mapped, frames) adds to RSS: the mapped rows
-        (each mapping rounded up to whole pages)."""
+        """What reading windows (and, when mapped, frames) can add to RSS: the mapped rows (each
+        mapping's last page may hold a few bytes more, inside the budget all the same)."""
         frames = self.frames.nbytes if self.frames is not None and self.frames_mode == "mmap" else 0
         return self.t_reader.resident_bytes + self.x_reader.resident_bytes + frames
 
