@@ -47,6 +47,8 @@ class HeadMapped:
         """Rows first[b] .. first[b]+n-1 for each b, as a writable [B, n, ...]; rows outside the
         array read `pad`."""
         idx = first[:, None] + np.arange(n)
+        if len(first) == 0:
+            return np.empty((0, n, *self.full.shape[1:]), dtype=self.full.dtype)
         lo, hi = int(first.min()), int(first.max()) + n
         whole = self.mapped_rows == self.n_rows
         if self.mapped_rows and (whole or hi <= self.mapped_rows):
