@@ -11,9 +11,14 @@ Prints figures; it is not a test. One run:
      dict steps per episode, windows built per batch from those lists (same time grid and
      zero-order hold via bisect, so the outputs are identical; checked on a few hundred anchors),
   5. prints a table and PASS/FAIL for: batches/s >= 20x baseline; sampling RSS <= 1/5 of the
-     baseline's; sampling RSS growth < 50 MB when the dataset grows 4x.
+     baseline's; sampling RSS growth < 50 MB when the dataset grows 4x; the 4x cache read inside
+     the resident budget at >= 10k batches/s, its pages resident in this process within the budget.
 
-    python bench/data_pipeline.py [--steps 500000] [--out DIR] [--keep]
+With --before DIR (a checkout of an earlier version, e.g. `git worktree add DIR <commit>`), step 3
+also runs DIR's own sampling child on the same caches, interleaved with ours, so the two are
+compared under the same load; --rounds N repeats the sampling children and reports medians.
+
+    python bench/data_pipeline.py [--steps 500000] [--out DIR] [--keep] [--before DIR] [--rounds N]
 """
 from __future__ import annotations
 
@@ -81,7 +86,24 @@ def child_sample(cache_path: str, batches: int, budget_mb: float) -> dict:
     dt = time.perf_counter() - t0
     r, a = _rss()
     return {"batches_per_s": batches / dt, "batches": batches, "rss_start_mb": rss0[0] / MB, "mode": cache.mode,
-            "peak_rss_mb": max(peak, r) / MB, "peak_anon_mb": max(peak_anon, a) / MB}
+            "peak_rss_mb": max(peak, r) / MB, "peak_anon_mb": max(peak_anon, a) / MB,
+            "cache_pages_mb": _cache_pages(cache_path) / MB}
+
+
+def _cache_pages(cache_path: str) -> int:
+    """Bytes of this process's resident pages mapped from the cache's files (/proc/self/smaps; a
+    mapping's resident pages only grow while nothing reclaims them, so the end is the peak)."""
+    smaps = Path("/proc/self/smaps")
+    if not smaps.exists():
+        return 0
+    total, inside = 0, False
+    for line in smaps.read_text().splitlines():
+        head = line.split()
+        if head and "-" in head[0] and ":" not in head[0]:
+            inside = len(head) >= 6 and head[5].startswith(cache_path)
+        elif inside and line.startswith("Rss:"):
+            total += int(head[1]) * 1024
+    return total
 
 
 def _baseline_load(dataset: str) -> tuple[list[list[dict]], list[list[float]]]:
@@ -169,11 +191,27 @@ def child_baseline(dataset: str, batches: int, spec_path: str, dump: str | None)
     return out
 
 
-def _run_child(*args: str) -> dict:
-    proc = subprocess.run([sys.executable, __file__, "_child", *args], capture_output=True, text=True)
+def _run_child(*args: str, tree: Path = REPO) -> dict:
+    """A child of this bench, or with `tree` the same child of another checkout's bench (its own
+    library on the path, so its data layer is the one timed)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    proc = subprocess.run([sys.executable, str(tree / "bench" / "data_pipeline.py"), "_child", *args],
+                          capture_output=True, text=True, cwd=tree, env=env)
     if proc.returncode != 0:
-        raise SystemExit(f"child {args[0]} failed:\n{proc.stderr[-3000:]}")
+        raise SystemExit(f"child {args[0]} ({tree}) failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _sample_rounds(path: str, a, trees: dict[str, Path]) -> dict[str, dict]:
+    """Each tree's sampling child inside the budget and all mapped, interleaved for --rounds rounds;
+    per tree and kind the run with the median batches/s (its RSS figures with it)."""
+    runs: dict[str, list[dict]] = {}
+    for _ in range(a.rounds):
+        for name, tree in trees.items():
+            runs.setdefault(f"{name}:sample", []).append(_run_child("sample", path, str(a.batches), str(a.budget_mb),
+                                                                    tree=tree))
+            runs.setdefault(f"{name}:mapped", []).append(_run_child("sample", path, str(a.batches), "1e9", tree=tree))
+    return {key: sorted(rs, key=lambda r: r["batches_per_s"])[len(rs) // 2] for key, rs in runs.items()}
 
 
 # -- the run -------------------------------------------------------------------------------------
@@ -198,7 +236,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--baseline-batches", type=int, default=400)
     p.add_argument("--budget-mb", type=float, default=DEFAULT_RESIDENT_BUDGET_MB,
                    help="resident budget of the cache reader (default: the library default)")
+    p.add_argument("--before", type=Path, help="a checkout of an earlier version, timed beside ours on the same caches")
+    p.add_argument("--rounds", type=int, default=1, help="sampling runs per tree and cache, medians reported")
     a = p.parse_args(argv)
+    if a.before is not None and not (a.before / "bench" / "data_pipeline.py").is_file():
+        raise SystemExit(f"--before {a.before}: no bench/data_pipeline.py there; give a checkout of this repository")
+    trees = {"ours": REPO} | ({"before": a.before.resolve()} if a.before is not None else {})
 
     from hope_models.data.synthetic import generate_dataset
 
@@ -220,9 +263,10 @@ def main(argv: list[str] | None = None) -> int:
             build = _run_child("build", str(ds), str(cache_root))
             print(f"built {tag}: {build['steps']} steps in {build['build_s']:.1f} s "
                   f"(+{build['fingerprint_s']:.1f} s fingerprint), peak RSS {build['peak_rss_mb']:.0f} MB", flush=True)
-            sample = _run_child("sample", build["path"], str(a.batches), str(a.budget_mb))
-            mapped = _run_child("sample", build["path"], str(a.batches), "1e9")  # all mapped, for reference
-            rows[tag] = {"dataset": str(ds), "gen": g.seconds, "build": build, "sample": sample, "mapped": mapped}
+            timed = _sample_rounds(build["path"], a, trees)  # "mapped": all mapped, for reference
+            rows[tag] = {"dataset": str(ds), "gen": g.seconds, "build": build, "sample": timed["ours:sample"],
+                         "mapped": timed["ours:mapped"], "before": timed.get("before:sample"),
+                         "before_mapped": timed.get("before:mapped")}
         dump = str(work / "baseline_windows.npz")
         spec = str(Path(rows["1x"]["build"]["path"]) / "spec.json")
         base = _run_child("baseline", rows["1x"]["dataset"], str(a.baseline_batches), spec, dump)
@@ -258,6 +302,15 @@ def _report(a, rows: dict, base: dict, max_diff: float, total: float) -> None:
          f"{four['mapped']['batches_per_s']:,.0f}", "-")
     line("all mapped (no budget): RSS MB", f"{one['mapped']['peak_rss_mb']:.0f}",
          f"{four['mapped']['peak_rss_mb']:.0f}", "-")
+    line("cache pages resident MB", f"{one['sample']['cache_pages_mb']:.1f}",
+         f"{four['sample']['cache_pages_mb']:.1f}", "-")
+    if four["before"] is not None:
+        num = lambda r, key, f: "-" if key not in r else format(r[key], f)  # noqa: E731 (older children lack keys)
+        for label, kind, key, f in (("before: batches/s (B=64)", "before", "batches_per_s", ",.0f"),
+                                    ("before: peak RSS while sampling MB", "before", "peak_rss_mb", ".0f"),
+                                    ("before: cache pages resident MB", "before", "cache_pages_mb", ".1f"),
+                                    ("before: all mapped batches/s", "before_mapped", "batches_per_s", ",.0f")):
+            line(label, num(one[kind], key, f), num(four[kind], key, f), "-")
     print(f"ours vs baseline on 512 anchors: max |diff| = {max_diff:.2e}")
     speed = one["sample"]["batches_per_s"] / base["batches_per_s"]
     mem = one["sample"]["peak_rss_mb"] / base["peak_rss_mb"]
@@ -267,6 +320,14 @@ def _report(a, rows: dict, base: dict, max_diff: float, total: float) -> None:
     print(f"speed: ours / baseline batches/s = {speed:.1f}x (target >= 20x) {verdict(speed >= 20)}")
     print(f"memory: ours / baseline sampling RSS = 1/{1 / mem:.1f} (target <= 1/5) {verdict(mem <= 0.2)}")
     print(f"growth: sampling RSS 4x - 1x = {growth:+.1f} MB (target < 50 MB) {verdict(growth < 50)}")
+    budgeted, pages = four["sample"]["batches_per_s"], four["sample"]["cache_pages_mb"]
+    print(f"budget: 4x batches/s in {four['sample']['mode']} mode = {budgeted:,.0f} (target >= 10,000) "
+          f"{verdict(budgeted >= 10_000)}")
+    print(f"budget: 4x cache pages resident = {pages:.1f} MB (budget {a.budget_mb:g} MB) {verdict(pages <= a.budget_mb)}")
+    if four["before"] is not None:
+        print(f"before: 4x batches/s in the budget, ours / before = {budgeted / four['before']['batches_per_s']:.2f}x, "
+              f"all mapped {four['mapped']['batches_per_s'] / four['before_mapped']['batches_per_s']:.2f}x "
+              f"({a.rounds} round(s), medians)")
     print(f"total bench time {total:.0f} s on {os.cpu_count()} cores")
 
 

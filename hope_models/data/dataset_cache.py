@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from hope_models.data.features import FeatureSpecError
+from hope_models.data.row_access import HeadMapped, pread_rows
 from hope_models.data.spec_request import load_spec
 
 # 5: frame blobs (inference may now choose a frame it did not before); 6: play.npy. A format change
@@ -57,9 +58,11 @@ class DatasetCache:
 
     Access mode, chosen from `resident_budget_mb` (the share of the job's memory the data may
     take): "mmap" when the step arrays fit in it (random rows read straight from the mapping; its
-    touched pages count in RSS but never exceed the arrays' size), "read" otherwise (rows fetched
-    with pread into small buffers, so RSS stays flat however large the dataset is; the kernel's
-    page cache still holds the hot data). Both give identical values.
+    touched pages count in RSS but never exceed the arrays' size), "read" otherwise: t and then
+    the leading rows of steps, as many as fit the budget, are read through mappings of just those
+    heads, the other rows fetched with pread into small buffers (row_access.HeadMapped), so RSS
+    stays within the budget however large the dataset is; the kernel's page cache still holds the
+    hot data. `resident_bytes` is what the mappings can add to RSS. Both give identical values.
     """
 
     def __init__(self, path: Path, resident_budget_mb: float = DEFAULT_RESIDENT_BUDGET_MB):
@@ -105,6 +108,14 @@ class DatasetCache:
         step_bytes = self.x.nbytes + self.t.nbytes
         self.mode = "mmap" if step_bytes <= budget else "read"
         self.frames_mode = "mmap" if self.frames is not None and step_bytes + self.frames.nbytes <= budget else "read"
+        # Past the budget, t is mapped first (every window searches a block of it, for 8 bytes a
+        # row), then as many leading rows of steps as the rest of the budget holds; a page is kept
+        # for each mapping's last, partly used page.
+        room = max(0, int(budget) - 2 * mmap.PAGESIZE)
+        t_rows = min(self.n_steps, room // 8)
+        x_rows = min(self.n_steps, (room - 8 * t_rows) // max(self.x.strides[0], 1))
+        self.t_reader = HeadMapped(self._files["t"], self.t, self.n_steps if self.mode == "mmap" else t_rows)
+        self.x_reader = HeadMapped(self._files["steps"], self.x, self.n_steps if self.mode == "mmap" else x_rows)
         self._block_rows: dict[tuple[float, bool], int] = {}
 
     def _map(self, name: str) -> np.ndarray:
@@ -134,39 +145,31 @@ class DatasetCache:
         return np.searchsorted(self.offsets, idx, side="right") - 1
 
     # -- random access ----------------------------------------------------------------------
+    @property
+    def resident_bytes(self) -> int:
+        """What reading windows (and, when mapped, frames) can add to RSS: the mapped rows (each
+        mapping's last page may hold a few bytes more, inside the budget all the same)."""
+        frames = self.frames.nbytes if self.frames is not None and self.frames_mode == "mmap" else 0
+        return self.t_reader.resident_bytes + self.x_reader.resident_bytes + frames
+
     def t_block(self, first: np.ndarray, n: int, pad: float) -> np.ndarray:
         """t of rows first[b] .. first[b]+n-1 for each b, as [B, n]; rows outside 0..N-1 read `pad`."""
-        if self.mode == "mmap":
-            idx = first[:, None] + np.arange(n)
-            out = self.t[np.clip(idx, 0, self.n_steps - 1)]
-            out[(idx < 0) | (idx >= self.n_steps)] = pad
-            return out
-        raw = _pread_blocks(self._files["t"].fileno(), 8, self.n_steps, first, n, np.float64(pad).tobytes())
-        return np.frombuffer(raw, dtype="<f8").reshape(len(first), n).copy()
+        return self.t_reader.blocks(first, n, pad)
 
     def x_rows(self, j: np.ndarray, first: np.ndarray | None = None, n: int = 0) -> np.ndarray:
         """Step rows (observation then action columns) at indices j [B, K] -> [B, K, D_obs + A], a copy.
 
         `first`/`n`, when given, promise that row b's indices lie in first[b] .. first[b]+n-1, which
-        lets "read" mode fetch each anchor's rows with one pread.
+        lets "read" mode fetch each anchor's rows past the mapped head with one pread.
         """
-        if self.mode == "mmap":
-            return self.x[j]
-        fd = self._files["steps"].fileno()
-        if first is not None and n <= 256:
-            w = self.x.shape[1]
-            pad = bytes(self.x.strides[0])
-            block = np.frombuffer(_pread_blocks(fd, self.x.strides[0], self.n_steps, first, n, pad),
-                                  dtype=self.x.dtype).reshape(-1, w)
-            return block[j - first[:, None] + (np.arange(len(first)) * n)[:, None]]
-        return _pread_rows(fd, self.x, j)
+        return self.x_reader.rows(j, first, n)
 
     def frame_rows(self, j: np.ndarray) -> np.ndarray:
         if self.frames is None:
             raise CacheError(f"{self.path}: the feature spec has no frame feature")
         if self.frames_mode == "mmap":
             return self.frames[j]
-        return _pread_rows(self._files["frames"].fileno(), self.frames, j)
+        return pread_rows(self._files["frames"].fileno(), self.frames, j)
 
     def frame_block(self, lo: int, hi: int) -> np.ndarray:
         """Frames lo .. hi-1 in order, a writable copy; "read" mode fetches them with one pread, so a
@@ -219,26 +222,6 @@ def is_play_episode(metadata: dict[str, Any], steps: Any = ()) -> bool:
 # A step stamped within a microsecond after a grid time counts as "at" it: grid times are computed
 # in float seconds and must not miss a step that lands on them exactly.
 WINDOW_EPS_S = 1e-6
-
-
-def _pread_blocks(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, pad_row: bytes) -> bytes:
-    parts = []
-    pread = os.pread
-    for f in first.tolist():
-        lo, hi = max(f, 0), min(f + n, n_rows)
-        data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
-        if lo > f or f + n > hi:
-            data = pad_row * (min(lo, f + n) - f) + data + pad_row * (f + n - max(hi, f))
-        parts.append(data)
-    return b"".join(parts)
-
-
-def _pread_rows(fd: int, arr: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """arr[j] for the file behind arr, one pread per row."""
-    row_bytes = arr.strides[0]
-    pread = os.pread
-    raw = b"".join([pread(fd, row_bytes, r * row_bytes) for r in j.ravel().tolist()])
-    return np.frombuffer(raw, dtype=arr.dtype).reshape(j.shape + arr.shape[1:]).copy()
 
 
 def open_cache(path: str | Path, resident_budget_mb: float = DEFAULT_RESIDENT_BUDGET_MB) -> DatasetCache:

@@ -99,6 +99,11 @@ class WindowBatch:
 
 def _count_at_or_before(tb: np.ndarray, g: np.ndarray) -> np.ndarray:
     """For each row b and grid time g[b, k]: how many of the ascending tb[b, :] are <= g[b, k]."""
+    if tb.shape[1] <= 16:  # a compare per column: numpy sums along a short last axis slowly
+        count = (tb[:, :1] <= g).astype(np.int64)
+        for c in range(1, tb.shape[1]):
+            count += tb[:, c:c + 1] <= g
+        return count
     if tb.shape[1] <= 64:  # one broadcast compare beats a loop for short blocks
         return (tb[:, None, :] <= g[:, :, None]).sum(axis=2)
     return np.stack([np.searchsorted(row, gk, side="right") for row, gk in zip(tb, g, strict=True)])

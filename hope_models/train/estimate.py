@@ -163,13 +163,10 @@ def activation_floats_per_sample(layers: list[Layer], window_k: int, frames: boo
 
 
 def cache_resident_mb(cache: Any) -> float:
-    """What an open DatasetCache's mapped arrays can add to RSS (nothing for arrays read with
-    pread), capped at the cache's resident budget: the `cache` part of an estimate."""
+    """What an open DatasetCache's mapped rows can add to RSS (nothing for rows read with pread),
+    capped at the cache's resident budget: the `cache` part of an estimate."""
     from hope_models.data.cache import DEFAULT_RESIDENT_BUDGET_MB  # lazy: loads mcap, numpy
-    resident = (cache.x.nbytes + cache.t.nbytes) if cache.mode == "mmap" else 0
-    if getattr(cache, "frames", None) is not None and getattr(cache, "frames_mode", "read") == "mmap":
-        resident += cache.frames.nbytes
-    return min(resident, DEFAULT_RESIDENT_BUDGET_MB * MB) / MB
+    return min(cache.resident_bytes, DEFAULT_RESIDENT_BUDGET_MB * MB) / MB
 
 
 def estimate_memory(component_name: str, model: Any, batch_size: int, window_k: int, obs_dim: int,
