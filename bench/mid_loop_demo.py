@@ -11,11 +11,13 @@ same thing), the validation seconds and the held-out observation errors.
 
     python bench/mid_loop_demo.py --data D --vqvae VQ_RUN [--cache-dir C] [--steps 150] [--threads 1]
     python bench/mid_loop_demo.py ... --against /path/to/other/checkout --rounds 3
+    python bench/mid_loop_demo.py ... --against-threads 2 --rounds 3
 
 With --against, each round runs once in a child with that checkout first on PYTHONPATH and once
 with this one, back to back (which goes first alternates), and the summary is the median of the
 per-round ratios (this / that): the machine is shared, so only ratios measured side by side mean
-anything. It prints figures; it is not a test.
+anything. --against-threads N does the same with this checkout at N threads as "that". It prints
+figures; it is not a test.
 """
 from __future__ import annotations
 
@@ -90,18 +92,20 @@ def one_round(a) -> dict:
 
 
 def compare(a) -> None:
-    here, there = str(REPO), str(Path(a.against).resolve())
+    here = (str(REPO), a.threads)
+    there = (str(Path(a.against).resolve()), a.threads) if a.against else (str(REPO), a.against_threads)
     argv = [sys.executable, str(Path(__file__).resolve()), "--data", a.data, "--vqvae", a.vqvae, "--steps",
-            str(a.steps), "--warm", str(a.warm), "--total", str(a.total), "--threads", str(a.threads)]
+            str(a.steps), "--warm", str(a.warm), "--total", str(a.total)]
     if a.cache_dir:
         argv += ["--cache-dir", a.cache_dir]
     rows: list[dict] = []
     for r in range(a.rounds):
         out = {}
-        for tree in ([there, here] if r % 2 == 0 else [here, there]):
+        for tree, threads in ([there, here] if r % 2 == 0 else [here, there]):
             env = {**os.environ, "PYTHONPATH": tree}
-            line = subprocess.run(argv, env=env, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1]
-            out[tree] = json.loads(line)
+            line = subprocess.run([*argv, "--threads", str(threads)], env=env, check=True, capture_output=True,
+                                  text=True).stdout.strip().splitlines()[-1]
+            out[(tree, threads)] = json.loads(line)
         row = {"round": r + 1, "that_steps_per_s": out[there]["steps_per_s"], "this_steps_per_s": out[here]["steps_per_s"],
                "ratio": out[here]["steps_per_s"] / out[there]["steps_per_s"],
                "val_s": [out[there]["val_s"], out[here]["val_s"]],
@@ -123,9 +127,10 @@ def main() -> None:
     p.add_argument("--total", type=int, default=4000, help="the schedule's length (the demo's --steps)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--against", default=None, help="another checkout to compare with, round by round")
+    p.add_argument("--against-threads", type=int, default=None, help="or this checkout at N threads")
     p.add_argument("--rounds", type=int, default=3)
     a = p.parse_args()
-    if a.against:
+    if a.against or a.against_threads:
         compare(a)
     else:
         print(json.dumps(one_round(a)), flush=True)
