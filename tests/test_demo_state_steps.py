@@ -1,13 +1,15 @@
 """The state demo's chain (`hope-trainer demo`, hope_trainer/demo/chain.py): each member's own step
-count down to the TrainConfig its job builds (the Mid Loop 1000, its held-out figures' best:
-docs/training.md, "How many steps"), and --steps giving every member one count."""
+count and threads down to the TrainConfig its job builds (the Mid Loop 1000 steps, its held-out
+figures' best: docs/training.md, "How many steps"; on the machine's cores, up to 2), and --steps
+giving every member one count."""
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from hope_models.components import ACTOR, PREDICTOR, TOKENIZER
-from hope_trainer.demo.chain import STATE_STEPS
+from hope_trainer.demo.chain import MAX_MID_THREADS, STATE_STEPS, mid_loop_threads
 from hope_trainer.demo.session import Demo
 from hope_trainer.demo.shared import COMPONENTS
 
@@ -39,7 +41,17 @@ def test_each_member_trains_its_own_steps_down_to_the_job(tmp_path):
         cfgs = {r.component: build_train_config(settings, snapshot_of(s, r), lambda _rid: str(tmp_path / "vq"))
                 for r in runs}
     assert {c: cfg.steps for c, cfg in cfgs.items()} == STATE_STEPS
-    assert all(cfg.threads == 1 and cfg.lr == 1e-3 and cfg.seed == 0 for cfg in cfgs.values())
+    assert all(cfg.lr == 1e-3 and cfg.seed == 0 for cfg in cfgs.values())
+    # the Mid Loop on the machine's cores, up to 2; the others on the loop's one thread
+    assert cfgs[PREDICTOR].threads == min(2, len(os.sched_getaffinity(0)))
+    assert cfgs[TOKENIZER].threads == cfgs[ACTOR].threads == 1
     # --steps replaces every member's count (a short run)
     short = _demo(tmp_path, steps=30).member_configs(data)
     assert {c["steps"] for c in short.values()} == {30}
+
+
+def test_the_mid_loop_threads_follow_the_cores(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _pid: {0})
+    assert mid_loop_threads() == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _pid: set(range(8)))
+    assert mid_loop_threads() == MAX_MID_THREADS == 2

@@ -6,6 +6,7 @@ demo left) and follow it in the terminal until every member ended.
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,6 +26,19 @@ VQVAE_RUN = "vqvae_run"  # the config key create_sequence gives each member that
 # docs/training.md, "How many steps"), and it is the slow member; the module doc of
 # commands/demo.py says why the others' 4000.
 STATE_STEPS = {TOKENIZER: 4000, ACTOR: 4000, PREDICTOR: 1000}
+# The Mid Loop's torch threads: the cores this machine gives the demo, up to the 2 measured. With
+# OpenMP's passive waits (hope_models/omp_wait.py) 2 threads made its step 1.6x faster than 1, with
+# the same loss to the bit, even beside other jobs (docs/benchmarks.md, "The demo's Mid Loop"); more
+# were not tried. The other members keep the loop's one thread: theirs were not measured.
+MAX_MID_THREADS = 2
+
+
+def mid_loop_threads() -> int:
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity call on this OS: the count of its CPUs
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_MID_THREADS))
 
 
 class ChainSteps:
@@ -41,10 +55,12 @@ class ChainSteps:
 
     def member_configs(self, data: Path) -> dict[str, dict[str, Any]]:
         """Each member's run config (its `config` column, checked as a run request's), by component:
-        here each member trains its STATE_STEPS (or every member --steps) with the demo's seed."""
+        here each member trains its STATE_STEPS (or every member --steps) with the demo's seed, the
+        Mid Loop on mid_loop_threads()."""
         a = self.args
+        extra = {PREDICTOR: {"threads": mid_loop_threads()}}
         return {name: build_request(component=name, data=str(data), steps=a.steps or STATE_STEPS[name], queue=a.queue,
-                                    overrides={"seed": a.seed}).config() for name in COMPONENTS}
+                                    overrides={"seed": a.seed, **extra.get(name, {})}).config() for name in COMPONENTS}
 
     def queue_chain(self, data: Path) -> list[str]:
         from registry.sequences import create_sequence  # lazy: loads sqlalchemy
