@@ -2,7 +2,7 @@
 few sim demos, runs the chain vqvae,fast_loop,mid_loop through the daemon and the worker, gates and
 promotes, serves through BrainService, infers over HTTP, evaluates the reflex and exits (--exit).
 
-The full-size figures (50 demos, 4000 steps, mean return >= 900 on seeds 0-19 within 15 minutes)
+The full-size figures (50 demos, each member its own steps, mean return >= 900 on seeds 0-19 within 10 minutes)
 are measured by running `run_trainer.py demo` itself; here the steps are too few to promise a
 return, so --target-return 0, and the verdict's refusals are tested on plain summaries below.
 150 steps are also too few for the tokenizer and the predictor to beat their baselines: the gate

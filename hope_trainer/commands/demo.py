@@ -1,6 +1,6 @@
 """`hope-trainer demo`: the whole loop on this machine, through the real services, in one command.
 
-    hope-trainer demo [--episodes 50] [--steps 4000] [--eval-episodes 20] [--exit] [--port 8765]
+    hope-trainer demo [--episodes 50] [--steps N] [--eval-episodes 20] [--exit] [--port 8765]
     hope-trainer demo --camera [...]      the same loop on the camera observation (demo/camera.py)
 
 1. records expert demonstrations in the simulated reacher (DART noise 1.0, seeds from 100000) into
@@ -34,9 +34,12 @@ given, replaces them all), writes $HOPE_HOME/demo/camera/summary.json, and stops
 that fails, naming it (exit 1). It refuses (exit 2) fewer than 3 episodes and a $HOPE_HOME whose
 promoted models read no camera (BrainService would refuse the camera models beside them).
 
-Why 4000 steps: measured on 2 busy cores, a fast_loop reading the chain's VQ-VAE codes, trained on
-50 DART demos, scored 978 (2000 steps), 984 (4000) and 981 (10 000) on seeds 0-19; the mid_loop is
-the slow member (~15-25 steps/s), so more steps cost minutes without changing the reflex.
+Steps (hope_trainer/demo/chain.py's STATE_STEPS; --steps gives every member the same count): the
+vqvae and the fast_loop 4000, the mid_loop 1000. Measured on 2 busy cores, a fast_loop reading the
+chain's VQ-VAE codes, trained on 50 DART demos, scored 978 (2000 steps), 984 (4000) and 981
+(10 000) on seeds 0-19. The mid_loop is the slow member, and its held-out figures are best near
+1000 steps and only worse after (docs/training.md, "How many steps"): 4000 cost minutes for a
+worse predictor.
 """
 from __future__ import annotations
 
@@ -60,15 +63,14 @@ from registry.run_request import RunRequestError
 from webapp.server import ServerError
 
 log = logging.getLogger("hope.demo")
-DEFAULT_STEPS = 4000  # every component's, without --camera (why: the module doc)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=positive_int, default=50, help="expert demonstrations to record (default 50)")
     parser.add_argument("--noise", type=float, default=1.0, help="DART noise of the demonstrations (default 1.0)")
     parser.add_argument("--steps", type=positive_int, default=None,
-                        help=f"training steps of every component (default {DEFAULT_STEPS}; with --camera, each "
-                             "component's own from the camera recipe)")
+                        help="training steps of every component (default: each component's own, 4000 for the "
+                             "vqvae and the fast_loop and 1000 for the mid_loop; with --camera, the camera recipe's)")
     parser.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     parser.add_argument("--eval-episodes", type=positive_int, default=20,
                         help="held-out reacher seeds 0..N-1 the reflex is evaluated on (default 20)")
@@ -127,8 +129,6 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
-    if args.steps is None and not args.camera:
-        args.steps = DEFAULT_STEPS
     try:
         settings = listen_settings(args)
     except SettingsError as exc:

@@ -6,13 +6,14 @@ demo left) and follow it in the terminal until every member ended.
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from daemon.cli.watch import Display, end_line, progress_line
-from hope_models.components import ACTOR
+from hope_models.components import ACTOR, PREDICTOR, TOKENIZER
 from hope_trainer.demo.shared import COMPONENTS, PLAIN_EVERY_S, say
 from registry.run_request import build_request
 
@@ -20,6 +21,25 @@ if TYPE_CHECKING:
     from hope_models.settings import Settings
 
 VQVAE_RUN = "vqvae_run"  # the config key create_sequence gives each member that reads the chain's tokenizer
+# The state demo's steps per member, unless --steps gives every member one count. The Mid Loop's
+# held-out figures are best near 1000 steps on the 50 demos and only worse after (it overfits:
+# docs/training.md, "How many steps"), and it is the slow member; the module doc of
+# commands/demo.py says why the others' 4000.
+STATE_STEPS = {TOKENIZER: 4000, ACTOR: 4000, PREDICTOR: 1000}
+# The Mid Loop's torch threads: the cores this machine gives the demo, up to the 2 measured. With
+# OpenMP's passive waits (hope_models/omp_wait.py) 2 threads made its step 1.6x faster than 1 even
+# beside other jobs, and its held-out figures equal to 3 decimals after 1000 steps (docs/benchmarks.md,
+# "The demo's Mid Loop"); more were not tried. The other members keep the loop's one thread: theirs
+# were not measured.
+MAX_MID_THREADS = 2
+
+
+def mid_loop_threads() -> int:
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity call on this OS: the count of its CPUs
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_MID_THREADS))
 
 
 class ChainSteps:
@@ -36,10 +56,12 @@ class ChainSteps:
 
     def member_configs(self, data: Path) -> dict[str, dict[str, Any]]:
         """Each member's run config (its `config` column, checked as a run request's), by component:
-        here every member trains --steps with the demo's seed."""
+        here each member trains its STATE_STEPS (or every member --steps) with the demo's seed, the
+        Mid Loop on mid_loop_threads()."""
         a = self.args
-        return {name: build_request(component=name, data=str(data), steps=a.steps, queue=a.queue,
-                                    overrides={"seed": a.seed}).config() for name in COMPONENTS}
+        extra = {PREDICTOR: {"threads": mid_loop_threads()}}
+        return {name: build_request(component=name, data=str(data), steps=a.steps or STATE_STEPS[name], queue=a.queue,
+                                    overrides={"seed": a.seed, **extra.get(name, {})}).config() for name in COMPONENTS}
 
     def queue_chain(self, data: Path) -> list[str]:
         from registry.sequences import create_sequence  # lazy: loads sqlalchemy

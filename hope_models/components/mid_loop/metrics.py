@@ -31,18 +31,25 @@ component adds wm_weight x that loss to the codes' NLL.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 
 class _Targets:
-    """The (prediction, target, current) triples of one horizon, flattened over batch and points."""
+    """One horizon's targets, flattened over batch and points: the window's first (every point k
+    whose code s points ahead is inside the window, both real), then the anchor's beyond the window
+    (the last point, where future_mask says the episode still runs). `pick(x)` applies the same
+    selection to any [B, K, H, ...] tensor: the logits, their argmax, the NLL of every point."""
 
-    def __init__(self):
-        self.logits, self.target, self.now, self.obs_target, self.obs_now = [], [], [], [], []
-        self.anchor = 0  # how many of the last triples are beyond-window (anchor) targets
+    def __init__(self, h: int, k: int, s: int):
+        self.h, self.k, self.s = h, k, s
+        self.valid: torch.Tensor | None = None  # [B, K - s] bool: which window targets are real
+        self.fmask: torch.Tensor | None = None  # [B] bool: which anchors have a target beyond the window
+        self.target: list[torch.Tensor] = []
+        self.now: list[torch.Tensor] = []
+        self.obs_target: list[torch.Tensor] = []
+        self.obs_now: list[torch.Tensor] = []
+        self.anchor = 0  # how many of the last targets are beyond-window (anchor) targets
 
-    def add(self, logits, target, now, obs_target=None, obs_now=None, anchor=False):
-        self.logits.append(logits)
+    def add(self, target, now, obs_target=None, obs_now=None, anchor=False):
         self.target.append(target)
         self.now.append(now)
         if obs_target is not None:
@@ -51,28 +58,42 @@ class _Targets:
         if anchor:
             self.anchor = int(target.shape[0])
 
+    def pick(self, x: torch.Tensor) -> torch.Tensor:
+        parts: list[torch.Tensor] = []
+        if self.valid is not None:
+            parts.append(x[:, :self.k - self.s, self.h][self.valid])
+        if self.fmask is not None:
+            parts.append(x[:, -1, self.h][self.fmask])
+        return torch.cat(parts) if len(parts) > 1 else parts[0]
+
     def cat(self):
-        return (torch.cat(self.logits), torch.cat(self.target), torch.cat(self.now),
+        return (torch.cat(self.target), torch.cat(self.now),
                 torch.cat(self.obs_target) if self.obs_target else None,
                 torch.cat(self.obs_now) if self.obs_now else None)
 
 
-def _collect(logits, codes, mask, horizon_steps, obs, future_codes, future_mask, future_obs) -> list[_Targets]:
-    k = codes.shape[1]
+def _collect(codes, mask, horizon_steps, obs, future_codes, future_mask, future_obs
+             ) -> tuple[list[_Targets], torch.Tensor]:
+    """Each horizon's targets, and `index` [B, K, H, G]: the code each point's logits are scored
+    on at each horizon (0 where there is none: `pick` never reads those)."""
+    b, k, g = codes.shape
+    index = codes.new_zeros(b, k, len(horizon_steps), g)
     out = []
     for h, s in enumerate(horizon_steps):
-        t = _Targets()
+        t = _Targets(h, k, s)
         if s < k:
-            valid = mask[:, :k - s] & mask[:, s:]
-            t.add(logits[:, :k - s, h][valid], codes[:, s:][valid], codes[:, :k - s][valid],
+            t.valid = valid = mask[:, :k - s] & mask[:, s:]
+            index[:, :k - s, h] = codes[:, s:]
+            t.add(codes[:, s:][valid], codes[:, :k - s][valid],
                   None if obs is None else obs[:, s:][valid], None if obs is None else obs[:, :k - s][valid])
         if future_codes is not None:
-            fmask = torch.ones(future_codes.shape[0], dtype=torch.bool) if future_mask is None else future_mask[:, h]
-            t.add(logits[:, -1, h][fmask], future_codes[:, h][fmask], codes[:, -1][fmask],
+            t.fmask = fmask = torch.ones(b, dtype=torch.bool) if future_mask is None else future_mask[:, h]
+            index[:, -1, h] = future_codes[:, h]
+            t.add(future_codes[:, h][fmask], codes[:, -1][fmask],
                   None if future_obs is None or obs is None else future_obs[:, h][fmask],
                   None if future_obs is None or obs is None else obs[:, -1][fmask], anchor=True)
         out.append(t)
-    return out
+    return out, index
 
 
 @torch.no_grad()
@@ -110,23 +131,28 @@ def mid_loop_loss(model, logits, codes, mask, *, obs=None, future_codes=None, fu
     horizons = model.cfg.horizon_steps
     labels = labels or tuple(f"{s}steps" for s in horizons)
     want_obs = obs is not None and not training and model.vqvae.cfg.input == "vector"
-    targets = _collect(logits, codes, mask, horizons, obs if want_obs else None, future_codes, future_mask,
-                       future_obs if want_obs else None)
+    targets, index = _collect(codes, mask, horizons, obs if want_obs else None, future_codes, future_mask,
+                              future_obs if want_obs else None)
     if training:
         count_targets(model, targets)
     metrics: dict[str, float] = {}
     overall: dict[str, list[torch.Tensor]] = {}  # per-target values of every horizon: the overall means
     total_n, window_n, nll_all = 0, 0, []
+    # One log-softmax and one gather over every point: the values cross-entropy gives each target,
+    # bit for bit, without a backward that scatters each horizon's picked logits into a zeroed
+    # copy of the whole [B, K, H, G, n] tensor (a fifth of a step's time).
+    nll_groups = -logits.log_softmax(-1).gather(-1, index.unsqueeze(-1)).squeeze(-1)  # [B, K, H, G]
+    best = logits.detach().argmax(-1)  # [B, K, H, G]
     for h, (t, label) in enumerate(zip(targets, labels, strict=False)):
         if not t.target:
             continue
-        lg, target, now, obs_target, obs_now = t.cat()
+        target, now, obs_target, obs_now = t.cat()
         if target.shape[0] == 0:
             continue
-        nll = F.cross_entropy(lg.flatten(0, 1), target.flatten(), reduction="none").view(target.shape).sum(1)
+        nll = t.pick(nll_groups).sum(1)
         nll_all.append(nll)
         copy_nll, freq_nll = baseline_nll(model, h, target, now)
-        right = (lg.argmax(-1) == target).float()
+        right = (t.pick(best) == target).float()
         stayed = (now == target).float()
         per = {"nll": nll.detach(), "copy_last_nll": copy_nll, "code_freq_nll": freq_nll,
                "accuracy": right.mean(1), "copy_last_accuracy": stayed.mean(1)}
@@ -135,7 +161,7 @@ def mid_loop_loss(model, logits, codes, mask, *, obs=None, future_codes=None, fu
             per["anchor_copy_last_accuracy"] = stayed[-t.anchor:].mean(1)
         if obs_target is not None and obs_target.shape[0]:
             with torch.no_grad():
-                pred = model.predicted_observation(lg)
+                pred = model.predicted_observation(t.pick(logits))
             per["obs_mse"] = ((pred - obs_target) ** 2).mean(1)
             per["copy_last_obs_mse"] = ((obs_now - obs_target) ** 2).mean(1)
         for key, v in per.items():
