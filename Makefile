@@ -80,8 +80,8 @@ test-heavy: setup system-deps
 demo: setup
 	$(PY) run_trainer.py demo
 
-# The same loop on the camera observation (joints + a 64x64 frame rendered with EGL): ~30 minutes
-# on 2 cores (hope_trainer/demo/camera.py, docs/reflex.md "demo --camera").
+# The same loop on the camera observation (joints + a 64x64 frame rendered with EGL): ~21 minutes
+# on 2 idle cores (hope_trainer/demo/camera.py, docs/reflex.md "demo --camera").
 .PHONY: demo-camera
 demo-camera: setup
 	$(PY) run_trainer.py demo --camera
