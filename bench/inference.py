@@ -36,7 +36,7 @@
    re-stepping K points from a fresh state, and what BrainService runs: the window but its last
    point ahead (window_ahead + ahead_step, spread over the ticks between grid points), then the
    last point alone (predict with ahead).
-   Target: p99 of the full answer < 2 ms. The thread CPU time of each tick is recorded too: on a
+   Target: p99 of the full answer <= 1 ms. The thread CPU time of each tick is recorded too: on a
    shared machine the wall-clock p99 of a 0.2-0.7 ms call is set by preemption (a call hit by the
    scheduler waits a time slice, ~4 ms), which the CPU time does not count.
 6. The full answer from a camera frame: BrainService serving a grid VQ-VAE as the tokenizer (the
@@ -88,7 +88,7 @@ sys.path.insert(0, str(REPO / "tests"))  # frame_fixtures: the moving scene the 
 from frame_fixtures import moving_frames  # noqa: E402
 
 TARGET_P99_MS = 1.0
-TARGET_WHOLE_P99_MS = 2.0
+TARGET_WHOLE_P99_MS = 1.0
 TARGET_SPEEDUP = 5.0
 TARGET_SWAP_RATIO = 3.0
 TARGET_FRAME_P99_MS = 3.0
@@ -688,8 +688,8 @@ def targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             out.append({"target": f"recurrent >= {TARGET_SPEEDUP:g}x faster than the {other.split(' (')[0]} ({q[:3]})",
                         "value": f"{ratio:.1f}x", "pass": ratio >= TARGET_SPEEDUP})
     whole = r["whole"]["forms"]["whole"]
-    out.append({"target": f"full answer (vqvae + fast_loop + mid_loop) p99 < {TARGET_WHOLE_P99_MS:g} ms",
-                "value": f"{whole['p99_ms']:.3f} ms", "pass": whole["p99_ms"] < TARGET_WHOLE_P99_MS})
+    out.append({"target": f"full answer (vqvae + fast_loop + mid_loop) p99 <= {TARGET_WHOLE_P99_MS:g} ms",
+                "value": f"{whole['p99_ms']:.3f} ms", "pass": whole["p99_ms"] <= TARGET_WHOLE_P99_MS})
     sw = r["swap"]
     out.append({"target": f"swap: p99 during swaps <= {TARGET_SWAP_RATIO:g}x normal, 0 failures, one switch per swap",
                 "value": f"{sw['p99_ratio']}x, {sw['failures']} failures, {sw['version_switches']}/{sw['swaps']}",
