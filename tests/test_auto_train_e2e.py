@@ -82,7 +82,10 @@ def recorded(tmp_path_factory) -> list[Path]:
 def test_handed_off_episodes_train_promote_and_serve_by_themselves(tmp_path, recorded):
     home = Home(tmp_path / "home", extra_env={
         "HOPE_AUTO_TRAIN": "1", "HOPE_AUTO_TRAIN_MIN_NEW_EPISODES": str(EPISODES),
-        "HOPE_AUTO_TRAIN_STEPS": str(TRAIN_STEPS), "HOPE_AUTO_PROMOTE": "1", "HOPE_MEMORY_BUDGET_MB": "1536"})
+        "HOPE_AUTO_TRAIN_STEPS": str(TRAIN_STEPS), "HOPE_AUTO_PROMOTE": "1", "HOPE_MEMORY_BUDGET_MB": "1536",
+        # the fast_loop's reflex check after serving runs in the worker before the mid_loop behind it
+        # starts: 2 episodes instead of 5 (tests/test_gate.py checks the check itself)
+        "HOPE_GATE_REFLEX_EPISODES": "2"})
     port = free_port()
     log = home.path / "serve.log"
     home.logs += [log, home.path / "logs" / "worker.log", home.path / "logs" / "promote.log"]
