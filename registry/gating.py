@@ -206,7 +206,8 @@ def promote_candidate(settings: Any, registry: Any, args: Any) -> tuple[int, dic
            "metrics": gate["metrics"], "checks": gate["checks"]}
     reflex = gate["metrics"].get("reflex") or {}
     if promote_it and not forced and reflex.get("after_serving"):
-        out.update(check_after_serving(settings, registry, model_id, current_ckpt, str(reflex.get("task"))))
+        out.update(check_after_serving(settings, registry, model_id, ckpt, component, current_ckpt,
+                                       str(reflex.get("task"))))
         if out["rolled_back"]:
             out["promoted"] = False
             out["reasons"] = [out["after_serving"]["detail"], *reasons]
@@ -214,18 +215,15 @@ def promote_candidate(settings: Any, registry: Any, args: Any) -> tuple[int, dic
     return (PROMOTED_EXIT if promote_it else REFUSED_EXIT), out
 
 
-def check_after_serving(settings: Any, registry: Any, model_id: int, previous_ckpt: str | None,
-                        task: str) -> dict[str, Any]:
-    """The reflex check of model `model_id`, served now, against the model it replaced; when it
+def check_after_serving(settings: Any, registry: Any, model_id: int, ckpt: Path, component: str,
+                        previous_ckpt: str | None, task: str) -> dict[str, Any]:
+    """The reflex check of model `model_id` (checkpoint `ckpt`), served now, against the model it replaced; when it
     fails and the model is still the promoted one, the previous model is served again (a rollback,
     recorded on the model's gate_result and as a warning on its run). {"after_serving": {...},
     "rolled_back": bool}."""
     from hope_models.promote.gate import GateError, reflex_verdict  # lazy: loads numpy, torch
 
     t0 = time.monotonic()
-    with registry.session(readonly=True) as s:
-        model = s.get(Model, model_id)
-        ckpt, component = model.checkpoint_path, model.component
     try:
         verdict = reflex_verdict(ckpt, previous_ckpt, settings=settings, task=task)
         passed, checks, figures = verdict.passed, verdict.checks, verdict.metrics.get("reflex")
@@ -256,28 +254,29 @@ def check_after_serving(settings: Any, registry: Any, model_id: int, previous_ck
 
 
 
-def describe_outcome(code: int | None, outcome: dict[str, Any] | None, problem: str | None = None) -> tuple[str, str]:
-    """(level, message) of a finished promote child for the run's log; `problem` says why there is no
-    outcome (child_result.ChildResultError's message: the command and its exit code)."""
+def describe_outcome(code: int | None, outcome: dict[str, Any] | None, problem: str | None = None, *,
+                     who: str = "auto-promote") -> tuple[str, str]:
+    """(level, message) of a finished gate for the run's log, said by `who`; `problem` says why there
+    is no outcome (child_result.ChildResultError's message: the command and its exit code)."""
     if outcome is None:
         what = problem or f"the promote process exited with code {code} without a result"
-        return "error", f"auto-promote: {what}; see $HOPE_HOME/logs/{PROMOTE_LOG}"
+        return "error", f"{who}: {what}; see $HOPE_HOME/logs/{PROMOTE_LOG}"
     what = f"{outcome.get('component')} {outcome.get('version')}"
     if outcome.get("skipped"):
-        return "info", f"auto-promote: skipped: {outcome['skipped']}"
+        return "info", f"{who}: skipped: {outcome['skipped']}"
     if outcome.get("error"):
-        return "error", f"auto-promote: could not gate: {outcome['error']}"
+        return "error", f"{who}: could not gate: {outcome['error']}"
     reasons = "; ".join(str(r) for r in outcome.get("reasons") or [])
     after = outcome.get("after_serving") or {}
     if code == 0 and outcome.get("promoted"):
-        return "info", f"auto-promote: promoted {what} (model {outcome.get('model_id')})" + (
+        return "info", f"{who}: promoted {what} (model {outcome.get('model_id')})" + (
             f"; {reasons}" if reasons else "") + (f"; after serving: {after['detail']}" if after.get("detail") else "")
     if code == 1 and outcome.get("rolled_back"):
-        return "warning", (f"auto-promote: served {what} (model {outcome.get('model_id')}), then rolled it back: "
+        return "warning", (f"{who}: served {what} (model {outcome.get('model_id')}), then rolled it back: "
                            f"{reasons}")
     if code == 1:
-        return "warning", f"auto-promote: the gate refused {what} (model {outcome.get('model_id')}): {reasons}"
-    return "error", f"auto-promote: unexpected exit code {code}: {json.dumps(outcome)[:500]}"
+        return "warning", f"{who}: the gate refused {what} (model {outcome.get('model_id')}): {reasons}"
+    return "error", f"{who}: unexpected exit code {code}: {json.dumps(outcome)[:500]}"
 
 __all__ = ["PROMOTED_EXIT", "REFUSED_EXIT", "USAGE_EXIT", "LOCK_FILE", "PROMOTE_LOG", "PromoteRequest",
            "UsageError", "check_after_serving", "describe_outcome", "promote_candidate", "promote_lock", "promote_lock_busy"]

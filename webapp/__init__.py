@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
+from hope_models.components import TOKENIZER
 from webapp import cors
 from webapp.commands import ChildProcesses
 from webapp.hosts import HostAllowlist, HostPolicy
@@ -149,7 +150,7 @@ def wire_brain(brain: Any, socketio: Any, registry: Any) -> None:
         except Exception:  # noqa: BLE001 - a browser push must not disturb the swap
             log.exception("could not push %s", RELOADED_EVENT)
         log.info("brain: %s now serves %s", component, version)
-        if checkpoint is not None:  # a tokenizer's loop closes when it is loaded (record_loaded)
+        if checkpoint is not None and component == TOKENIZER:  # its loop closes when it is loaded (record_loaded)
             threading.Thread(target=loaded, args=(str(checkpoint), datetime.now(timezone.utc)), name="loop-closure",
                              daemon=True).start()
 

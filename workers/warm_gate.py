@@ -69,8 +69,7 @@ class WarmGate:
         except Exception:  # a bug must not lose the run's outcome: auto-promotion retries in a child
             log.exception("run %s: the gate in the worker child failed; auto-promotion gates it instead", run_id)
             return None
-        level, message = describe_outcome(code, out)
-        message = message.replace("auto-promote:", "auto-promote (in the worker that trained it):", 1)
+        level, message = describe_outcome(code, out, who="auto-promote (in the worker that trained it)")
         self.outcome = {"exit_code": code, **out}
         self._record(run_id, level, message)
         return self.outcome
