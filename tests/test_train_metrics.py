@@ -172,3 +172,16 @@ def test_convergence_summary_edge_cases():
     assert s["n"] == 2 and s["slope"] == pytest.approx(-1.0)
     unsorted = convergence_summary([(3, 1.0), (1, 3.0), (2, 2.0)])
     assert unsorted["slope"] == pytest.approx(-1.0)
+
+
+def test_the_train_command_prints_a_one_step_run():
+    """One logged loss has no slope: the summary line says so instead of failing to format it."""
+    from types import SimpleNamespace
+
+    from hope_models.cli.train import format_result
+
+    result = SimpleNamespace(outcome="completed", component="vqvae", steps=1, total_steps=1, resumed_from=None,
+                             first_loss=0.7, final_loss=0.7, summary={**convergence_summary([(1, 0.7)]), "val": {}},
+                             checkpoint="/x/00000001", peak_rss_mb=300.0, message="")
+    text = format_result(result, 3072)
+    assert "slope -/step" in text and "ratio 1.000" in text and "checkpoint /x/00000001" in text

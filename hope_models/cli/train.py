@@ -194,7 +194,7 @@ def format_result(result, budget_mb: float) -> str:
     s = result.summary or {}
     if s.get("ratio") is not None:
         lines[-1] += (f"  (mean of the first 10 steps {f(s['first10_mean'])}, last 10 {f(s['last10_mean'])}, "
-                      f"ratio {s['ratio']:.3f}, slope {s['slope']:.3g}/step)")
+                      f"ratio {s['ratio']:.3f}, slope {f(s.get('slope'))}/step)")
     if s.get("val"):
         lines.append("  validation: " + ", ".join(f"{k} {f(v)}" for k, v in sorted(s["val"].items())))
     lines.append(f"  checkpoint {result.checkpoint or '-'}")
