@@ -13,7 +13,10 @@ worker child runs in-process right after its training (workers/warm_gate.py: tor
 4. with settings.gate_reflex_after_serving, a fast_loop's reflex check in simulation runs after
    the candidate is served (a served model answers seconds after its run ends, instead of after
    the episodes): check_after_serving() rolls it back when it fails. What that costs in safety:
-   a candidate worse than the promoted one is served for the check's duration.
+   a candidate worse than the promoted one is served for the check's duration. When the process
+   dies during the check, the model stays served with the check owed (owed_checks: its row says
+   the reflex deferred and has no "after_serving"); finish_owed_checks() runs it later
+   (`promote --finish-checks`, which the daemon's auto-promotion starts when the lock is free).
 
 Exit codes of the command: PROMOTED_EXIT (0), REFUSED_EXIT (1, refused or rolled back), USAGE_EXIT (2).
 Torch-free at import: the gate's modules load lazily.
@@ -34,6 +37,7 @@ from sqlalchemy import select
 from hope_models.checkpoint_format import CONFIG_FILE, CheckpointError, read_json_object
 from hope_models.components import COMPONENTS
 from hope_models.json_finite import finite
+from hope_models.promote.checks import DEFERRED
 from hope_models.promoted import PointerError, checkpoint_version
 from registry import promotion, runs
 from registry.models import Model, Run
@@ -243,14 +247,84 @@ def check_after_serving(settings: Any, registry: Any, model_id: int, ckpt: Path,
                 message = (f"{component} {model.version} (model {model_id}) failed its check after serving and "
                            f"stays served: nothing was promoted before it to roll back to: {detail}")
             else:
-                back = promotion.rollback(s, settings, component)
-                rolled_back = True
-                message = (f"{component} {model.version} (model {model_id}) rolled back to {back.version} "
-                           f"(model {back.id}) {after['seconds']:.1f} s after it was served: {detail}")
+                try:
+                    back = promotion.rollback(s, settings, component)
+                except promotion.PromotionError as exc:  # nothing changed (a savepoint); the verdict is kept
+                    message = (f"{component} {model.version} (model {model_id}) failed its check after serving and "
+                               f"stays served: the rollback failed: {exc}: {detail}")
+                else:
+                    rolled_back = True
+                    message = (f"{component} {model.version} (model {model_id}) rolled back to {back.version} "
+                               f"(model {back.id}) {after['seconds']:.1f} s after it was served: {detail}")
             log.warning("%s", message)
             if model.run_id is not None and s.get(Run, model.run_id) is not None:
                 runs.add_event(s, model.run_id, "log", {"level": "warning", "message": message})
     return {"after_serving": after, "rolled_back": rolled_back}
+
+
+# -- a check interrupted after serving ---------------------------------------------------------------
+
+def owes_check(model: Model) -> bool:
+    """Whether `model` is served with its reflex check after serving owed: the gate deferred it, the
+    promotion was not forced (a forced one never runs it), and no after_serving verdict was recorded
+    (the process that served it died during the check: a SIGKILL, a power cut)."""
+    gate = model.gate_result if isinstance(model.gate_result, dict) else {}
+    checks = gate.get("checks")
+    deferred = isinstance(checks, list) and any(
+        isinstance(c, dict) and c.get("check") == "reflex" and c.get("status") == DEFERRED for c in checks)
+    return model.promoted_at is not None and deferred and not gate.get("forced") and "after_serving" not in gate
+
+
+def owed_checks(s: Any) -> list[Model]:
+    """The promoted models whose reflex check after serving is owed (owes_check), oldest first."""
+    served = s.scalars(select(Model).where(Model.promoted_at.is_not(None)).order_by(Model.id))
+    return [m for m in served if owes_check(m)]
+
+
+def finish_check(settings: Any, registry: Any, model_id: int) -> dict[str, Any] | None:
+    """Run the owed check of model `model_id` against the model it replaced (check_after_serving:
+    rolled back when it fails). The caller holds promote_lock: the row is read again under it, and
+    None is returned when there is nothing to do any more (demoted meanwhile, or checked by another
+    process)."""
+    with registry.session(readonly=True) as s:
+        model = s.get(Model, model_id)
+        if model is None or not owes_check(model):
+            return None
+        previous = s.get(Model, model.previous_model_id) if model.previous_model_id is not None else None
+        reflex = model.metrics.get("reflex") if isinstance(model.metrics, dict) else None
+        task = str(reflex.get("task") or "reach") if isinstance(reflex, dict) else "reach"
+        base = {"model_id": model.id, "component": model.component, "version": model.version,
+                "run_id": model.run_id, "checkpoint": model.checkpoint_path}
+        previous_ckpt = previous.checkpoint_path if previous is not None else None
+    return {**base, **check_after_serving(settings, registry, model_id, Path(base["checkpoint"]), base["component"],
+                                          previous_ckpt, task)}
+
+
+def finish_owed_checks(settings: Any, registry: Any, threads: int = 1) -> tuple[int, dict[str, Any]]:
+    """Every owed check finished (the caller holds promote_lock): (REFUSED_EXIT when one rolled its
+    model back, else PROMOTED_EXIT, {"finished": [finish_check's outcomes], "rolled_back": bool}).
+    A failed check with nothing to roll back to leaves its model served, as in promote_candidate."""
+    with registry.session(readonly=True) as s:
+        owed = [m.id for m in owed_checks(s)]
+    if owed:
+        import torch  # lazy: the check loads torch anyway
+
+        torch.set_num_threads(max(1, int(threads)))
+    finished = [out for out in (finish_check(settings, registry, i) for i in owed) if out is not None]
+    rolled_back = any(out["rolled_back"] for out in finished)
+    return (REFUSED_EXIT if rolled_back else PROMOTED_EXIT), {"finished": finished, "rolled_back": rolled_back}
+
+
+def describe_finished(entry: dict[str, Any], *, who: str = "auto-promote") -> tuple[str, str]:
+    """(level, message) of one finished check (an entry of finish_owed_checks' "finished")."""
+    what = f"{entry.get('component')} {entry.get('version')} (model {entry.get('model_id')})"
+    after = entry.get("after_serving") or {}
+    head = f"{who}: the reflex check of {what}, interrupted after it was served, ran now"
+    if entry.get("rolled_back"):
+        return "warning", f"{head}: failed, rolled back to the model it replaced: {after.get('detail')}"
+    if not after.get("passed"):
+        return "warning", f"{head}: failed; it stays served (nothing to roll back to): {after.get('detail')}"
+    return "info", f"{head}: passed: {after.get('detail')}"
 
 
 
@@ -279,4 +353,6 @@ def describe_outcome(code: int | None, outcome: dict[str, Any] | None, problem: 
     return "error", f"{who}: unexpected exit code {code}: {json.dumps(outcome)[:500]}"
 
 __all__ = ["PROMOTED_EXIT", "REFUSED_EXIT", "USAGE_EXIT", "LOCK_FILE", "PROMOTE_LOG", "PromoteRequest",
-           "UsageError", "check_after_serving", "describe_outcome", "promote_candidate", "promote_lock", "promote_lock_busy"]
+           "UsageError", "check_after_serving", "describe_finished", "describe_outcome", "finish_check",
+           "finish_owed_checks", "owed_checks", "owes_check", "promote_candidate", "promote_lock",
+           "promote_lock_busy"]

@@ -401,3 +401,75 @@ def test_the_reflex_check_before_serving_when_configured(models, home, capsys, m
     assert code == 1 and out["promoted"] is False and "after_serving" not in out
     assert any("reflex mean return" in r for r in out["reasons"])
     assert writes == []  # never served
+
+
+
+# -- a check interrupted after serving (registry/gating.py finish_owed_checks) ---------------------------
+
+def serve_directly(home: Path, ckpt: Path) -> int:
+    """`ckpt` recorded and served with no gate (the model a candidate replaces); its model id."""
+    st = load_settings(home, env={})
+    with Registry.open(st) as reg, reg.session() as s:
+        model = promotion.record_candidate(s, component="fast_loop", checkpoint_path=ckpt,
+                                           version=checkpoint_version(ckpt)[0], run_id=None, metrics={},
+                                           gate_result={"passed": True})
+        return promotion.promote(s, st, model.id).id
+
+
+def promote_killed_during_the_check(home: Path, monkeypatch, capsys, ckpt: Path) -> int:
+    """`promote --checkpoint ckpt` whose process dies as its reflex check after serving starts (the
+    candidate is served by then); the candidate's model id, which owes the check."""
+    from registry import gating
+
+    def killed(*_args, **_kwargs):
+        raise SystemExit(-9)
+
+    with monkeypatch.context() as m:
+        m.setattr(gating, "check_after_serving", killed)
+        with pytest.raises(SystemExit):
+            run_trainer.main(["promote", "--checkpoint", str(ckpt), "--json"])
+    capsys.readouterr()
+    assert read_pointer(home, "fast_loop")["checkpoint"] == str(ckpt.resolve())  # served, unchecked
+    with Registry.open(load_settings(home, env={})) as reg, reg.session(readonly=True) as s:
+        (owed,) = gating.owed_checks(s)
+        assert owed.checkpoint_path == str(ckpt.resolve()) and "after_serving" not in owed.gate_result
+        assert owed.metrics["reflex"]["after_serving"] is True
+        return owed.id
+
+
+def test_an_interrupted_check_of_a_worse_candidate_is_finished_and_rolls_it_back(models, home, capsys, monkeypatch):
+    monkeypatch.setenv("HOPE_GATE_VAL_TOLERANCE", "100")  # the weak one's val_loss let through
+    good_id = serve_directly(home, models["good"])
+    weak_id = promote_killed_during_the_check(home, monkeypatch, capsys, models["weak"])
+
+    code, out = cli(capsys, "promote", "--finish-checks", "--json")
+    assert code == 1 and out["rolled_back"] is True, out
+    (done,) = out["finished"]
+    assert done["model_id"] == weak_id and done["rolled_back"] is True
+    assert done["after_serving"]["passed"] is False and "worse by more than the tolerance" in done["after_serving"]["detail"]
+    assert read_pointer(home, "fast_loop")["model_id"] == good_id
+    with Registry.open(load_settings(home, env={})) as reg, reg.session(readonly=True) as s:
+        weak = s.get(Model, weak_id)
+        assert weak.promoted_at is None and weak.gate_result["after_serving"]["passed"] is False
+        assert weak.metrics["reflex"]["candidate_mean_return"] < weak.metrics["reflex"]["promoted_mean_return"]
+    assert cli(capsys, "promote", "--finish-checks", "--json") == (0, {"finished": [], "rolled_back": False})
+    code, out = cli(capsys, "promote", "--finish-checks", "--checkpoint", str(models["good"]), "--json")
+    assert code == 2 and "--finish-checks takes no --checkpoint" in out["error"]
+
+
+def test_an_interrupted_check_of_a_better_candidate_is_finished_and_recorded(models, home, capsys, monkeypatch):
+    from registry.gating import finish_owed_checks, promote_lock
+
+    serve_directly(home, models["weak"])
+    good_id = promote_killed_during_the_check(home, monkeypatch, capsys, models["good"])
+    st = load_settings(home, env=ENV)  # 2 episodes
+    with Registry.open(st) as reg:
+        with promote_lock(home):
+            code, out = finish_owed_checks(st, reg)
+        assert code == 0 and out["rolled_back"] is False, out
+        assert [e["model_id"] for e in out["finished"]] == [good_id] and out["finished"][0]["after_serving"]["passed"]
+        with reg.session(readonly=True) as s:
+            good = s.get(Model, good_id)
+            assert good.promoted_at is not None and good.gate_result["after_serving"]["passed"] is True
+            assert good.metrics["reflex"]["episodes"] == 2
+    assert read_pointer(home, "fast_loop")["model_id"] == good_id

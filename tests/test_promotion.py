@@ -423,3 +423,110 @@ def test_describe_outcomes():
     level, msg = describe(0, {"component": "fast_loop", "version": "w", "model_id": 5, "promoted": True, "reasons": [],
                               "after_serving": {"passed": True, "detail": "reflex mean return 950.0"}})
     assert level == "info" and msg.endswith("promoted fast_loop w (model 5); after serving: reflex mean return 950.0")
+
+
+# -- a reflex check after serving that a dead process left owed (registry/gating.py) --------------------------
+
+def served_owing_the_check(s, st, ckpt: Path, run_id: str | None = None, **gate) -> Model:
+    """A candidate recorded and served the way promote_candidate does it, with its reflex check
+    deferred, and then nothing more: its process died before the check's verdict was recorded."""
+    model = promotion.record_candidate(
+        s, component="fast_loop", checkpoint_path=ckpt, version=checkpoint_version(ckpt)[0], run_id=run_id,
+        metrics={"reflex": {"task": "reach", "after_serving": True, "episodes": 2}},
+        gate_result={"passed": True, "promoted": True, "forced": False, "reasons": ["reflex: checked after serving"],
+                     "checks": [{"check": "finite", "status": "passed", "detail": "every weight is finite"},
+                                {"check": "reflex", "status": "deferred", "detail": "reflex: checked after serving"}],
+                     "mode": "auto", **gate})
+    return promotion.promote(s, st, model.id)
+
+
+def test_which_served_models_owe_their_check(reg, monkeypatch):
+    from registry import gating
+
+    st, registry = reg
+    a, b, c = (make_ckpt(st.home, n, v) for n, v in (("ra", 1), ("rb", 2), ("rc", 3)))
+    with registry.session() as s:
+        promotion.promote(s, st, candidate(s, a).id)
+        owed_b = served_owing_the_check(s, st, b).id
+        assert [m.id for m in gating.owed_checks(s)] == [owed_b]
+        promotion.rollback(s, st, "fast_loop")  # no longer served: nothing owed
+        assert gating.owed_checks(s) == []
+        served_owing_the_check(s, st, c, forced=True)  # a forced promotion never runs the check
+        assert gating.owed_checks(s) == []
+        checked = served_owing_the_check(s, st, b, after_serving={"passed": True})
+        assert gating.owes_check(checked) is False
+
+    def not_called(*_args, **_kwargs):
+        raise AssertionError("the check ran for a model that no longer owes it")
+
+    monkeypatch.setattr(gating, "check_after_serving", not_called)
+    assert gating.finish_check(st, registry, owed_b) is None  # read again: demoted meanwhile
+    assert gating.finish_owed_checks(st, registry) == (0, {"finished": [], "rolled_back": False})
+
+
+def test_a_failed_check_whose_rollback_fails_is_still_recorded(reg):
+    """Otherwise the check stays owed and runs again at every start of the service."""
+    import shutil
+
+    from registry import gating
+
+    st, registry = reg
+    a, b = make_ckpt(st.home, "ra", 1), make_ckpt(st.home, "rb", 2)  # b: not a fast_loop its check can load
+    with registry.session() as s:
+        promotion.promote(s, st, candidate(s, a).id)
+        b_id = served_owing_the_check(s, st, b).id
+    shutil.rmtree(a)  # the model to roll back to is gone
+    code, out = gating.finish_owed_checks(st, registry)
+    assert code == 0 and out["finished"][0]["rolled_back"] is False, out
+    with registry.session(readonly=True) as s:
+        assert promotion.promoted(s, "fast_loop").id == b_id and gating.owed_checks(s) == []
+        assert s.get(Model, b_id).gate_result["after_serving"]["passed"] is False
+
+
+def test_auto_promotion_finishes_an_owed_check_when_the_lock_is_free(tmp_path):
+    import os
+    import signal
+
+    from registry.gating import promote_lock
+
+    st = load_settings(tmp_path / "home", env={"HOPE_AUTO_PROMOTE": "0"})  # it runs with auto_promote off too
+    with Registry.open(st) as registry:
+        a = make_ckpt(st.home, "ra", 1)
+        b = make_ckpt(st.home, "rb", 2)  # not a fast_loop its check can load: it fails, and b is rolled back
+        run_b = completed_run(registry, b.parent.parent)
+        with registry.session() as s:
+            a_id = promotion.promote(s, st, candidate(s, a).id).id
+            b_id = served_owing_the_check(s, st, b, run_id=run_b).id
+        promoter = AutoPromoter(st, registry)
+        run_c = completed_run(registry, make_ckpt(st.home, "rc", 3).parent.parent)  # a run to gate next
+        st.auto_promote = True
+        with promote_lock(st.home, wait=False) as mine:  # the check may be running in the lock's holder
+            assert mine
+            promoter.tick()
+            assert not promoter.busy
+        promoter.tick()  # the served unchecked model before the next run's gate
+        assert promoter.busy and promoter.current_run == run_b and "--finish-checks" in promoter._argv
+        os.killpg(promoter._proc.pid, signal.SIGKILL)  # the finishing child dies too
+        promoter._proc.wait()
+        promoter.tick()
+        assert promoter.last_outcome["model_ids"] == [b_id]
+        assert promoter.current_run == run_c and "--finish-checks" not in promoter._argv  # not started again
+        promoter.close()
+        assert any("was not finished" in m and "killed by signal 9" in m for m in log_messages(registry, run_b))
+
+        st.auto_promote = False
+
+        fresh = AutoPromoter(st, registry)  # the next start of the service
+        fresh.tick()
+        assert fresh.busy
+        deadline = time.monotonic() + 120
+        while fresh.busy:
+            assert time.monotonic() < deadline, "the --finish-checks child did not finish"
+            time.sleep(0.1)
+            fresh.tick()
+        assert fresh.last_outcome["exit_code"] == 1 and fresh.last_outcome["rolled_back"] is True, fresh.last_outcome
+        messages = log_messages(registry, run_b)
+    assert read_pointer(st.home, "fast_loop")["model_id"] == a_id
+    assert any("reflex check after serving was interrupted" in m for m in messages)
+    assert any(f"(model {b_id}), interrupted after it was served, ran now: failed, rolled back" in m for m in messages)
+    assert "ran now: failed, rolled back" in (st.home / "logs" / LOG_FILE).read_text()

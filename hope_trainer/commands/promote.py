@@ -1,4 +1,5 @@
-"""`run_trainer.py promote (RUN | --checkpoint DIR) [--component C] [--force [--by cli|http]] [--auto] [--json]`.
+"""`run_trainer.py promote (RUN | --checkpoint DIR) [--component C] [--force [--by cli|http]] [--auto] [--json]`,
+`run_trainer.py promote --finish-checks [--json]`.
 
 Gates a candidate and promotes it when it passes (hope_models/promote/gate.py):
 
@@ -28,6 +29,16 @@ when the run already has a candidate row: "skipped" says so), 1 refused by the g
 
 --auto marks the record as made by the daemon's auto-promotion (daemon/autopromote.py). One
 promote runs at a time per $HOPE_HOME (a file lock): gates are CPU-heavy on a Pi.
+
+--finish-checks finishes the reflex checks after serving that a dead process left owed (step 5
+interrupted by a SIGKILL or a power cut: the model is served, its row says the check is deferred
+and holds no "after_serving"): each runs now against the model its row replaced, which is served
+again when it fails (registry/gating.py finish_owed_checks). It is promote's own last step, so it
+is a flag of promote, under the same lock (a row is read again once the lock is held: another
+process may have finished it meanwhile). The daemon's auto-promotion starts it by itself.
+Output: {"finished": [{"model_id", "component", "version", "run_id", "checkpoint", "after_serving",
+"rolled_back"}...], "rolled_back": bool}. Exit 0 every check passed or none was owed (also a failed
+one with nothing to roll back to: it stays served, as in step 5), 1 one was rolled back, 2 usage.
 """
 from __future__ import annotations
 
@@ -40,7 +51,14 @@ from typing import Any
 from daemon.cli.registry import CommandError, open_registry
 from hope_models.child_result import add_result_argument, write_result
 from hope_models.components import COMPONENTS
-from registry.gating import USAGE_EXIT, UsageError, promote_candidate, promote_lock
+from registry.gating import (
+    USAGE_EXIT,
+    UsageError,
+    describe_finished,
+    finish_owed_checks,
+    promote_candidate,
+    promote_lock,
+)
 from registry.promotion import PromotionError
 
 
@@ -54,6 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="who asks (the webapp passes http): named in a forced promotion's record and log line")
     parser.add_argument("--auto", action="store_true",
                         help="called by the daemon's auto-promotion: skip a run that already has a candidate record")
+    parser.add_argument("--finish-checks", action="store_true",
+                        help="run the reflex checks after serving that a dead process left owed (no RUN: "
+                             "every served model that owes one), rolling back those that fail")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the gate (default 1)")
     parser.add_argument("--json", action="store_true", help="print the outcome as one JSON object on stdout")
     add_result_argument(parser)
@@ -65,6 +86,12 @@ def _emit(args: argparse.Namespace, out: dict[str, Any]) -> None:
         print(json.dumps(out, allow_nan=False), flush=True)
         return
     if out.get("error"):
+        return
+    if "finished" in out:
+        for entry in out["finished"]:
+            print(describe_finished(entry, who="promote --finish-checks")[1])
+        if not out["finished"]:
+            print("no reflex check after serving is owed")
         return
     if out.get("skipped") or out.get("already"):
         print(out.get("skipped") or out["reasons"][0])
@@ -89,11 +116,28 @@ def _usage(args: argparse.Namespace, message: str) -> int:
     return USAGE_EXIT
 
 
+def _finish_checks(args: argparse.Namespace) -> int:
+    given = [flag for flag, on in (("RUN", args.run), ("--checkpoint", args.checkpoint), ("--component", args.component),
+                                   ("--force", args.force), ("--auto", args.auto)) if on]
+    if given:
+        return _usage(args, f"--finish-checks takes no {', '.join(given)}: it finishes every owed check")
+    try:
+        with open_registry() as (settings, registry):
+            with promote_lock(Path(settings.home)):
+                code, out = finish_owed_checks(settings, registry, threads=args.threads)
+    except (CommandError, PromotionError) as exc:
+        return _usage(args, str(exc))
+    _emit(args, out)
+    return code
+
+
 def run(args: argparse.Namespace) -> int:
-    if bool(args.run) == bool(args.checkpoint):
-        return _usage(args, "give either RUN or --checkpoint DIR (exactly one)")
     if args.threads < 1:
         return _usage(args, f"--threads {args.threads} must be >= 1")
+    if args.finish_checks:
+        return _finish_checks(args)
+    if bool(args.run) == bool(args.checkpoint):
+        return _usage(args, "give either RUN or --checkpoint DIR (exactly one), or --finish-checks")
     try:
         with open_registry() as (settings, registry):
             with promote_lock(Path(settings.home)):
