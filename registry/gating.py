@@ -220,7 +220,7 @@ def promote_candidate(settings: Any, registry: Any, args: Any) -> tuple[int, dic
 
 
 def check_after_serving(settings: Any, registry: Any, model_id: int, ckpt: Path, component: str,
-                        previous_ckpt: str | None, task: str) -> dict[str, Any]:
+                        previous_ckpt: str | None, task: str, *, threads: int | None = None) -> dict[str, Any]:
     """The reflex check of model `model_id` (checkpoint `ckpt`), served now, against the model it replaced; when it
     fails and the model is still the promoted one, the previous model is served again (a rollback,
     recorded on the model's gate_result and as a warning on its run). {"after_serving": {...},
@@ -229,7 +229,7 @@ def check_after_serving(settings: Any, registry: Any, model_id: int, ckpt: Path,
 
     t0 = time.monotonic()
     try:
-        verdict = reflex_verdict(ckpt, previous_ckpt, settings=settings, task=task)
+        verdict = reflex_verdict(ckpt, previous_ckpt, settings=settings, task=task, threads=threads)
         passed, checks, figures = verdict.passed, verdict.checks, verdict.metrics.get("reflex")
     except GateError as exc:
         passed, checks, figures = False, [{"check": "reflex", "status": "failed", "detail": str(exc)}], None
@@ -281,9 +281,9 @@ def owed_checks(s: Any) -> list[Model]:
     return [m for m in served if owes_check(m)]
 
 
-def finish_check(settings: Any, registry: Any, model_id: int) -> dict[str, Any] | None:
-    """Run the owed check of model `model_id` against the model it replaced (check_after_serving:
-    rolled back when it fails). The caller holds promote_lock: the row is read again under it, and
+def finish_check(settings: Any, registry: Any, model_id: int, *, threads: int | None = None) -> dict[str, Any] | None:
+    """Run the owed check of model `model_id` against the model it replaced (check_after_serving on
+    `threads` torch threads: rolled back when it fails). The caller holds promote_lock: the row is read again under it, and
     None is returned when there is nothing to do any more (demoted meanwhile, or checked by another
     process)."""
     with registry.session(readonly=True) as s:
@@ -297,7 +297,7 @@ def finish_check(settings: Any, registry: Any, model_id: int) -> dict[str, Any] 
                 "run_id": model.run_id, "checkpoint": model.checkpoint_path}
         previous_ckpt = previous.checkpoint_path if previous is not None else None
     return {**base, **check_after_serving(settings, registry, model_id, Path(base["checkpoint"]), base["component"],
-                                          previous_ckpt, task)}
+                                          previous_ckpt, task, threads=threads)}
 
 
 def finish_owed_checks(settings: Any, registry: Any, threads: int = 1) -> tuple[int, dict[str, Any]]:
@@ -306,11 +306,8 @@ def finish_owed_checks(settings: Any, registry: Any, threads: int = 1) -> tuple[
     A failed check with nothing to roll back to leaves its model served, as in promote_candidate."""
     with registry.session(readonly=True) as s:
         owed = [m.id for m in owed_checks(s)]
-    if owed:
-        import torch  # lazy: the check loads torch anyway
-
-        torch.set_num_threads(max(1, int(threads)))
-    finished = [out for out in (finish_check(settings, registry, i) for i in owed) if out is not None]
+    finished = [out for out in (finish_check(settings, registry, i, threads=max(1, int(threads))) for i in owed)
+                if out is not None]
     rolled_back = any(out["rolled_back"] for out in finished)
     return (REFUSED_EXIT if rolled_back else PROMOTED_EXIT), {"finished": finished, "rolled_back": rolled_back}
 

@@ -45,9 +45,14 @@ def sim_task(cache) -> str | None:
 
 
 def reflex_verdict(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None, *, settings: Any,
-                   task: str) -> GateResult:
+                   task: str, threads: int | None = None) -> GateResult:
     """The deferred reflex check of a served candidate against the model it replaced (None: none
-    to compare with, the candidate's return is only measured); GateError when the candidate cannot be read."""
+    to compare with, the candidate's return is only measured); GateError when the candidate cannot be read.
+    threads: torch's thread count for the check (None: as it is)."""
+    if threads is not None:
+        import torch  # lazy: loads torch
+
+        torch.set_num_threads(threads)
     gate = Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
     cand = load_component(cand_dir)
