@@ -181,3 +181,63 @@ def test_verdict_passes_a_good_summary_and_names_each_shortfall():
     assert "fast_loop" in text and "1 -> 0.1" in text and "300 MB" in text and "promoted r-fast_loop@10:abc" in text
     assert "mean return 950.0" in text and "expert 985.0" in text and "random 30.0" in text
     assert "loop closure: 7.5 s" in text
+
+
+class _DoorBehind:
+    """ClosureSteps' surroundings: the demo's own BrainService serves the promoted version at once,
+    the robot's port (another process) answers 503, then the previous version, then the promoted one."""
+
+    def __init__(self, answers: list[dict]):
+        from types import SimpleNamespace
+
+        from hope_trainer.demo.closure import ClosureSteps
+
+        class Steps(ClosureSteps):
+            def _gate(self, run_id):
+                return {"state": "promoted", "version": "r-new@60:aa"}
+
+            def _post_infer(self, request):
+                self.posted.append(request)
+                return answers.pop(0)
+
+            def loop_closed(self):
+                self.closed += 1
+
+            def sleep(self, seconds):
+                pass
+
+        brain = SimpleNamespace(status=lambda: {"fast_loop": {"version": "r-new@60:aa"},
+                                                "vqvae": {"version": "v"}, "mid_loop": {"version": "m"}})
+        self.steps = Steps()
+        self.steps.serve = SimpleNamespace(brain=brain)
+        self.steps.first_observation = ({"observation": [0.0] * 6}, [1.0, 1.0])
+        self.steps.inference, self.steps.door_answer, self.steps.posted, self.steps.closed = None, None, [], 0
+
+
+def test_the_loop_closes_on_the_robots_port_only_once_it_answers_with_the_promoted_version():
+    door = _DoorBehind([{"error": 'HTTP 503: {"error":"no promoted fast_loop to serve yet"}'},
+                        {"action": [0.0, 0.0], "model_version": "r-old@10:bb"},
+                        {"action": [0.1, -0.2], "model_version": "r-new@60:aa", "latency_ms": 0.5}])
+    steps = door.steps
+    assert steps._try_close_loop("r-new") is False and steps.inference is None and steps.closed == 0
+    assert steps._try_close_loop("r-new") is False and steps.door_answer["model_version"] == "r-old@10:bb"
+    assert steps._try_close_loop("r-new") is True and steps.closed == 1
+    assert steps.inference["model_version"] == "r-new@60:aa" and steps.inference["expert_action"] == [1.0, 1.0]
+
+
+def test_the_whole_brain_answer_waits_for_the_robots_port_to_serve_every_promoted_version(tmp_path):
+    ep = tmp_path / "data" / "ep0" / "steps"
+    ep.mkdir(parents=True)
+    step = {"observation": {"robot_state": {"joint_positions": [0.1, 0.2], "joint_velocities": [0.0, 0.0]}},
+            "action": {"command": [0.5, 0.5]}}
+    (ep / "000000.jsonl").write_text("\n".join(json.dumps(step) for _ in range(80)) + "\n")
+    versions = {"vqvae": "v", "fast_loop": "r-new@60:aa", "mid_loop": "m"}
+    stale = {"action": [0.0, 0.0], "versions": {**versions, "mid_loop": None}}
+    door = _DoorBehind([{"error": "HTTP 503: no promoted fast_loop"}, stale]
+                       + [{"action": [0.1, 0.1], "versions": versions}] * 200)
+    gates = {i: {"state": "promoted", "version": v} for i, v in zip(("a", "b", "c"), versions.values(), strict=True)}
+    answer = door.steps.brain_inference(gates, ["a", "b", "c"], tmp_path / "data")
+    assert "error" not in answer and answer["versions"] == versions, answer
+    posted = door.steps.posted
+    assert [p["reset"] for p in posted[:3]] == [True, True, True] and not any(p["reset"] for p in posted[3:])
+    assert len(posted) == 2 + answer["ticks"]

@@ -42,6 +42,7 @@ class ClosureSteps:
     token: str | None
     first_observation: tuple[dict[str, Any], list[float]] | None
     inference: dict[str, Any] | None
+    door_answer: dict[str, Any] | None
 
     if TYPE_CHECKING:
         def sleep(self, seconds: float) -> None: ...
@@ -65,11 +66,17 @@ class ClosureSteps:
         status = (self.serve.brain.status().get(ACTOR) or {})
         if status.get("version") != gate["version"]:
             return False
+        # The robot's port is another process with its own BrainService: it follows the pointer on
+        # its own poll, so it may answer with nothing or the previous version for a moment.
+        inf = self.infer_over_http()
+        if str(inf.get("error", "")).startswith("HTTP 503") or (
+                not inf.get("error") and inf.get("model_version") != gate["version"]):
+            self.door_answer = inf
+            return False
         if display is not None:
             display.close()
         say(f"4. promoted and served: fast_loop {gate['version']}")
-        self.inference = self.infer_over_http()
-        inf = self.inference
+        self.inference = inf
         if inf.get("error"):
             say(f"   inference failed: {inf['error']}")
         else:
@@ -99,9 +106,11 @@ class ClosureSteps:
                 promoted_at = promoted_at or now
                 if now - promoted_at > SERVE_WAIT_S:
                     status = self.serve.brain.status().get(ACTOR) or {}
+                    door = self.door_answer or {}
                     raise DemoError(f"BrainService does not serve {gate['version']} {SERVE_WAIT_S:.0f} s after its "
                                     f"promotion (serving {status.get('version')}; last error: "
-                                    f"{status.get('last_error')})")
+                                    f"{status.get('last_error')}; the robot's port answered: "
+                                    f"{door.get('error') or door.get('model_version')})")
             self._try_close_loop(fast_id)
             self.sleep(0.3)
         return self._gate(fast_id)
@@ -121,9 +130,20 @@ class ClosureSteps:
             if time.monotonic() > deadline:
                 return {"error": f"BrainService does not serve the promoted {', '.join(wanted)} after {SERVE_WAIT_S:.0f} s"}
             self.sleep(0.2)
-        answer: dict[str, Any] = {}
-        for i, (seen, _expert) in enumerate(self._observations(data, BRAIN_TICKS)):
-            answer = self._post_infer({"component": ACTOR, **seen, "session": "demo-brain", "reset": i == 0})
+        observations = list(self._observations(data, BRAIN_TICKS))
+        want = {c: g["version"] for c, g in wanted.items()}
+        while True:  # the robot's port follows the pointers on its own poll (_try_close_loop)
+            answer = self._post_infer({"component": ACTOR, **observations[0][0], "session": "demo-brain", "reset": True})
+            if not answer.get("error") and all((answer.get("versions") or {}).get(c) == v for c, v in want.items()):
+                break
+            if not str(answer.get("error", "")).startswith("HTTP 503") and answer.get("error"):
+                return answer
+            if time.monotonic() > deadline:
+                return {"error": f"the robot's port does not answer with the promoted {want} after {SERVE_WAIT_S:.0f} s: "
+                                 f"{answer.get('error') or answer.get('versions')}"}
+            self.sleep(0.2)
+        for seen, _expert in observations[1:]:
+            answer = self._post_infer({"component": ACTOR, **seen, "session": "demo-brain", "reset": False})
             if answer.get("error"):
                 return answer
         return {**answer, "ticks": BRAIN_TICKS}

@@ -42,6 +42,7 @@ class Demo(ChainSteps, ClosureSteps):
         self.url: str | None = None
         self.inference_url: str | None = None  # the robot's door (webapp/inference_door.py)
         self.inference: dict[str, Any] | None = None
+        self.door_answer: dict[str, Any] | None = None  # the robot's port before it served the promoted fast_loop
         self.first_observation: tuple[dict[str, Any], list[float]] | None = None
         self.eval_started = time.monotonic()
 
