@@ -11,7 +11,7 @@ TOUR = REPO / "examples" / "data_tour.py"
 
 def _tour(home: Path, *extra: str) -> dict:
     env = dict(os.environ, HOPE_HOME=str(home))
-    proc = subprocess.run([sys.executable, str(TOUR), "--steps", "4000", "--train-steps", "150", "--json", *extra],
+    proc = subprocess.run([sys.executable, str(TOUR), "--steps", "4000", "--train-steps", "60", "--json", *extra],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     return json.loads(proc.stdout)
@@ -31,7 +31,7 @@ def test_tour_end_to_end_then_rerun_changes_nothing(tmp_path):
     trained = {r["component"]: r for r in first["training"]}
     assert list(trained) == ["vqvae", "fast_loop", "mid_loop"]
     for r in trained.values():
-        assert r["outcome"] == "completed" and r["steps"] == 150, r
+        assert r["outcome"] == "completed" and r["steps"] == 60, r
         assert r["final_loss"] < r["first_loss"], r
         assert Path(r["checkpoint"]).is_dir()
 

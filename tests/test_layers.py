@@ -19,6 +19,7 @@ bench/ and tests/ stand outside the rule: they may reach into any layer.
 from __future__ import annotations
 
 import ast
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -184,8 +185,14 @@ def _tier(sub: str, root: Path = REPO) -> int | None:
     return None
 
 
+@functools.lru_cache(maxsize=1)
+def _all_imports() -> tuple[Import, ...]:
+    return tuple(imp for path in project_files() for imp in imports_of(path))
+
+
 def all_imports() -> list[Import]:
-    return [imp for path in project_files() for imp in imports_of(path)]
+    """Every import of the checkout's files: parsed once per test process (the files do not change during it)."""
+    return list(_all_imports())
 
 
 def layer_violations(imports: list[Import], root: Path = REPO) -> list[str]:
