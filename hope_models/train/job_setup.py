@@ -24,7 +24,13 @@ def torch_settings(torch, threads: int) -> None:
     # A peaked softmax (a keypoint's cells, far from it) makes subnormal floats, which cost a CPU
     # 10-15x per operation (measured on the Fast Loop's keypoint drawing) and carry no signal.
     torch.set_flush_denormal(True)
-    torch.use_deterministic_algorithms(True)
+    # torch.use_deterministic_algorithms also sets torch.compile's flag, whose import loads that
+    # compiler (hope_models/train/adamw.py says what it costs a job): the flag is set where the kernels read it.
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None:
+        torch.use_deterministic_algorithms(True)
+    else:
+        setter(True, warn_only=False)
 
 
 def open_dataset(cfg: TrainConfig, log: Callable[[str, str], None]):

@@ -198,14 +198,14 @@ class _Trainer:
 
     def _optimizer(self):
         """AdamW; weight decay on matrices only (biases, norms and other vectors are left alone)."""
-        import torch  # lazy: loads torch
+        from hope_models.train.adamw import adamw  # lazy: loads torch
 
         decay = [p for p in self.model.parameters() if p.requires_grad and p.dim() >= 2]
         no_decay = [p for p in self.model.parameters() if p.requires_grad and p.dim() < 2]
         self.params = decay + no_decay
         groups = [{"params": decay, "weight_decay": self.cfg.weight_decay},
                   {"params": no_decay, "weight_decay": 0.0}]
-        return torch.optim.AdamW([g for g in groups if g["params"]], lr=self.cfg.lr, betas=(0.9, 0.95), eps=1e-8)
+        return adamw([g for g in groups if g["params"]], lr=self.cfg.lr, betas=(0.9, 0.95), eps=1e-8)
 
     # -- run ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
