@@ -1,18 +1,11 @@
-"""hope_models/train/adamw.py: torch.optim.AdamW's steps and state_dict, without loading torch's compiler."""
+"""hope_models/train/adamw.py: torch.optim.AdamW's steps and state_dict (what it is for: tests/test_compiler_unloaded.py)."""
 from __future__ import annotations
-
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
 
 import torch
 from torch import nn
 
 from hope_models.checkpoints import flatten_optimizer, unflatten_optimizer
 from hope_models.train.adamw import AdamW
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _model(seed: int = 0) -> nn.Module:
@@ -94,26 +87,3 @@ def test_a_state_of_another_model_is_refused_naming_what_differs():
         assert "a group of 2 parameter(s), the model's has 3" in str(exc)
     else:
         raise AssertionError("a state of another model was loaded")
-
-
-TRAIN_JOB = textwrap.dedent("""
-    import sys, torch
-    from hope_models.data.synthetic import generate_dataset
-    from hope_models.train.loop import TrainConfig, train
-    root = sys.argv[1]
-    generate_dataset(root + "/ds", 600, obs_dim=6, act_dim=2, seed=1, episode_seconds=(5, 8))
-    r = train(TrainConfig(component="fast_loop", data=root + "/ds", run_dir=root + "/run", steps=3, seed=0,
-                          batch_size=8, threads=1, checkpoint_every_steps=3, cache_dir=root + "/cache",
-                          thermal_zone=None, vcgencmd=None))
-    assert r.outcome == "completed", r.message
-    print(torch.are_deterministic_algorithms_enabled(), "torch._dynamo" in sys.modules)
-""")
-
-
-def test_a_training_job_leaves_torchs_compiler_unloaded(tmp_path):
-    """What this optimizer is for: a job child without torch._dynamo (1.5 s and ~75 MB less), still
-    computing with torch's deterministic kernels."""
-    proc = subprocess.run([sys.executable, "-c", TRAIN_JOB, str(tmp_path)], capture_output=True, text=True,
-                          cwd=REPO, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.split()[-2:] == ["True", "False"], proc.stdout

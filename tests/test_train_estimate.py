@@ -227,10 +227,12 @@ def test_estimate_with_64x64_frames_is_within_half_to_twice_the_measured_peak(fr
 
 RUNTIME = textwrap.dedent("""
     import psutil, torch
-    torch.set_num_threads(1)
+    from hope_models.train.job_setup import torch_settings
+    torch_settings(torch, 1)  # as a job computes
     import hope_models.components.build, hope_models.train.metrics, hope_models.data.windows  # noqa: F401
+    from hope_models.train.adamw import adamw  # the job's optimizer
     m = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.SiLU(), torch.nn.LayerNorm(16), torch.nn.Linear(16, 2))
-    opt = torch.optim.AdamW(m.parameters())
+    opt = adamw([{"params": list(m.parameters())}], lr=1e-3, betas=(0.9, 0.95), eps=1e-8)
     for _ in range(2):
         loss = m(torch.randn(4, 5, 8)).pow(2).mean()
         opt.zero_grad(); loss.backward(); opt.step()

@@ -22,6 +22,7 @@ import math
 import torch
 from torch import nn
 
+from hope_models.components.meta_init import embedding, on_meta
 from hope_models.components.numpy_keypoints import READER_GAIN
 from hope_models.components.numpy_keypoints import cell_centres as _cell_centres
 
@@ -65,9 +66,9 @@ class CodeKeypoints(nn.Module):
             raise ValueError("drawing 'vectors' needs the codebook's vector size (code_dim >= 1)")
         self.n_codes, self.grid, self.keypoints = n_codes, (int(grid[0]), int(grid[1])), keypoints
         self.reader, self.sigma, self.draw = reader, float(sigma), draw
-        self.score = nn.Embedding(n_codes, keypoints)
+        self.score = embedding(n_codes, keypoints)
         self.gain = READER_GAIN if reader == "frames" else 1.0
-        if reader == "frames":  # the scores in use start as a policy reader's (N(0, 1))
+        if reader == "frames" and not on_meta():  # the scores in use start as a policy reader's (N(0, 1))
             nn.init.normal_(self.score.weight, std=1.0 / self.gain)
         self.out = nn.Linear(feature_count(keypoints, view_frame), d_out)
         self.centres: torch.Tensor

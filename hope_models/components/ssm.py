@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hope_models.components.meta_init import initial
 from hope_models.components.ssm_config import SSMConfig
 
 
@@ -50,10 +51,10 @@ class DiagonalSSM(nn.Module):
         self.d_model, self.d_state, self.chunk = d_model, d_state, chunk
         # rate = 1 / timescale; a = exp(-rate). Log-spaced timescales: some channels forget within a
         # grid step, others remember the whole window.
-        timescales = torch.logspace(math.log10(min_timescale), math.log10(max_timescale), d_state)
-        self.log_rate = nn.Parameter(-torch.log(timescales))
-        self.B = nn.Parameter(torch.randn(d_state, d_model) / math.sqrt(d_model))
-        self.C = nn.Parameter(torch.randn(d_model, d_state) / math.sqrt(d_state))
+        self.log_rate = nn.Parameter(initial((d_state,), lambda: -torch.log(torch.logspace(
+            math.log10(min_timescale), math.log10(max_timescale), d_state))))
+        self.B = nn.Parameter(initial((d_state, d_model), lambda: torch.randn(d_state, d_model) / math.sqrt(d_model)))
+        self.C = nn.Parameter(initial((d_model, d_state), lambda: torch.randn(d_model, d_state) / math.sqrt(d_state)))
         self.D = nn.Parameter(torch.ones(d_model))  # the usual S4/Mamba skip, initialised to 1
 
     def log_a(self) -> torch.Tensor:
@@ -217,10 +218,10 @@ class WindowSSM(nn.Module):
             raise ValueError(f"min_timescale={min_timescale} and max_timescale={max_timescale} must satisfy "
                              "0 < min <= max")
         self.d_model, self.d_state, self.window = d_model, d_state, window
-        timescales = torch.logspace(math.log10(min_timescale), math.log10(max_timescale), d_state)
-        self.log_rate = nn.Parameter(-torch.log(timescales))
-        self.B = nn.Parameter(torch.randn(d_state, d_model) / math.sqrt(d_model))
-        self.C = nn.Parameter(torch.randn(d_model, d_state) / math.sqrt(d_state))
+        self.log_rate = nn.Parameter(initial((d_state,), lambda: -torch.log(torch.logspace(
+            math.log10(min_timescale), math.log10(max_timescale), d_state))))
+        self.B = nn.Parameter(initial((d_state, d_model), lambda: torch.randn(d_state, d_model) / math.sqrt(d_model)))
+        self.C = nn.Parameter(initial((d_model, d_state), lambda: torch.randn(d_model, d_state) / math.sqrt(d_state)))
         self.D = nn.Parameter(torch.ones(d_model))
 
     def log_a(self) -> torch.Tensor:

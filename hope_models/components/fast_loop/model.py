@@ -40,6 +40,7 @@ from torch import nn
 
 from hope_models.components.code_keypoints import CodeKeypoints
 from hope_models.components.fast_loop.config import FastLoopConfig
+from hope_models.components.meta_init import embedding
 from hope_models.components.ssm import GatedMLP, WindowSSM, WindowState, count_params
 from hope_models.components.vqvae.model import VQVAE
 
@@ -66,7 +67,7 @@ class FastLoop(nn.Module):
                                            reader=cfg.keypoint_reader, view_frame=cfg.view_joint >= 0,
                                            draw=cfg.keypoint_draw, code_dim=vqvae.cfg.code_dim // vqvae.cfg.groups)
         elif vqvae is not None:
-            self.code_in = nn.Embedding(vqvae.codebook.shape[0], d)
+            self.code_in = embedding(vqvae.codebook.shape[0], d)
         self.enc_ln = nn.LayerNorm(d)
         self.enc_mlp = GatedMLP(d, hidden)
         self.ssm_ln = nn.LayerNorm(d)

@@ -42,6 +42,7 @@ import torch
 from torch import nn
 
 from hope_models.components.code_keypoints import CodeKeypoints
+from hope_models.components.meta_init import embedding
 from hope_models.components.mid_loop.config import MidLoopConfig
 from hope_models.components.mid_loop.layers import decoded_cells
 from hope_models.components.mid_loop.model import MidLoop
@@ -71,14 +72,14 @@ class GridMidLoop(nn.Module):
         self.groups = g = vqvae.cfg.groups
         h, n, d, r = len(cfg.horizon_steps), cfg.n_codes, cfg.d_model, cfg.cell_rank
         self.keypoints = CodeKeypoints(n, vqvae.cfg.grid_shape, cfg.keypoints, d)
-        self.code_in = nn.Embedding(n, d)  # shared by every cell: its mean over the cells says what is in view
+        self.code_in = embedding(n, d)  # shared by every cell: its mean over the cells says what is in view
         self.act_in = nn.Linear(cfg.act_dim, d)
         self.obs_in = nn.Linear(cfg.obs_dim, d)
         self.ssm = SSMStack(cfg.ssm_config())
         self.drop = nn.Dropout(cfg.dropout)
         self.cell_ctx = nn.Linear(d, h * r)
-        self.cell_pos = nn.Embedding(g, r)
-        self.cell_code = nn.Embedding(n, r)
+        self.cell_pos = embedding(g, r)
+        self.cell_code = embedding(n, r)
         self.cell_ln = nn.LayerNorm(r)
         self.cell_mlp = GatedMLP(r, 2 * r)
         self.cell_out = nn.Linear(r, n)  # V and a bias: one row per code of the shared codebook

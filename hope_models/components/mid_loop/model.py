@@ -63,6 +63,7 @@ import logging
 import torch
 from torch import nn
 
+from hope_models.components.meta_init import embedding
 from hope_models.components.mid_loop.config import MidLoopConfig
 from hope_models.components.ssm import SSMStack, count_params
 from hope_models.components.vqvae.model import VQVAE
@@ -84,7 +85,7 @@ class MidLoop(nn.Module):
         self.cfg = cfg
         self.groups = vqvae.cfg.groups
         h, g, n = len(cfg.horizon_steps), self.groups, cfg.n_codes
-        self.code_in = nn.Embedding(g * n, cfg.d_model)  # one row per code of every group (vqvae.rows)
+        self.code_in = embedding(g * n, cfg.d_model)  # one row per code of every group (vqvae.rows)
         self.act_in = nn.Linear(cfg.act_dim, cfg.d_model)
         self.ssm = SSMStack(cfg.ssm_config())
         self.drop = nn.Dropout(cfg.dropout)

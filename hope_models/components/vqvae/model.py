@@ -190,7 +190,7 @@ class VQVAE(nn.Module):
         self.register_buffer("ema_sum", torch.zeros(k, d))  # EMA of the encoder outputs assigned
         self.register_buffer("unused_steps", torch.zeros(k, dtype=torch.int64))  # since used or restarted
         self.register_buffer("idle_steps", torch.zeros(k, dtype=torch.int64))  # since really used (metric)
-        self.register_buffer("_offsets", torch.arange(cfg.groups) * cfg.n_codes, persistent=False)
+        self.register_buffer("_offsets", torch.arange(0, cfg.groups * cfg.n_codes, cfg.n_codes), persistent=False)
         self.register_buffer("initialized", torch.zeros((), dtype=torch.int64))  # 0/1
         self.register_buffer("restarts", torch.zeros((), dtype=torch.int64))  # dead codes re-seeded so far
         log.info("%s", self.describe())
