@@ -6,7 +6,8 @@ Prints figures; it is not a test. One run:
      one 4x larger,
   2. builds the cache of each (own subprocess: build steps/s and build peak RSS),
   3. samples fast windows (batch 64) from each cache in a fresh subprocess that only opens the
-     cache and samples (batches/s, peak RSS while sampling),
+     cache and samples (batches/s, peak RSS while sampling) with the sampler's defaults (past the
+     budget: 4 anchors a block, sampler.py),
   4. runs the BASELINE in its own subprocess: every JSONL line loaded into Python dicts, a list of
      dict steps per episode, windows built per batch from those lists (same time grid and
      zero-order hold via bisect, so the outputs are identical; checked on a few hundred anchors),
@@ -74,7 +75,8 @@ def child_sample(cache_path: str, batches: int, budget_mb: float) -> dict:
 
     rss0 = _rss()
     cache = open_cache(cache_path, resident_budget_mb=budget_mb)
-    loader = WindowLoader(cache, AnchorSampler(cache, BATCH, seed=0, split="all"), window_spec("fast"))
+    sampler = AnchorSampler(cache, BATCH, seed=0, split="all")
+    loader = WindowLoader(cache, sampler, window_spec("fast"))
     next(loader)  # first use computes the block length from t (once per window length)
     peak, peak_anon = _rss()
     t0 = time.perf_counter()
@@ -87,7 +89,8 @@ def child_sample(cache_path: str, batches: int, budget_mb: float) -> dict:
     r, a = _rss()
     return {"batches_per_s": batches / dt, "batches": batches, "rss_start_mb": rss0[0] / MB, "mode": cache.mode,
             "peak_rss_mb": max(peak, r) / MB, "peak_anon_mb": max(peak_anon, a) / MB,
-            "cache_pages_mb": _cache_pages(cache_path) / MB}
+            "cache_pages_mb": _cache_pages(cache_path) / MB,
+            "anchors_per_block": getattr(sampler, "anchor_group", (1, 1))[0]}
 
 
 def _cache_pages(cache_path: str) -> int:
@@ -110,7 +113,7 @@ def _baseline_load(dataset: str) -> tuple[list[list[dict]], list[list[float]]]:
     """How the reference implementation held data: every step a dict, per episode a list."""
     episodes, times = [], []
     for ep_dir in sorted(p for p in Path(dataset).iterdir() if p.is_dir()):
-        steps = []
+        steps: list[dict] = []
         for f in sorted((ep_dir / "steps").glob("*.jsonl")):
             with open(f, encoding="utf-8") as fh:
                 steps.extend(json.loads(line) for line in fh if line.strip())
@@ -185,9 +188,9 @@ def child_baseline(dataset: str, batches: int, spec_path: str, dump: str | None)
     out = {"batches_per_s": batches / dt, "batches": batches, "load_s": load_s, "steps": n,
            "rss_start_mb": rss0[0] / MB, "peak_rss_mb": peak / MB, "peak_anon_mb": peak_anon / MB}
     if dump:
-        anchors = np.random.default_rng(1).integers(0, n, 512)
-        obs, act, mask = _baseline_windows(episodes, times, offsets, anchors.tolist(), lags, paths, norm)
-        np.savez(dump, anchors=anchors, obs=obs, act=act, mask=mask)
+        checked = np.random.default_rng(1).integers(0, n, 512)
+        obs, act, mask = _baseline_windows(episodes, times, offsets, checked.tolist(), lags, paths, norm)
+        np.savez(dump, anchors=checked, obs=obs, act=act, mask=mask)
     return out
 
 
@@ -292,6 +295,8 @@ def _report(a, rows: dict, base: dict, max_diff: float, total: float) -> None:
     line("build peak RSS MB", f"{one['build']['peak_rss_mb']:.0f}", f"{four['build']['peak_rss_mb']:.0f}", "-")
     line("load into dicts s", "-", "-", f"{base['load_s']:.1f}")
     line("access mode (resident budget)", f"{one['sample']['mode']}", f"{four['sample']['mode']}", "dicts")
+    line("sampler: anchors per block", f"{one['sample']['anchors_per_block']}",
+         f"{four['sample']['anchors_per_block']}", "1")
     line("fast-window batches/s (B=64)", f"{one['sample']['batches_per_s']:,.0f}",
          f"{four['sample']['batches_per_s']:,.0f}", f"{base['batches_per_s']:,.0f}")
     line("peak RSS while sampling MB", f"{one['sample']['peak_rss_mb']:.0f}", f"{four['sample']['peak_rss_mb']:.0f}",
@@ -309,6 +314,7 @@ def _report(a, rows: dict, base: dict, max_diff: float, total: float) -> None:
         for label, kind, key, f in (("before: batches/s (B=64)", "before", "batches_per_s", ",.0f"),
                                     ("before: peak RSS while sampling MB", "before", "peak_rss_mb", ".0f"),
                                     ("before: cache pages resident MB", "before", "cache_pages_mb", ".1f"),
+                                    ("before: sampler anchors per block", "before", "anchors_per_block", ""),
                                     ("before: all mapped batches/s", "before_mapped", "batches_per_s", ",.0f")):
             line(label, num(one[kind], key, f), num(four[kind], key, f), "-")
     print(f"ours vs baseline on 512 anchors: max |diff| = {max_diff:.2e}")

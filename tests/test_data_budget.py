@@ -3,6 +3,7 @@ read with pread; the windows are the mapping's, and the mapped pages stay within
 from __future__ import annotations
 
 import mmap
+import os
 from pathlib import Path
 
 import numpy as np
@@ -62,18 +63,20 @@ def test_every_split_of_the_budget_reads_the_windows_the_mapping_reads(cache_dir
         assert np.array_equal(split.t_block(first, 9, pad), mapped.t_block(first, 9, pad))
     for spec in SPECS:
         _assert_same(make_windows(mapped, edges, spec), make_windows(split, edges, spec), (spec.scale, "edges"))
-        loaders = [WindowLoader(c, AnchorSampler(c, 32, seed=7, split="all"), spec, chunk=4) for c in (mapped, split)]
-        for b in range(12):
-            _assert_same(next(loaders[0]), next(loaders[1]), (spec.scale, b))
+        for k in (1, 4):  # anchors drawn alone and by block (runs of blocks share a read)
+            loaders = [WindowLoader(c, AnchorSampler(c, 32, seed=7, split="all", anchors_per_block=k), spec, chunk=4)
+                       for c in (mapped, split)]
+            for b in range(6):
+                _assert_same(next(loaders[0]), next(loaders[1]), (spec.scale, k, b))
 
 
 def test_a_resumed_loader_in_read_mode_continues_with_the_mappings_batches(cache_dir):
     mapped = open_cache(cache_dir)
     split = open_cache(cache_dir, resident_budget_mb=_budgets(mapped.n_steps)["t and part of steps"][0])
     spec = window_spec("mid", horizons_s=(0.5,))
-    whole = WindowLoader(mapped, AnchorSampler(mapped, 16, seed=2, split="all"), spec)
+    whole = WindowLoader(mapped, AnchorSampler(mapped, 16, seed=2, split="all", anchors_per_block=4), spec)
     expected = [next(whole) for _ in range(40)]
-    first = AnchorSampler(split, 16, seed=2, split="all")
+    first = AnchorSampler(split, 16, seed=2, split="all")  # read mode: 4 anchors a block by default
     loader = WindowLoader(split, first, spec)
     for _ in range(23):
         next(loader)
@@ -82,6 +85,26 @@ def test_a_resumed_loader_in_read_mode_continues_with_the_mappings_batches(cache
     again = WindowLoader(split, resumed, spec)
     for b in range(23, 40):
         _assert_same(expected[b], next(again), b)
+
+
+def test_anchors_of_one_block_share_a_read(cache_dir, monkeypatch):
+    mapped = open_cache(cache_dir)
+    cache = open_cache(cache_dir, resident_budget_mb=_budgets(mapped.n_steps)["nothing"][0])  # t and steps: pread
+    sampler = AnchorSampler(cache, 32, seed=4, split="all")
+    assert sampler.anchor_group[0] == 4  # the default past the budget, validation's excepted
+    assert AnchorSampler(cache, 32, split="val").anchor_group == (1, 1)
+    spec = window_spec("fast")
+    for c in (cache, mapped):  # the block length is computed once, with reads of its own
+        make_windows(c, sampler.batch(0), spec)
+    reads = []
+    real_pread = os.pread
+    monkeypatch.setattr(os, "pread", lambda fd, size, off: reads.append(size) or real_pread(fd, size, off))
+    for b in range(1, 4):
+        anchors = sampler.batch(b)
+        blocks = len(np.unique(np.searchsorted(sampler.real.steps, anchors) // sampler.anchor_group[1]))
+        reads.clear()
+        _assert_same(make_windows(cache, anchors, spec), make_windows(mapped, anchors, spec), b)
+        assert blocks <= 8 and len(reads) <= 2 * blocks  # one read of t and one of steps a block, not an anchor
 
 
 def _mapped_rss(cache_dir: Path) -> int:

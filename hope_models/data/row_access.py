@@ -7,7 +7,9 @@ values are the same either way. Mapping the head rather than caching hot rows ke
 free of state: which rows come from where depends on the budget only, never on what was read.
 
 The pread side pays one system call per anchor's block (a random read through the page cache,
-about a microsecond), so the budget buys speed in proportion to the rows it maps.
+1-4 microseconds), or one per run of blocks that lie within MERGE_GAP_BYTES of each other (the
+sampler's anchors by block, sampler.py, make such runs), so the budget buys speed in proportion
+to the rows it maps, and grouped anchors in proportion to the reads they share.
 """
 from __future__ import annotations
 
@@ -62,7 +64,7 @@ class HeadMapped:
             rest = ~in_head
             pad_row = np.full(self.full.shape[1:], pad, dtype=self.full.dtype).tobytes()
             block, slot = self._read_blocks(first[rest], n, pad_row)
-            out[rest] = block.reshape(-1, n, *self.full.shape[1:])[slot // n]
+            out[rest] = block.take(slot[:, None] + np.arange(n), axis=0)
         if lo < 0 or hi > self.n_rows:
             out[(idx < 0) | (idx >= self.n_rows)] = pad
         return out
@@ -92,33 +94,56 @@ class HeadMapped:
         return out
 
     def _read_blocks(self, first: np.ndarray, n: int, pad_row: bytes) -> tuple[np.ndarray, np.ndarray]:
-        """The blocks of n rows at `first` read with pread in file order, as [len(first) * n, ...],
-        and the row where each block starts. File order: about a fifth less time a read than
-        the order of the batches, from what the page cache's lookups leave in the CPU's caches."""
+        """The blocks of n rows at `first`, as rows [R, ...], and the row of it where each block
+        starts. Read in file order (about a fifth less time a read than the batches' order, from
+        what the page cache's lookups leave in the CPU's caches), blocks that lie within
+        MERGE_GAP_BYTES of each other in one pread (see pread_runs)."""
         order = np.argsort(first, kind="stable")
-        raw = pread_blocks(self.fd, self.row_bytes, self.n_rows, first[order], n, pad_row)
+        gap = max(0, MERGE_GAP_BYTES // self.row_bytes)
+        raw, at = pread_runs(self.fd, self.row_bytes, self.n_rows, first[order], n, gap, pad_row)
         slot = np.empty(len(first), dtype=np.int64)
-        slot[order] = np.arange(0, len(first) * n, n)
+        slot[order] = at
         return np.frombuffer(raw, dtype=self.full.dtype).reshape(-1, *self.full.shape[1:]), slot
 
 
-def pread_blocks(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, pad_row: bytes) -> bytes:
-    """Rows first[b] .. first[b]+n-1 of the file for each b, concatenated: one pread a block, rows
-    outside 0 .. n_rows-1 read as pad_row."""
-    pread = os.pread
-    size = n * row_bytes
+# Blocks closer than this share one pread: a random read of up to ~2 KB costs about what one of
+# 100 bytes does (2-4 us here, mostly the page-cache lookup), one of 8 KB twice that.
+MERGE_GAP_BYTES = 2048
+
+
+def pread_runs(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, gap: int,
+               pad_row: bytes) -> tuple[bytes, np.ndarray]:
+    """Rows first[b] .. first[b]+n-1 of the file for each b (`first` ascending), read as runs:
+    blocks whose start is at most n + gap rows after the previous block's start share one pread
+    of the rows from the run's first block to its last block's end. Returns the runs' rows
+    concatenated (rows outside 0 .. n_rows-1 read as pad_row) and the row where each block
+    starts in them."""
     if len(first) == 0:
-        return b""
-    if int(first.min()) >= 0 and int(first.max()) + n <= n_rows:  # the usual case: no block at an end
-        return b"".join([pread(fd, size, off) for off in (first * row_bytes).tolist()])
+        return b"", np.empty(0, dtype=np.int64)
+    new_run = np.empty(len(first), dtype=bool)
+    new_run[0] = True
+    np.greater(np.diff(first), n + gap, out=new_run[1:])
+    heads = np.flatnonzero(new_run)
+    run_lo = first[heads]
+    run_hi = first[np.r_[heads[1:], len(first)] - 1] + n
+    lengths = run_hi - run_lo
+    # where each run starts in the concatenation, then each block's row within its run
+    run_at = np.zeros(len(heads), dtype=np.int64)
+    np.cumsum(lengths[:-1], out=run_at[1:])
+    run_of = np.cumsum(new_run) - 1
+    at = run_at[run_of] + (first - run_lo[run_of])
+    pread = os.pread
+    if int(run_lo[0]) >= 0 and int(run_hi[-1]) <= n_rows:  # the usual case: no block at an end
+        offs, sizes = (run_lo * row_bytes).tolist(), (lengths * row_bytes).tolist()
+        return b"".join([pread(fd, size, off) for size, off in zip(sizes, offs, strict=True)]), at
     parts = []
-    for f in first.tolist():
-        lo, hi = max(f, 0), min(f + n, n_rows)
+    for f, e in zip(run_lo.tolist(), run_hi.tolist(), strict=True):
+        lo, hi = max(f, 0), min(e, n_rows)
         data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
-        if lo > f or f + n > hi:
-            data = pad_row * (min(lo, f + n) - f) + data + pad_row * (f + n - max(hi, f))
+        if lo > f or e > hi:
+            data = pad_row * (min(lo, e) - f) + data + pad_row * (e - max(hi, f))
         parts.append(data)
-    return b"".join(parts)
+    return b"".join(parts), at
 
 
 def pread_rows(fd: int, arr: np.ndarray, j: np.ndarray) -> np.ndarray:
