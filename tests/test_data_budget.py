@@ -76,11 +76,11 @@ def test_a_resumed_loader_in_read_mode_continues_with_the_mappings_batches(cache
     spec = window_spec("mid", horizons_s=(0.5,))
     whole = WindowLoader(mapped, AnchorSampler(mapped, 16, seed=2, split="all", anchors_per_block=4), spec)
     expected = [next(whole) for _ in range(40)]
-    first = AnchorSampler(split, 16, seed=2, split="all")  # read mode: 4 anchors a block by default
+    first = AnchorSampler(split, 16, seed=2, split="all", anchors_per_block=4)
     loader = WindowLoader(split, first, spec)
     for _ in range(23):
         next(loader)
-    resumed = AnchorSampler(split, 16, seed=2, split="all")
+    resumed = AnchorSampler(split, 16, seed=2, split="all", anchors_per_block=4)
     resumed.load_state_dict(first.state_dict())
     again = WindowLoader(split, resumed, spec)
     for b in range(23, 40):
@@ -90,9 +90,8 @@ def test_a_resumed_loader_in_read_mode_continues_with_the_mappings_batches(cache
 def test_anchors_of_one_block_share_a_read(cache_dir, monkeypatch):
     mapped = open_cache(cache_dir)
     cache = open_cache(cache_dir, resident_budget_mb=_budgets(mapped.n_steps)["nothing"][0])  # t and steps: pread
-    sampler = AnchorSampler(cache, 32, seed=4, split="all")
-    assert sampler.anchor_group[0] == 4  # the default past the budget, validation's excepted
-    assert AnchorSampler(cache, 32, split="val").anchor_group == (1, 1)
+    sampler = AnchorSampler(cache, 32, seed=4, split="all", anchors_per_block=4)
+    assert AnchorSampler(cache, 32, seed=4, split="all").anchor_group == (1, 1)  # opt-in, also past the budget
     spec = window_spec("fast")
     for c in (cache, mapped):  # the block length is computed once, with reads of its own
         make_windows(c, sampler.batch(0), spec)

@@ -126,8 +126,8 @@ def test_min_history_and_horizon_restrict_anchors(mixed):
 
 
 def _block_of(sampler, anchors):
-    """Block index (of the pool's consecutive steps) of each anchor, and the pool's block rows."""
-    k, rows = sampler.anchor_group
+    """Block index (of the pool's consecutive steps) of each anchor."""
+    rows = sampler.anchor_group[1]
     return np.searchsorted(sampler.real.steps, anchors) // rows
 
 
@@ -135,7 +135,7 @@ def test_anchors_by_block_are_an_exact_permutation_whose_batches_share_blocks(mi
     s = AnchorSampler(mixed, 64, seed=5, split="all", anchors_per_block=4)
     k, rows = s.anchor_group
     assert k == 4 and rows % 4 == 0 and rows > 4
-    assert AnchorSampler(mixed, 64, seed=5, split="all").anchor_group == (1, 1)  # mapped: alone, as before
+    assert AnchorSampler(mixed, 64, seed=5, split="all").anchor_group == (1, 1)  # the default: anchors alone
     n = s.anchors_per_epoch
     drawn = [s.next_batch() for _ in range(-(-n // 64))]
     within_epoch = np.concatenate(drawn[:-1])  # the last batch reaches into the next epoch
@@ -150,22 +150,18 @@ def test_anchors_by_block_are_an_exact_permutation_whose_batches_share_blocks(mi
     assert not np.array_equal(other.batch(0), drawn[0])
 
 
-def test_a_default_sampler_resumes_the_grouping_its_state_was_drawn_with(mixed):
+def test_a_grouped_sampler_resumes_exactly_and_a_state_of_another_grouping_is_refused(mixed):
     grouped = AnchorSampler(mixed, 32, seed=3, anchors_per_block=4)
     for _ in range(5):
         grouped.next_batch()
     state = json.loads(json.dumps(grouped.state_dict()))
     assert state["anchor_group"] == list(grouped.anchor_group)
-    resumed = AnchorSampler(mixed, 32, seed=3)  # mapped cache: would draw anchors alone
+    resumed = AnchorSampler(mixed, 32, seed=3, anchors_per_block=4)
     resumed.load_state_dict(state)
-    assert resumed.anchor_group == grouped.anchor_group
-    assert np.array_equal(resumed.next_batch(), grouped.next_batch())
-    # a state saved before grouping existed (no key) resumes anchors alone in a grouping default
-    alone = AnchorSampler(mixed, 32, seed=3)
-    old_state = {key: v for key, v in alone.state_dict().items() if key != "anchor_group"}
-    default = AnchorSampler(mixed, 32, seed=3)
-    default.real.set_group((4, 8))  # as a sampler of a cache read past its budget starts
-    default.load_state_dict(old_state)
-    assert default.anchor_group == (1, 1) and np.array_equal(default.batch(9), alone.batch(9))
-    with pytest.raises(ValueError, match="anchor_group"):  # asked for explicitly: a mismatch is refused
-        AnchorSampler(mixed, 32, seed=3, anchors_per_block=1).load_state_dict(state)
+    assert all(np.array_equal(resumed.next_batch(), grouped.next_batch()) for _ in range(3))
+    with pytest.raises(ValueError, match=r"anchor_group was \[4, \d+\], now \[1, 1\]"):
+        AnchorSampler(mixed, 32, seed=3).load_state_dict(state)
+    alone = AnchorSampler(mixed, 32, seed=3).state_dict()
+    assert "anchor_group" not in alone  # a state from before grouping existed still matches
+    with pytest.raises(ValueError, match="anchor_group was \\[1, 1\\]"):
+        AnchorSampler(mixed, 32, seed=3, anchors_per_block=4).load_state_dict(alone)

@@ -8,16 +8,16 @@ position is its cursor, and `state_dict()`/`load_state_dict()` carry it in a che
 Each pool is an int32 array of its eligible step indices plus one shuffled copy per epoch, 8 bytes
 per step in all; the sampler never touches the dataset itself.
 
-Anchors by block (`anchors_per_block` k > 1; by default 4 when the cache is read past its
-resident budget, DatasetCache's "read" mode, except for the "val" split; 1 otherwise): the pool is
-cut into blocks of consecutive eligible steps, as many as one cheap read of the cache covers
-(row_access.MERGE_GAP_BYTES of step rows: 16 steps of 26 floats), and each epoch is still a
-permutation of the pool, drawn so that each run of k positions comes from one block (each block's
-steps shuffled and cut into k-tuples, the tuples shuffled). So every anchor is still drawn once an
-epoch; what changes is that a batch of 64 holds 16 blocks of 4 nearby anchors instead of 64
-independent ones, and the reader fetches each block with one pread instead of four. The state
-records the grouping; a sampler that chose it by default takes the state's on resume, so a
-checkpoint saved with the other grouping (or before grouping existed) resumes exactly.
+Anchors by block (`anchors_per_block` k > 1, opt-in; the default 1 draws every anchor on its
+own): the pool is cut into blocks of consecutive eligible steps, as many as one cheap read of the
+cache covers (row_access.MERGE_GAP_BYTES of step rows: 16 steps of 26 floats), and each epoch is
+still a permutation of the pool, drawn so that each run of k positions comes from one block (each
+block's steps shuffled and cut into k-tuples, the tuples shuffled). So every anchor is still drawn
+once an epoch, but a batch of 64 holds 16 blocks of 4 nearby anchors instead of 64 independent
+ones, and a cache read past its resident budget fetches each block with one pread instead of
+four (1.6-1.8x the batches/s there). Not the default: at equal steps it trained a fast_loop to a
+12-17% higher validation loss (docs/benchmarks.md), and a training step costs ~100x a batch's
+reads. The state records the grouping; a state of another grouping is refused.
 
 exclude_play drops play episodes (unlabeled exploration, dataset_cache.is_play_episode) from both
 pools: a component that clones the recorded actions (the fast_loop) must never see them as targets.
@@ -98,11 +98,6 @@ class _Pool:
         self.group = group
         self._epochs: OrderedDict[int, np.ndarray] = OrderedDict()
 
-    def set_group(self, group: tuple[int, int]) -> None:
-        if group != self.group:
-            self.group = group
-            self._epochs.clear()
-
     def _order(self, epoch: int) -> np.ndarray:
         if not self.shuffle:
             return self.steps
@@ -146,18 +141,11 @@ def _grouped_order(steps: np.ndarray, k: int, block_rows: int, rng: np.random.Ge
     return np.concatenate([tuples[rng.permutation(len(tuples))].reshape(-1), tail[cut:]])
 
 
-# k anchors a block when the cache is read past its budget: a quarter of the reads (the profile in
-# docs/benchmarks.md), while a batch of 64 still spans 16 places of the data. Not for the "val"
-# split: a validation mean over grouped anchors is noisier for the same batches, and it is no
-# hot loop.
-BLOCK_ANCHORS_READ_MODE = 4
-
-
 class AnchorSampler:
     def __init__(self, cache: DatasetCache, batch_size: int, seed: int = 0, imagined_ratio: float = 0.0,
                  split: str = "train", val_fraction: float = 0.1, min_history_s: float = 0.0,
                  horizon_s: float = 0.0, shuffle: bool = True, exclude_play: bool = False,
-                 anchors_per_block: int | None = None):
+                 anchors_per_block: int = 1):
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size={batch_size!r} must be a positive integer")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -168,10 +156,8 @@ class AnchorSampler:
             raise ValueError(f"val_fraction={val_fraction!r} must be within [0, 1)")
         if min_history_s < 0 or horizon_s < 0:
             raise ValueError("min_history_s and horizon_s must be >= 0")
-        if anchors_per_block is not None and (isinstance(anchors_per_block, bool)
-                                              or not isinstance(anchors_per_block, int) or anchors_per_block < 1):
-            raise ValueError(f"anchors_per_block={anchors_per_block!r} must be a positive integer (or None: "
-                             "the default of the cache's access mode)")
+        if isinstance(anchors_per_block, bool) or not isinstance(anchors_per_block, int) or anchors_per_block < 1:
+            raise ValueError(f"anchors_per_block={anchors_per_block!r} must be a positive integer")
         self.cache = cache
         self.batch_size = batch_size
         self.seed = seed
@@ -196,9 +182,7 @@ class AnchorSampler:
         starts, lengths = self._eligible(episodes)
         flags = cache.imagined[episodes]
         key = [seed, SPLITS[split]]
-        self._group_by_default = anchors_per_block is None
-        group = _block_group(cache, anchors_per_block if anchors_per_block is not None
-                             else BLOCK_ANCHORS_READ_MODE if cache.mode == "read" and split != "val" else 1)
+        group = _block_group(cache, anchors_per_block)
         self.real = _Pool(starts[~flags], lengths[~flags], key + [0], shuffle, group)
         self.imagined = _Pool(starts[flags], lengths[flags], key + [1], shuffle, group)
         n_imag_eps = int(flags.sum())
@@ -276,9 +260,6 @@ class AnchorSampler:
         if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
             raise ValueError(f"not a sampler state (format {STATE_FORMAT!r} expected)")
         saved = state.get("anchor_group", [1, 1])  # a state without it drew every anchor on its own
-        if self._group_by_default and _valid_group(saved):
-            for pool in (self.real, self.imagined):
-                pool.set_group((saved[0], saved[1]))
         if saved != list(self.anchor_group):
             raise ValueError(f"sampler state does not match this sampler: anchor_group was {saved!r}, "
                              f"now {list(self.anchor_group)!r} (anchors_per_block, block rows)")
@@ -304,8 +285,3 @@ def _group_entry(group: tuple[int, int]) -> dict:
     # only when grouped: a state saved before grouping existed has no such key and still matches
     return {} if group[0] == 1 else {"anchor_group": list(group)}
 
-
-def _valid_group(value) -> bool:
-    return (isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                                 and v >= 1 for v in value)
-            and value[1] % value[0] == 0)
