@@ -58,9 +58,10 @@ def test_every_split_of_the_budget_reads_the_windows_the_mapping_reads(cache_dir
     edges = np.unique(np.clip(np.r_[0, 1, 2, n - 2, n - 1, np.arange(x_rows - 8, x_rows + 8),
                                     np.arange(t_rows - 8, t_rows + 8)], 0, n - 1))
     # blocks of t hanging over either end read the pad, as the mapping's do
-    first = np.r_[-7, -1, 0, n - 9, n - 3, t_rows - 4, x_rows - 4]
-    for pad in (-np.inf, np.inf):
-        assert np.array_equal(split.t_block(first, 9, pad), mapped.t_block(first, 9, pad))
+    for first in (np.r_[-7, -1, 0, n - 9, n - 3, t_rows - 4, x_rows - 4],  # blocks near each other share reads
+                  np.r_[-7, n // 2, n - 3]):  # blocks far apart: one read each
+        for pad in (-np.inf, np.inf):
+            assert np.array_equal(split.t_block(first, 9, pad), mapped.t_block(first, 9, pad))
     for spec in SPECS:
         _assert_same(make_windows(mapped, edges, spec), make_windows(split, edges, spec), (spec.scale, "edges"))
         for k in (1, 4):  # anchors drawn alone and by block (runs of blocks share a read)

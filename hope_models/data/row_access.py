@@ -120,30 +120,51 @@ def pread_runs(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, 
     starts in them."""
     if len(first) == 0:
         return b"", np.empty(0, dtype=np.int64)
-    new_run = np.empty(len(first), dtype=bool)
-    new_run[0] = True
-    np.greater(np.diff(first), n + gap, out=new_run[1:])
-    heads = np.flatnonzero(new_run)
-    run_lo = first[heads]
-    run_hi = first[np.r_[heads[1:], len(first)] - 1] + n
-    lengths = run_hi - run_lo
-    # where each run starts in the concatenation, then each block's row within its run
-    run_at = np.zeros(len(heads), dtype=np.int64)
-    np.cumsum(lengths[:-1], out=run_at[1:])
-    run_of = np.cumsum(new_run) - 1
-    at = run_at[run_of] + (first - run_lo[run_of])
-    pread = os.pread
-    if int(run_lo[0]) >= 0 and int(run_hi[-1]) <= n_rows:  # the usual case: no block at an end
-        offs, sizes = (run_lo * row_bytes).tolist(), (lengths * row_bytes).tolist()
-        return b"".join([pread(fd, size, off) for size, off in zip(sizes, offs, strict=True)]), at
+    d = np.diff(first)
+    apart = d > n + gap
+    if np.count_nonzero(apart) * 8 >= 7 * len(d):
+        # few blocks to share a read (independent anchors): working out the runs would cost more
+        # than the reads it saves
+        return pread_blocks(fd, row_bytes, n_rows, first, n, pad_row), np.arange(0, len(first) * n, n)
+    # each block starts where the previous one did plus the rows between them (same run) or n
+    at = np.zeros(len(first), dtype=np.int64)
+    np.cumsum(np.where(apart, n, d), out=at[1:])
+    heads = np.flatnonzero(apart)
+    heads += 1
+    heads = np.concatenate(([0], heads))
+    lo = first[heads]
+    rows = np.diff(at[heads], append=at[-1] + n)
+    if int(lo[0]) >= 0 and int(first[-1]) + n <= n_rows:  # the usual case: no block at an end
+        pread = os.pread
+        return b"".join([pread(fd, size, off) for size, off in zip((rows * row_bytes).tolist(),
+                                                                   (lo * row_bytes).tolist(), strict=True)]), at
     parts = []
-    for f, e in zip(run_lo.tolist(), run_hi.tolist(), strict=True):
-        lo, hi = max(f, 0), min(e, n_rows)
-        data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
-        if lo > f or e > hi:
-            data = pad_row * (min(lo, e) - f) + data + pad_row * (e - max(hi, f))
+    for f, e in zip(lo.tolist(), (lo + rows).tolist(), strict=True):
+        a, b = max(f, 0), min(e, n_rows)
+        data = os.pread(fd, (b - a) * row_bytes, a * row_bytes) if b > a else b""
+        if a > f or e > b:
+            data = pad_row * (min(a, e) - f) + data + pad_row * (e - max(b, f))
         parts.append(data)
     return b"".join(parts), at
+
+
+def pread_blocks(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, pad_row: bytes) -> bytes:
+    """Rows first[b] .. first[b]+n-1 of the file for each b, concatenated: one pread a block, rows
+    outside 0 .. n_rows-1 read as pad_row."""
+    pread = os.pread
+    size = n * row_bytes
+    if len(first) == 0:
+        return b""
+    if int(first.min()) >= 0 and int(first.max()) + n <= n_rows:  # the usual case: no block at an end
+        return b"".join([pread(fd, size, off) for off in (first * row_bytes).tolist()])
+    parts = []
+    for f in first.tolist():
+        lo, hi = max(f, 0), min(f + n, n_rows)
+        data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
+        if lo > f or f + n > hi:
+            data = pad_row * (min(lo, f + n) - f) + data + pad_row * (f + n - max(hi, f))
+        parts.append(data)
+    return b"".join(parts)
 
 
 def pread_rows(fd: int, arr: np.ndarray, j: np.ndarray) -> np.ndarray:
