@@ -7,9 +7,10 @@ values are the same either way. Mapping the head rather than caching hot rows ke
 free of state: which rows come from where depends on the budget only, never on what was read.
 
 The pread side pays one system call per anchor's block (a random read through the page cache,
-1-4 microseconds), or one per run of blocks that lie within MERGE_GAP_BYTES of each other (the
-sampler's anchors by block, sampler.py, make such runs), so the budget buys speed in proportion
-to the rows it maps, and grouped anchors in proportion to the reads they share.
+2-4 microseconds whatever its size up to a few KB), or, when most of a call's blocks lie within
+MERGE_GAP_BYTES of each other (the sampler's opt-in anchors by block make them so), one per run
+of such blocks. So the budget buys speed in proportion to the rows it maps, and grouped anchors
+in proportion to the reads they share.
 """
 from __future__ import annotations
 
@@ -115,9 +116,9 @@ def pread_runs(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, 
                pad_row: bytes) -> tuple[bytes, np.ndarray]:
     """Rows first[b] .. first[b]+n-1 of the file for each b (`first` ascending), read as runs:
     blocks whose start is at most n + gap rows after the previous block's start share one pread
-    of the rows from the run's first block to its last block's end. Returns the runs' rows
-    concatenated (rows outside 0 .. n_rows-1 read as pad_row) and the row where each block
-    starts in them."""
+    of the rows from the run's first block to its last block's end (when at least an eighth of
+    the blocks do; else one pread a block). Returns the runs' rows concatenated (rows outside
+    0 .. n_rows-1 read as pad_row) and the row where each block starts in them."""
     if len(first) == 0:
         return b"", np.empty(0, dtype=np.int64)
     d = np.diff(first)

@@ -15,9 +15,9 @@ still a permutation of the pool, drawn so that each run of k positions comes fro
 block's steps shuffled and cut into k-tuples, the tuples shuffled). So every anchor is still drawn
 once an epoch, but a batch of 64 holds 16 blocks of 4 nearby anchors instead of 64 independent
 ones, and a cache read past its resident budget fetches each block with one pread instead of
-four (1.6-1.8x the batches/s there). Not the default: at equal steps it trained a fast_loop to a
-12-17% higher validation loss (docs/benchmarks.md), and a training step costs ~100x a batch's
-reads. The state records the grouping; a state of another grouping is refused.
+four (1.4-1.8x the batches/s there). Not the default: at equal steps it trained a fast_loop to a
+7-17% higher validation loss (docs/benchmarks.md), and a fast_loop step costs 100-200x the
+sampling of its batch. The state records the grouping; a state of another grouping is refused.
 
 exclude_play drops play episodes (unlabeled exploration, dataset_cache.is_play_episode) from both
 pools: a component that clones the recorded actions (the fast_loop) must never see them as targets.
