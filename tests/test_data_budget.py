@@ -3,6 +3,7 @@ read with pread; the windows are the mapping's, and the mapped pages stay within
 from __future__ import annotations
 
 import mmap
+import os
 from pathlib import Path
 
 import numpy as np
@@ -57,31 +58,53 @@ def test_every_split_of_the_budget_reads_the_windows_the_mapping_reads(cache_dir
     edges = np.unique(np.clip(np.r_[0, 1, 2, n - 2, n - 1, np.arange(x_rows - 8, x_rows + 8),
                                     np.arange(t_rows - 8, t_rows + 8)], 0, n - 1))
     # blocks of t hanging over either end read the pad, as the mapping's do
-    first = np.r_[-7, -1, 0, n - 9, n - 3, t_rows - 4, x_rows - 4]
-    for pad in (-np.inf, np.inf):
-        assert np.array_equal(split.t_block(first, 9, pad), mapped.t_block(first, 9, pad))
+    for first in (np.r_[-7, -1, 0, n - 9, n - 3, t_rows - 4, x_rows - 4],  # blocks near each other share reads
+                  np.r_[-7, n // 2, n - 3]):  # blocks far apart: one read each
+        for pad in (-np.inf, np.inf):
+            assert np.array_equal(split.t_block(first, 9, pad), mapped.t_block(first, 9, pad))
     for spec in SPECS:
         _assert_same(make_windows(mapped, edges, spec), make_windows(split, edges, spec), (spec.scale, "edges"))
-        loaders = [WindowLoader(c, AnchorSampler(c, 32, seed=7, split="all"), spec, chunk=4) for c in (mapped, split)]
-        for b in range(12):
-            _assert_same(next(loaders[0]), next(loaders[1]), (spec.scale, b))
+        for k in (1, 4):  # anchors drawn alone and by block (runs of blocks share a read)
+            loaders = [WindowLoader(c, AnchorSampler(c, 32, seed=7, split="all", anchors_per_block=k), spec, chunk=4)
+                       for c in (mapped, split)]
+            for b in range(6):
+                _assert_same(next(loaders[0]), next(loaders[1]), (spec.scale, k, b))
 
 
 def test_a_resumed_loader_in_read_mode_continues_with_the_mappings_batches(cache_dir):
     mapped = open_cache(cache_dir)
     split = open_cache(cache_dir, resident_budget_mb=_budgets(mapped.n_steps)["t and part of steps"][0])
     spec = window_spec("mid", horizons_s=(0.5,))
-    whole = WindowLoader(mapped, AnchorSampler(mapped, 16, seed=2, split="all"), spec)
+    whole = WindowLoader(mapped, AnchorSampler(mapped, 16, seed=2, split="all", anchors_per_block=4), spec)
     expected = [next(whole) for _ in range(40)]
-    first = AnchorSampler(split, 16, seed=2, split="all")
+    first = AnchorSampler(split, 16, seed=2, split="all", anchors_per_block=4)
     loader = WindowLoader(split, first, spec)
     for _ in range(23):
         next(loader)
-    resumed = AnchorSampler(split, 16, seed=2, split="all")
+    resumed = AnchorSampler(split, 16, seed=2, split="all", anchors_per_block=4)
     resumed.load_state_dict(first.state_dict())
     again = WindowLoader(split, resumed, spec)
     for b in range(23, 40):
         _assert_same(expected[b], next(again), b)
+
+
+def test_anchors_of_one_block_share_a_read(cache_dir, monkeypatch):
+    mapped = open_cache(cache_dir)
+    cache = open_cache(cache_dir, resident_budget_mb=_budgets(mapped.n_steps)["nothing"][0])  # t and steps: pread
+    sampler = AnchorSampler(cache, 32, seed=4, split="all", anchors_per_block=4)
+    assert AnchorSampler(cache, 32, seed=4, split="all").anchor_group == (1, 1)  # opt-in, also past the budget
+    spec = window_spec("fast")
+    for c in (cache, mapped):  # the block length is computed once, with reads of its own
+        make_windows(c, sampler.batch(0), spec)
+    reads = []
+    real_pread = os.pread
+    monkeypatch.setattr(os, "pread", lambda fd, size, off: reads.append(size) or real_pread(fd, size, off))
+    for b in range(1, 4):
+        anchors = sampler.batch(b)
+        blocks = len(np.unique(np.searchsorted(sampler.real.steps, anchors) // sampler.anchor_group[1]))
+        reads.clear()
+        _assert_same(make_windows(cache, anchors, spec), make_windows(mapped, anchors, spec), b)
+        assert blocks <= 8 and len(reads) <= 2 * blocks  # one read of t and one of steps a block, not an anchor
 
 
 def _mapped_rss(cache_dir: Path) -> int:

@@ -9,7 +9,11 @@ import pytest
 
 from hope_models.data.cache import load_or_build
 from hope_models.data.sampler import (
-    MIN_VAL_EPISODES, AnchorSampler, is_validation_episode, split_episodes, validation_mask,
+    MIN_VAL_EPISODES,
+    AnchorSampler,
+    is_validation_episode,
+    split_episodes,
+    validation_mask,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -119,3 +123,45 @@ def test_min_history_and_horizon_restrict_anchors(mixed):
     ep = mixed.episode_of(a)
     assert (mixed.t[a] >= 1.0 - 1e-9).all()
     assert (mixed.t[a] <= mixed.durations[ep] - 0.5 + 1e-9).all()
+
+
+def _block_of(sampler, anchors):
+    """Block index (of the pool's consecutive steps) of each anchor."""
+    rows = sampler.anchor_group[1]
+    return np.searchsorted(sampler.real.steps, anchors) // rows
+
+
+def test_anchors_by_block_are_an_exact_permutation_whose_batches_share_blocks(mixed):
+    s = AnchorSampler(mixed, 64, seed=5, split="all", anchors_per_block=4)
+    k, rows = s.anchor_group
+    assert k == 4 and rows % 4 == 0 and rows > 4
+    assert AnchorSampler(mixed, 64, seed=5, split="all").anchor_group == (1, 1)  # the default: anchors alone
+    n = s.anchors_per_epoch
+    drawn = [s.next_batch() for _ in range(-(-n // 64))]
+    within_epoch = np.concatenate(drawn[:-1])  # the last batch reaches into the next epoch
+    assert len(np.unique(within_epoch)) == len(within_epoch)  # no anchor twice an epoch
+    assert np.array_equal(np.unique(np.concatenate(drawn)), s.real.steps)  # every anchor, every block
+    for b in drawn[:-1]:  # the last batch holds the one short tuple and reaches into the next epoch
+        _, counts = np.unique(_block_of(s, b), return_counts=True)
+        assert (counts % 4 == 0).all()  # 4 anchors a block (8 when two of its tuples land in one batch)
+    again = AnchorSampler(mixed, 64, seed=5, split="all", anchors_per_block=4)
+    assert all(np.array_equal(again.batch(i), drawn[i]) for i in (0, 7, len(drawn) - 1))
+    other = AnchorSampler(mixed, 64, seed=6, split="all", anchors_per_block=4)
+    assert not np.array_equal(other.batch(0), drawn[0])
+
+
+def test_a_grouped_sampler_resumes_exactly_and_a_state_of_another_grouping_is_refused(mixed):
+    grouped = AnchorSampler(mixed, 32, seed=3, anchors_per_block=4)
+    for _ in range(5):
+        grouped.next_batch()
+    state = json.loads(json.dumps(grouped.state_dict()))
+    assert state["anchor_group"] == list(grouped.anchor_group)
+    resumed = AnchorSampler(mixed, 32, seed=3, anchors_per_block=4)
+    resumed.load_state_dict(state)
+    assert all(np.array_equal(resumed.next_batch(), grouped.next_batch()) for _ in range(3))
+    with pytest.raises(ValueError, match=r"anchor_group was \[4, \d+\], now \[1, 1\]"):
+        AnchorSampler(mixed, 32, seed=3).load_state_dict(state)
+    alone = AnchorSampler(mixed, 32, seed=3).state_dict()
+    assert "anchor_group" not in alone  # a state from before grouping existed still matches
+    with pytest.raises(ValueError, match="anchor_group was \\[1, 1\\]"):
+        AnchorSampler(mixed, 32, seed=3, anchors_per_block=4).load_state_dict(alone)
