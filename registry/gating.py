@@ -324,7 +324,6 @@ def describe_finished(entry: dict[str, Any], *, who: str = "auto-promote") -> tu
     return "info", f"{head}: passed: {after.get('detail')}"
 
 
-
 def describe_outcome(code: int | None, outcome: dict[str, Any] | None, problem: str | None = None, *,
                      who: str = "auto-promote") -> tuple[str, str]:
     """(level, message) of a finished gate for the run's log, said by `who`; `problem` says why there

@@ -134,36 +134,33 @@ def pread_runs(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, 
     heads += 1
     heads = np.concatenate(([0], heads))
     lo = first[heads]
-    rows = np.diff(at[heads], append=at[-1] + n)
-    if int(lo[0]) >= 0 and int(first[-1]) + n <= n_rows:  # the usual case: no block at an end
-        pread = os.pread
-        return b"".join([pread(fd, size, off) for size, off in zip((rows * row_bytes).tolist(),
-                                                                   (lo * row_bytes).tolist(), strict=True)]), at
-    parts = []
-    for f, e in zip(lo.tolist(), (lo + rows).tolist(), strict=True):
-        a, b = max(f, 0), min(e, n_rows)
-        data = os.pread(fd, (b - a) * row_bytes, a * row_bytes) if b > a else b""
-        if a > f or e > b:
-            data = pad_row * (min(a, e) - f) + data + pad_row * (e - max(b, f))
-        parts.append(data)
-    return b"".join(parts), at
+    return _read_spans(fd, row_bytes, n_rows, lo, np.diff(at[heads], append=at[-1] + n), pad_row), at
 
 
 def pread_blocks(fd: int, row_bytes: int, n_rows: int, first: np.ndarray, n: int, pad_row: bytes) -> bytes:
     """Rows first[b] .. first[b]+n-1 of the file for each b, concatenated: one pread a block, rows
     outside 0 .. n_rows-1 read as pad_row."""
-    pread = os.pread
-    size = n * row_bytes
     if len(first) == 0:
         return b""
     if int(first.min()) >= 0 and int(first.max()) + n <= n_rows:  # the usual case: no block at an end
+        pread, size = os.pread, n * row_bytes
         return b"".join([pread(fd, size, off) for off in (first * row_bytes).tolist()])
+    return _read_spans(fd, row_bytes, n_rows, first, np.full(len(first), n), pad_row)
+
+
+def _read_spans(fd: int, row_bytes: int, n_rows: int, lo: np.ndarray, rows: np.ndarray, pad_row: bytes) -> bytes:
+    """Rows lo[i] .. lo[i]+rows[i]-1 of the file for each i, concatenated, one pread a span; rows
+    outside 0 .. n_rows-1 read as pad_row."""
+    pread = os.pread
+    if int(lo.min()) >= 0 and int((lo + rows).max()) <= n_rows:  # the usual case: no span at an end
+        return b"".join([pread(fd, size, off) for size, off in zip((rows * row_bytes).tolist(),
+                                                                   (lo * row_bytes).tolist(), strict=True)])
     parts = []
-    for f in first.tolist():
-        lo, hi = max(f, 0), min(f + n, n_rows)
-        data = pread(fd, (hi - lo) * row_bytes, lo * row_bytes) if hi > lo else b""
-        if lo > f or f + n > hi:
-            data = pad_row * (min(lo, f + n) - f) + data + pad_row * (f + n - max(hi, f))
+    for f, e in zip(lo.tolist(), (lo + rows).tolist(), strict=True):
+        a, b = max(f, 0), min(e, n_rows)
+        data = pread(fd, (b - a) * row_bytes, a * row_bytes) if b > a else b""
+        if a > f or e > b:
+            data = pad_row * (min(a, e) - f) + data + pad_row * (e - max(b, f))
         parts.append(data)
     return b"".join(parts)
 

@@ -284,4 +284,3 @@ def _block_group(cache: DatasetCache, k: int) -> tuple[int, int]:
 def _group_entry(group: tuple[int, int]) -> dict:
     # only when grouped: a state saved before grouping existed has no such key and still matches
     return {} if group[0] == 1 else {"anchor_group": list(group)}
-

@@ -16,6 +16,14 @@ PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
 DEFERRED = "deferred"
 
 
+def use_threads(threads: int | None) -> None:
+    """torch's thread count for a check (None: as it is)."""
+    if threads is not None:
+        import torch  # lazy: loads torch
+
+        torch.set_num_threads(threads)
+
+
 class GateError(ValueError):
     """The candidate cannot be gated at all (not a complete checkpoint, an unreadable config);
     the message names the path. A gate that ran and said no is a GateResult, not this."""

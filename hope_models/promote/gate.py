@@ -65,6 +65,7 @@ from hope_models.promote.checks import (
     non_finite_tensors,
     read_config,
     resolve_candidate,
+    use_threads,
 )
 from hope_models.promote.reflex_check import has_reflex, reflex_check, reflex_verdict, sim_task
 from hope_models.train.contract import TrainSetupError
@@ -181,10 +182,7 @@ def gate_candidate(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
     reflex_after_serving: the reflex check is not run here but recorded as deferred, its task in
     metrics["reflex"]; the caller serves the candidate, then runs reflex_verdict(). threads: torch's
     thread count for the gate (None: as it is)."""
-    if threads is not None:
-        import torch  # lazy: loads torch
-
-        torch.set_num_threads(threads)
+    use_threads(threads)
     gate = Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
     cand_cfg = read_config(cand_dir)

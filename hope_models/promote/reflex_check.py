@@ -16,6 +16,7 @@ from hope_models.promote.checks import (
     GateResult,
     load_component,
     resolve_candidate,
+    use_threads,
 )
 from hope_models.promote.reflex_policy import SIM_ACTION, SIM_OBSERVATION, ReflexPolicy, ReflexPolicyError, check_spec
 from hope_models.sim.evaluate import evaluate_policy
@@ -49,10 +50,7 @@ def reflex_verdict(candidate_ckpt: str | Path, promoted_ckpt: str | Path | None,
     """The deferred reflex check of a served candidate against the model it replaced (None: none
     to compare with, the candidate's return is only measured); GateError when the candidate cannot be read.
     threads: torch's thread count for the check (None: as it is)."""
-    if threads is not None:
-        import torch  # lazy: loads torch
-
-        torch.set_num_threads(threads)
+    use_threads(threads)
     gate = Gate(settings)
     cand_dir = resolve_candidate(candidate_ckpt)
     cand = load_component(cand_dir)

@@ -34,6 +34,11 @@ def raw_frame(path: Path, height: int, width: int) -> dict[str, Any]:
     return {"encoding": "raw", "shape": list(pixels.shape), "data": base64.b64encode(pixels.tobytes()).decode()}
 
 
+def _not_serving_yet(answer: dict[str, Any]) -> bool:
+    """The robot's port answered that it serves no promoted model yet (HTTP 503): it may a moment later."""
+    return str(answer.get("error", "")).startswith("HTTP 503")
+
+
 class ClosureSteps:
     # what Demo (session.py) provides; annotations only, nothing is set here
     serve: Any
@@ -69,8 +74,7 @@ class ClosureSteps:
         # The robot's port is another process with its own BrainService: it follows the pointer on
         # its own poll, so it may answer with nothing or the previous version for a moment.
         inf = self.infer_over_http()
-        if str(inf.get("error", "")).startswith("HTTP 503") or (
-                not inf.get("error") and inf.get("model_version") != gate["version"]):
+        if _not_serving_yet(inf) or (not inf.get("error") and inf.get("model_version") != gate["version"]):
             self.door_answer = inf
             return False
         if display is not None:
@@ -136,7 +140,7 @@ class ClosureSteps:
             answer = self._post_infer({"component": ACTOR, **observations[0][0], "session": "demo-brain", "reset": True})
             if not answer.get("error") and all((answer.get("versions") or {}).get(c) == v for c, v in want.items()):
                 break
-            if not str(answer.get("error", "")).startswith("HTTP 503") and answer.get("error"):
+            if answer.get("error") and not _not_serving_yet(answer):
                 return answer
             if time.monotonic() > deadline:
                 return {"error": f"the robot's port does not answer with the promoted {want} after {SERVE_WAIT_S:.0f} s: "
